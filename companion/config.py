@@ -1,0 +1,270 @@
+"""The root configuration: every stage's model composed into one, read from YAML.
+
+``CompanionConfig()`` *is* the embedded default; ``config/default.yaml`` spells it out and a
+test keeps the two equal. A file may give only the keys it changes. Errors name the file, the
+key path and what is allowed, e.g.::
+
+    config/drone.yaml: map.resolution_m: must be > 0 (got -0.05)
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import Field, ValidationError, field_validator, model_validator
+
+from planner.config import PlannerConfig
+from semmap.config import (
+    CameraConfig,
+    ClassConfig,
+    DetectorConfig,
+    GeometryConfig,
+    MapConfig,
+    StageConfig,
+    TrackerConfig,
+    default_classes,
+)
+from semmap.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+class LinkConfig(StageConfig):
+    """The MAVLink link to the autopilot."""
+
+    #: MAVSDK-style URL: udpin://host:port, udpout://host:port, tcp://host:port,
+    #: serial:///dev/ttyX:baud.
+    url: str = "udpin://0.0.0.0:14540"
+    #: Our identity: the vehicle's system id and MAV_COMP_ID_ONBOARD_COMPUTER.
+    system_id: int = Field(default=1, ge=1, le=255)
+    component_id: int = Field(default=191, ge=1, le=255)
+    target_system: int = Field(default=1, ge=1, le=255)
+    target_component: int = Field(default=1, ge=0, le=255)
+    heartbeat_rate_hz: float = Field(default=1.0, gt=0.0, le=10.0)
+    setpoint_rate_hz: float = Field(default=30.0, ge=20.0, le=50.0)
+    #: Setpoints are streamed at least this long before OFFBOARD is requested.
+    offboard_warmup_s: float = Field(default=1.0, ge=1.0)
+    heartbeat_timeout_s: float = Field(default=3.0, gt=0.0)
+    pose_timeout_s: float = Field(default=0.5, gt=0.0)
+    command_timeout_s: float = Field(default=1.0, gt=0.0)
+    command_retries: int = Field(default=3, ge=0, le=10)
+    #: 32-byte MAVLink 2 signing key file; None = signing off.
+    signing_key_path: str | None = None
+    obstacle_distance_rate_hz: float = Field(default=10.0, ge=0.0, le=50.0)
+    #: Send the SLAM pose to PX4 as external vision.
+    external_vision: bool = False
+
+    @field_validator("url")
+    @classmethod
+    def _url_scheme(cls, v: str) -> str:
+        schemes = ("udpin://", "udpout://", "udp://", "tcp://", "tcpin://", "serial://")
+        if not v.startswith(schemes):
+            raise ValueError(f"must start with one of {', '.join(schemes)} (got {v!r})")
+        return v
+
+
+class MqttConfig(StageConfig):
+    """The MQTT ground link."""
+
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = Field(default=1883, ge=1, le=65535)
+    vehicle_id: str = Field(default="drone1", pattern=r"^[A-Za-z0-9_-]+$")
+    #: Topics live under ``<topic_prefix>/<vehicle_id>/``.
+    topic_prefix: str = Field(default="companion", pattern=r"^[A-Za-z0-9_/-]+$")
+    username: str | None = None
+    password_file: str | None = None
+    tls_ca_file: str | None = None
+    tls_cert_file: str | None = None
+    tls_key_file: str | None = None
+    keepalive_s: int = Field(default=10, ge=1)
+    reconnect_min_s: float = Field(default=0.5, gt=0.0)
+    reconnect_max_s: float = Field(default=10.0, gt=0.0)
+    outbox_size: int = Field(default=100, ge=1)
+    command_rate_limit_hz: float = Field(default=5.0, gt=0.0)
+
+
+class ServiceConfig(StageConfig):
+    """The asyncio service as a whole."""
+
+    output_dir: str = "out"
+    map_dir: str = "out/map"
+    checkpoint_interval_s: float = Field(default=10.0, gt=0.0)
+    on_sigterm: Literal["hold", "land"] = "hold"
+    localization: Literal["odometry", "slam"] = "odometry"
+    #: Frames waiting for perception; the oldest is dropped when full.
+    frame_queue_size: int = Field(default=1, ge=1, le=16)
+    status_rate_hz: float = Field(default=1.0, gt=0.0)
+    telemetry_rate_hz: float = Field(default=5.0, gt=0.0)
+
+
+class SimConfig(StageConfig):
+    """The simulated indoor world (the embedded default's camera and ground truth)."""
+
+    seed: int = 0
+    room_width_m: float = Field(default=8.0, ge=3.0, le=50.0)
+    room_depth_m: float = Field(default=6.0, ge=3.0, le=50.0)
+    wall_height_m: float = Field(default=2.6, ge=2.0, le=6.0)
+    n_objects: int = Field(default=8, ge=0, le=60)
+    n_doorways: int = Field(default=2, ge=1, le=4)
+    #: D455-like depth noise: sigma = depth_noise_coeff * z^2 (metres).
+    depth_noise_coeff: float = Field(default=0.003, ge=0.0)
+    #: Fraction of pixels near depth edges invalidated.
+    depth_edge_dropout: float = Field(default=0.5, ge=0.0, le=1.0)
+    #: Mock autopilot UDP ports (PX4 layout).
+    autopilot_local_port: int = Field(default=14580, ge=1, le=65535)
+    autopilot_offboard_port: int = Field(default=14540, ge=1, le=65535)
+    autopilot_gcs_port: int = Field(default=14550, ge=1, le=65535)
+
+
+class CompanionConfig(StageConfig):
+    """Root of the configuration."""
+
+    #: Bumped when a key is renamed or removed, so old files fail with a clear message.
+    version: Literal[1] = 1
+    classes: list[ClassConfig] = Field(default_factory=default_classes)
+    camera: CameraConfig = CameraConfig()
+    detector: DetectorConfig = DetectorConfig()
+    tracker: TrackerConfig = TrackerConfig()
+    geometry: GeometryConfig = GeometryConfig()
+    map: MapConfig = MapConfig()
+    planner: PlannerConfig = PlannerConfig()
+    link: LinkConfig = LinkConfig()
+    mqtt: MqttConfig = MqttConfig()
+    service: ServiceConfig = ServiceConfig()
+    sim: SimConfig = SimConfig()
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> "CompanionConfig":
+        names = [c.name for c in self.classes]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"classes: duplicate class names {dupes}")
+        if not names:
+            raise ValueError("classes: at least one class is needed")
+        for target in self.detector.class_map.values():
+            if target not in names:
+                raise ValueError(
+                    f"detector.class_map maps to unknown class {target!r} (classes: {names})"
+                )
+        for key in self.detector.class_score_thresholds:
+            if key not in names:
+                raise ValueError(
+                    f"detector.class_score_thresholds has unknown class {key!r} (classes: {names})"
+                )
+        return self
+
+    def class_by_name(self, name: str) -> ClassConfig:
+        for c in self.classes:
+            if c.name == name:
+                return c
+        raise KeyError(name)
+
+
+# --- loading and dumping --------------------------------------------------------------
+
+def _describe(err: dict[str, Any], model: type[StageConfig] | None) -> str:
+    """One human sentence for one pydantic error."""
+    etype = err.get("type", "")
+    ctx = err.get("ctx") or {}
+    got = err.get("input")
+    got_s = f" (got {got!r})" if not isinstance(got, dict) else ""
+    simple = {
+        "greater_than": "must be > {gt}",
+        "greater_than_equal": "must be >= {ge}",
+        "less_than": "must be < {lt}",
+        "less_than_equal": "must be <= {le}",
+        "string_too_short": "must be at least {min_length} characters",
+        "string_pattern_mismatch": "must match {pattern}",
+    }
+    if etype in simple:
+        return simple[etype].format(**ctx) + got_s
+    if etype == "literal_error":
+        return f"must be one of {ctx.get('expected')}{got_s}"
+    if etype == "extra_forbidden":
+        allowed = ", ".join(sorted(model.model_fields)) if model is not None else "see docs"
+        return f"unknown key (allowed here: {allowed})"
+    if etype == "missing":
+        return "is required"
+    if etype == "value_error":
+        msg = str(ctx.get("error", err.get("msg", "")))
+        return msg
+    return f"{err.get('msg', 'invalid')}{got_s}"
+
+
+def _model_at(loc: tuple[Any, ...]) -> type[StageConfig] | None:
+    """The model class that owns the key at ``loc`` (for listing allowed keys)."""
+    model: Any = CompanionConfig
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        field = model.model_fields.get(part) if hasattr(model, "model_fields") else None
+        if field is None:
+            return None
+        ann = field.annotation
+        args = getattr(ann, "__args__", ())
+        candidates = [ann, *args]
+        nxt = next((c for c in candidates if isinstance(c, type) and issubclass(c, StageConfig)), None)
+        if nxt is None:
+            return None
+        model = nxt
+    return model if isinstance(model, type) else None
+
+
+def format_validation_error(exc: ValidationError, source: str) -> str:
+    lines = []
+    for err in exc.errors():
+        loc = tuple(err.get("loc", ()))
+        path = ".".join(str(p) for p in loc) or "(root)"
+        lines.append(f"{source}: {path}: {_describe(err, _model_at(loc))}")
+    return "\n".join(lines)
+
+
+def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> CompanionConfig:
+    """Validate a plain dict (as read from YAML). Raises :class:`ConfigError`."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: top level must be a mapping (got {type(data).__name__})")
+    try:
+        return CompanionConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, source)) from exc
+
+
+def load_config(path: str | Path | None) -> CompanionConfig:
+    """Read a YAML config file; None gives the embedded default. Raises :class:`ConfigError`."""
+    if path is None:
+        return CompanionConfig()
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config file: {exc.strerror or exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"{p}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from exc
+    if data is None:
+        data = {}
+    cfg = config_from_dict(data, str(p))
+    log.debug("loaded config from %s", p)
+    return cfg
+
+
+def dump_config(cfg: CompanionConfig) -> str:
+    """The effective config as YAML (round-trips through :func:`load_config`)."""
+    data = cfg.model_dump(mode="json")
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
+
+
+def write_effective_config(cfg: CompanionConfig, out_dir: str | Path) -> Path:
+    """Write the effective config into a run's output folder; returns the file path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "effective-config.yaml"
+    path.write_text(dump_config(cfg), encoding="utf-8")
+    return path

@@ -1,0 +1,1 @@
+"""The simulated indoor world: room generator, RGB-D renderer, ground truth, mock autopilot."""

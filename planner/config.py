@@ -1,0 +1,35 @@
+"""Typed configuration of the planner (see :mod:`semmap.config` for the conventions)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from semmap.config import StageConfig
+
+
+class PlannerConfig(StageConfig):
+    """OMPL planning and trajectory limits for a multicopter at a commanded altitude."""
+
+    algorithm: Literal["rrtstar", "informed_rrtstar", "bitstar", "prmstar", "rrtconnect"] = (
+        "informed_rrtstar"
+    )
+    #: Planning time budget; the best path found by then is used.
+    time_limit_s: float = Field(default=0.5, gt=0.0, le=60.0)
+    flight_altitude_m: float = Field(default=0.6, gt=0.0, le=20.0)
+    vehicle_radius_m: float = Field(default=0.25, gt=0.0, le=5.0)
+    vehicle_height_m: float = Field(default=0.15, gt=0.0, le=5.0)
+    #: Added above and below the vehicle's vertical band when deciding if an object blocks.
+    vertical_margin_m: float = Field(default=0.10, ge=0.0)
+    #: Cost weight of the probabilistic map relative to path length.
+    cost_weight: float = Field(default=1.0, ge=0.0)
+    #: Unknown cells cost this (0..1) times a lethal cell; 1 forbids them.
+    unknown_cost: float = Field(default=0.5, ge=0.0, le=1.0)
+    snap_goal_to_free: bool = False
+    max_speed_m_s: float = Field(default=1.0, gt=0.0, le=20.0)
+    max_accel_m_s2: float = Field(default=1.0, gt=0.0, le=20.0)
+    max_yaw_rate_deg_s: float = Field(default=60.0, gt=0.0, le=720.0)
+    #: Geofence in the map frame: [x_min, y_min, x_max, y_max]; None = the map's extent.
+    geofence_xy_m: tuple[float, float, float, float] | None = None
+    max_altitude_m: float = Field(default=3.0, gt=0.0)

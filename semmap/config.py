@@ -1,0 +1,229 @@
+"""Typed configuration of the perception and mapping stages.
+
+One frozen pydantic model per stage; unknown keys are rejected. The root model that composes
+them and reads YAML lives in :mod:`companion.config` (``semmap`` does no I/O). Components take
+plain values; the ``from_config`` factories next to them take these models.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+import numpy as np
+
+from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform, rotation_from_rpy
+from semmap.types import CameraIntrinsics
+
+
+class StageConfig(BaseModel):
+    """Base of every config model: frozen, unknown keys are an error."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+HollowKind = Literal["full", "partial", "none"]
+
+
+class ClassConfig(StageConfig):
+    """One semantic class. Classes are configuration, not code."""
+
+    name: str = Field(min_length=1, pattern=r"^[a-z][a-z0-9_]*$")
+    #: ``full``: open underneath (chair, desk): the top's projection is the footprint.
+    #: ``partial``: a central pedestal or panel (conference table): same projection, the
+    #: depth slice sees only part of it. ``none``: solid down to the floor (sofa).
+    hollow: HollowKind
+    #: Extra clearance the planner keeps from objects of this class, metres.
+    margin_m: float = Field(ge=0.0, le=5.0)
+    color_rgb: tuple[int, int, int]
+    #: Existence log-odds subtracted each frame the object should be visible but is not.
+    miss_decay: float = Field(default=0.4, ge=0.0, le=5.0)
+
+    @field_validator("color_rgb")
+    @classmethod
+    def _colour_range(cls, v: tuple[int, int, int]) -> tuple[int, int, int]:
+        if any(c < 0 or c > 255 for c in v):
+            raise ValueError(f"each component must be in 0..255 (got {list(v)})")
+        return v
+
+
+def default_classes() -> list[ClassConfig]:
+    """The six classes of the reference design."""
+    return [
+        ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75)),
+        ClassConfig(name="coffee_table", hollow="full", margin_m=0.20, color_rgb=(60, 180, 75)),
+        ClassConfig(name="conference_table", hollow="partial", margin_m=0.25, color_rgb=(0, 130, 200)),
+        ClassConfig(name="sofa", hollow="none", margin_m=0.15, color_rgb=(245, 130, 48)),
+        ClassConfig(name="whiteboard", hollow="full", margin_m=0.25, color_rgb=(145, 30, 180)),
+        ClassConfig(name="desk", hollow="full", margin_m=0.25, color_rgb=(70, 240, 240)),
+    ]
+
+
+class ExtrinsicsConfig(StageConfig):
+    """Pose of the camera on the body.
+
+    ``xyz_m`` is the optical centre in the body frame (FLU). ``rpy_deg`` rotates a camera that
+    looks along body +x (roll about x, then pitch about y: positive pitch tilts it down, then
+    yaw about z). The optical axes (x right, y down, z forward) follow by a fixed rotation.
+    """
+
+    xyz_m: tuple[float, float, float] = (0.10, 0.0, 0.0)
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def T_body_camera(self) -> np.ndarray:  # noqa: N802 - frame names
+        """(4, 4) transform from the optical camera frame to the body frame."""
+        r, p, y = (math.radians(a) for a in self.rpy_deg)
+        R = rotation_from_rpy(r, p, y) @ R_BODY_CAMERA_FORWARD
+        return make_transform(R, np.asarray(self.xyz_m, dtype=np.float64))
+
+
+class CameraConfig(StageConfig):
+    """The RGB-D camera: which source, its intrinsics and mounting."""
+
+    source: Literal["sim", "recorded", "realsense"] = "sim"
+    #: Folder for ``source: recorded`` (TUM layout or color/ depth/ layout).
+    recorded_path: str | None = None
+    #: Serial number of the RealSense to open; None opens the first one found.
+    realsense_serial: str | None = None
+    width_px: int = Field(default=640, gt=0, le=4096)
+    height_px: int = Field(default=480, gt=0, le=4096)
+    #: Intrinsics of the colour stream that depth is aligned to (D455 at 640x480).
+    fx_px: float = Field(default=383.0, gt=0.0)
+    fy_px: float = Field(default=383.0, gt=0.0)
+    cx_px: float = Field(default=320.0, ge=0.0)
+    cy_px: float = Field(default=240.0, ge=0.0)
+    rate_hz: float = Field(default=15.0, gt=0.0, le=90.0)
+    #: Depth outside [min, max] is invalid (the D455's useful range indoors).
+    depth_min_m: float = Field(default=0.3, ge=0.0)
+    depth_max_m: float = Field(default=6.0, gt=0.0, le=20.0)
+    extrinsics: ExtrinsicsConfig = ExtrinsicsConfig()
+
+    @model_validator(mode="after")
+    def _check(self) -> "CameraConfig":
+        if self.depth_max_m <= self.depth_min_m:
+            raise ValueError(
+                f"depth_max_m must be > depth_min_m (got {self.depth_max_m} <= {self.depth_min_m})"
+            )
+        if self.source == "recorded" and not self.recorded_path:
+            raise ValueError("source 'recorded' needs recorded_path")
+        return self
+
+    def intrinsics(self) -> CameraIntrinsics:
+        return CameraIntrinsics(
+            self.fx_px, self.fy_px, self.cx_px, self.cy_px, self.width_px, self.height_px
+        )
+
+
+class DetectorConfig(StageConfig):
+    """Object detector: an ONNX model (YOLOv8 or YOLOX head) or the simulator's oracle."""
+
+    kind: Literal["onnx", "oracle"] = "oracle"
+    #: Path of the .onnx file; ``builtin:furniture`` names the model shipped in the package.
+    model_path: str | None = None
+    head: Literal["auto", "yolov8", "yolox"] = "auto"
+    input_size_px: int = Field(default=320, ge=32, le=2048)
+    #: Model class names in output order; None reads them from the model's metadata.
+    model_class_names: list[str] | None = None
+    #: Model class name (or id as a string) -> our semantic class. Names not listed are ignored.
+    #: Empty means identity for names that are our classes.
+    class_map: dict[str, str] = Field(default_factory=dict)
+    score_threshold: float = Field(default=0.25, ge=0.0, le=1.0)
+    #: Per-class overrides of score_threshold, keyed by our class name.
+    class_score_thresholds: dict[str, float] = Field(default_factory=dict)
+    nms_iou: float = Field(default=0.6, gt=0.0, le=1.0)
+    max_detections: int = Field(default=100, gt=0)
+    #: ONNX Runtime execution providers in order of preference; missing ones are skipped.
+    providers: list[str] = Field(
+        default_factory=lambda: [
+            "TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"
+        ]
+    )
+    intra_op_threads: int = Field(default=1, ge=0, le=64)
+    graph_optimization: Literal["disable", "basic", "extended", "all"] = "all"
+    # Oracle (simulation only) noise model.
+    oracle_box_noise_px: float = Field(default=3.0, ge=0.0)
+    oracle_miss_rate: float = Field(default=0.05, ge=0.0, le=1.0)
+    oracle_false_positive_rate: float = Field(default=0.02, ge=0.0, le=1.0)
+    oracle_min_visible_px: int = Field(default=400, ge=1)
+
+
+class TrackerConfig(StageConfig):
+    """BoT-SORT parameters (names follow the BoT-SORT reference implementation)."""
+
+    track_high_thresh: float = Field(default=0.5, ge=0.0, le=1.0)
+    track_low_thresh: float = Field(default=0.1, ge=0.0, le=1.0)
+    new_track_thresh: float = Field(default=0.6, ge=0.0, le=1.0)
+    #: Frames a lost track is kept before removal.
+    track_buffer_frames: int = Field(default=30, ge=1)
+    #: Maximum (1 - IoU) cost accepted in the first association stage.
+    match_thresh: float = Field(default=0.8, gt=0.0, le=1.0)
+    #: Camera-motion compensation: sparse optical flow on background features, or off.
+    cmc_method: Literal["sparse_optflow", "none"] = "sparse_optflow"
+    #: Fuse detection score into the IoU cost (BoT-SORT ``fuse_score``).
+    fuse_score: bool = True
+    frame_rate_hz: float = Field(default=15.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _order(self) -> "TrackerConfig":
+        if self.track_low_thresh > self.track_high_thresh:
+            raise ValueError("track_low_thresh must be <= track_high_thresh")
+        return self
+
+
+class GeometryConfig(StageConfig):
+    """Point-cloud processing of each tracked object."""
+
+    #: Fraction of the box trimmed from each side before taking points (box edges leak).
+    box_shrink_frac: float = Field(default=0.05, ge=0.0, lt=0.5)
+    voxel_size_m: float = Field(default=0.03, gt=0.0, le=0.5)
+    #: Euclidean clustering distance threshold (epsilon of the reference design).
+    cluster_distance_m: float = Field(default=0.08, gt=0.0, le=1.0)
+    min_cluster_points: int = Field(default=20, ge=1)
+    ransac_distance_m: float = Field(default=0.02, gt=0.0)
+    ransac_iterations: int = Field(default=100, ge=1)
+    #: The top plane must be within this angle of horizontal.
+    plane_max_tilt_deg: float = Field(default=15.0, ge=0.0, le=45.0)
+    #: Points within this height of the floor belong to the floor, not the object.
+    floor_clearance_m: float = Field(default=0.04, ge=0.0)
+
+
+class MapConfig(StageConfig):
+    """Occupancy grid, object map and semantic layers."""
+
+    resolution_m: float = Field(default=0.05, gt=0.0, le=1.0)
+    #: Initial extent; the grid grows as the vehicle explores unless ``fixed_size``.
+    width_m: float = Field(default=20.0, gt=0.0)
+    height_m: float = Field(default=20.0, gt=0.0)
+    origin_xy_m: tuple[float, float] = (-10.0, -10.0)
+    fixed_size: bool = False
+    # Cartographer-style probability grid.
+    hit_probability: float = Field(default=0.55, gt=0.5, lt=1.0)
+    miss_probability: float = Field(default=0.49, gt=0.0, lt=0.5)
+    min_probability: float = Field(default=0.12, gt=0.0, lt=0.5)
+    max_probability: float = Field(default=0.97, gt=0.5, lt=1.0)
+    #: Height band (above the floor) of the depth-derived scan; None follows the flight
+    #: altitude +- half the vehicle height + margin.
+    scan_band_m: tuple[float, float] | None = None
+    #: Layers older than this make the planner hold position.
+    stale_after_s: float = Field(default=2.0, gt=0.0)
+    # Object map.
+    existence_hit_logodds: float = Field(default=0.85, gt=0.0)
+    existence_initial: float = Field(default=0.5, gt=0.0, lt=1.0)
+    #: Objects below this existence probability are removed.
+    existence_remove_below: float = Field(default=0.15, ge=0.0, lt=1.0)
+    #: Objects at or above this existence probability are in the costmap.
+    existence_confirm: float = Field(default=0.6, gt=0.0, lt=1.0)
+    #: Footprint IoU at which a re-observed object (new track) merges into a known one.
+    reassociate_iou: float = Field(default=0.3, gt=0.0, le=1.0)
+    #: Decay length of the safety margin's cost beyond the class margin, metres.
+    margin_decay_m: float = Field(default=0.3, gt=0.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> "MapConfig":
+        if self.scan_band_m is not None and self.scan_band_m[1] <= self.scan_band_m[0]:
+            raise ValueError(f"scan_band_m must be [low, high] with high > low (got {list(self.scan_band_m)})")
+        if self.min_probability >= self.max_probability:
+            raise ValueError("min_probability must be < max_probability")
+        return self
