@@ -1,0 +1,55 @@
+"""Depth images to point clouds (pinhole back-projection), vectorised.
+
+``points_camera_m`` are in the optical camera frame (x right, y down, z forward). Invalid depth
+(0, NaN, inf, outside [min, max]) never becomes a point.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semmap.types import CameraIntrinsics
+
+
+def valid_depth_mask(depth_m: NDArray[np.floating], min_m: float, max_m: float) -> NDArray[np.bool_]:
+    """(H, W) True where depth is finite and within [min_m, max_m]."""
+    d = np.asarray(depth_m)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(d) & (d >= min_m) & (d <= max_m) & (d > 0)
+
+
+def backproject(
+    depth_m: NDArray[np.floating],
+    intrinsics: CameraIntrinsics,
+    min_m: float = 0.0,
+    max_m: float = np.inf,
+    window_px: tuple[int, int, int, int] | None = None,
+    stride_px: int = 1,
+) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+    """Back-project valid depth pixels to 3D.
+
+    ``window_px`` = (u0, v0, u1, v1), half-open, limits the work to a box (e.g. a detection).
+    ``stride_px`` subsamples rows and columns. Returns ``(points_camera_m (N, 3) float32,
+    pixels_uv (N, 2) int64)``: each point with the pixel it came from.
+    """
+    d = np.asarray(depth_m)
+    H, W = d.shape
+    if (W, H) != (intrinsics.width_px, intrinsics.height_px):
+        raise ValueError(
+            f"depth image is {W}x{H} but intrinsics are for {intrinsics.width_px}x{intrinsics.height_px}"
+        )
+    u0, v0, u1, v1 = window_px if window_px is not None else (0, 0, W, H)
+    u0, v0 = max(0, int(u0)), max(0, int(v0))
+    u1, v1 = min(W, int(u1)), min(H, int(v1))
+    if u1 <= u0 or v1 <= v0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 2), np.int64)
+    sub = d[v0:v1:stride_px, u0:u1:stride_px]
+    ok = valid_depth_mask(sub, min_m, max_m)
+    vv, uu = np.nonzero(ok)
+    z = sub[vv, uu].astype(np.float32)
+    u = (uu * stride_px + u0).astype(np.int64)
+    v = (vv * stride_px + v0).astype(np.int64)
+    x = (u.astype(np.float32) - np.float32(intrinsics.cx_px)) * z / np.float32(intrinsics.fx_px)
+    y = (v.astype(np.float32) - np.float32(intrinsics.cy_px)) * z / np.float32(intrinsics.fy_px)
+    return np.stack([x, y, z], axis=1), np.stack([u, v], axis=1)
