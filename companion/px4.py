@@ -1,0 +1,213 @@
+"""PX4's flight modes and the MAVLink conventions PX4 uses, written once.
+
+PX4 puts its flight mode into ``HEARTBEAT.custom_mode`` as two bytes of a 32-bit word::
+
+    custom_mode = main_mode << 16 | sub_mode << 24
+
+with ``MAV_MODE_FLAG_CUSTOM_MODE_ENABLED`` set in ``base_mode`` (PX4
+``src/modules/commander/px4_custom_mode.h``). The same encoding is used by
+``MAV_CMD_DO_SET_MODE`` (param1 = base mode, param2 = main mode, param3 = sub mode).
+
+Both our link (:mod:`companion.mavlink`) and the mock autopilot (:mod:`companion.sim.autopilot`)
+decode and encode modes through this module, so the two cannot disagree. It depends on nothing
+but the standard library so either side can import it cheaply.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+
+class MainMode(enum.IntEnum):
+    """PX4 ``PX4_CUSTOM_MAIN_MODE_*``."""
+
+    MANUAL = 1
+    ALTCTL = 2
+    POSCTL = 3
+    AUTO = 4
+    ACRO = 5
+    OFFBOARD = 6
+    STABILIZED = 7
+    RATTITUDE = 8
+
+
+class AutoSubMode(enum.IntEnum):
+    """PX4 ``PX4_CUSTOM_SUB_MODE_AUTO_*`` (only meaningful with :attr:`MainMode.AUTO`)."""
+
+    READY = 1
+    TAKEOFF = 2
+    LOITER = 3
+    MISSION = 4
+    RTL = 5
+    LAND = 6
+    RTGS = 7
+    FOLLOW_TARGET = 8
+    PRECLAND = 9
+
+
+class FlightMode(enum.Enum):
+    """A named PX4 flight mode, its value being the ``(main, sub)`` pair.
+
+    ``HOLD`` is what QGroundControl and MAVSDK call ``AUTO.LOITER``.
+    """
+
+    MANUAL = (MainMode.MANUAL, 0)
+    ALTCTL = (MainMode.ALTCTL, 0)
+    POSCTL = (MainMode.POSCTL, 0)
+    ACRO = (MainMode.ACRO, 0)
+    OFFBOARD = (MainMode.OFFBOARD, 0)
+    STABILIZED = (MainMode.STABILIZED, 0)
+    RATTITUDE = (MainMode.RATTITUDE, 0)
+    READY = (MainMode.AUTO, AutoSubMode.READY)
+    TAKEOFF = (MainMode.AUTO, AutoSubMode.TAKEOFF)
+    HOLD = (MainMode.AUTO, AutoSubMode.LOITER)
+    MISSION = (MainMode.AUTO, AutoSubMode.MISSION)
+    RTL = (MainMode.AUTO, AutoSubMode.RTL)
+    LAND = (MainMode.AUTO, AutoSubMode.LAND)
+    FOLLOW_TARGET = (MainMode.AUTO, AutoSubMode.FOLLOW_TARGET)
+    PRECLAND = (MainMode.AUTO, AutoSubMode.PRECLAND)
+
+    @property
+    def main_mode(self) -> int:
+        return int(self.value[0])
+
+    @property
+    def sub_mode(self) -> int:
+        return int(self.value[1])
+
+    @property
+    def custom_mode(self) -> int:
+        """The 32-bit ``HEARTBEAT.custom_mode`` word for this mode."""
+        return encode_custom_mode(self.main_mode, self.sub_mode)
+
+    @property
+    def is_auto(self) -> bool:
+        """True for the modes in which PX4's navigator flies (takeoff, hold, mission, RTL, land)."""
+        return self.main_mode == MainMode.AUTO
+
+
+_BY_PAIR: dict[tuple[int, int], FlightMode] = {
+    (m.main_mode, m.sub_mode): m for m in FlightMode
+}
+
+# --- MAVLink constants PX4 uses (values from the common dialect, named here so call sites
+# never carry bare numbers and neither side needs pymavlink just to read a heartbeat) ---------
+
+MAV_AUTOPILOT_PX4 = 12
+MAV_TYPE_QUADROTOR = 2
+MAV_TYPE_GCS = 6
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_COMP_ID_AUTOPILOT1 = 1
+MAV_COMP_ID_ONBOARD_COMPUTER = 191
+
+MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
+MAV_MODE_FLAG_TEST_ENABLED = 2
+MAV_MODE_FLAG_AUTO_ENABLED = 4
+MAV_MODE_FLAG_GUIDED_ENABLED = 8
+MAV_MODE_FLAG_STABILIZE_ENABLED = 16
+MAV_MODE_FLAG_HIL_ENABLED = 32
+MAV_MODE_FLAG_MANUAL_INPUT_ENABLED = 64
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+
+MAV_STATE_STANDBY = 3
+MAV_STATE_ACTIVE = 4
+MAV_STATE_CRITICAL = 5
+
+MAV_LANDED_STATE_UNDEFINED = 0
+MAV_LANDED_STATE_ON_GROUND = 1
+MAV_LANDED_STATE_IN_AIR = 2
+MAV_LANDED_STATE_TAKEOFF = 3
+MAV_LANDED_STATE_LANDING = 4
+
+#: ``MAV_CMD_COMPONENT_ARM_DISARM`` param2 value that forces a disarm in flight.
+PX4_FORCE_DISARM_MAGIC = 21196.0
+
+#: PX4's default UDP ports for the onboard (API/offboard) link: PX4 sends from
+#: ``local`` to ``remote`` (``mavlink start -u 14580 -o 14540`` in SITL).
+PX4_ONBOARD_LOCAL_PORT = 14580
+PX4_ONBOARD_REMOTE_PORT = 14540
+PX4_GCS_REMOTE_PORT = 14550
+
+
+@dataclass(frozen=True)
+class DecodedMode:
+    """A heartbeat's mode fields, decoded."""
+
+    armed: bool
+    mode: FlightMode | None  # None when the custom mode is not a known PX4 mode
+    main_mode: int
+    sub_mode: int
+
+
+def encode_custom_mode(main_mode: int, sub_mode: int = 0) -> int:
+    """``custom_mode`` word from PX4 main and sub mode numbers (each 0..255)."""
+    if not (0 <= main_mode <= 255 and 0 <= sub_mode <= 255):
+        raise ValueError(f"PX4 main/sub mode out of range: {main_mode}, {sub_mode}")
+    return (main_mode << 16) | (sub_mode << 24)
+
+
+def split_custom_mode(custom_mode: int) -> tuple[int, int]:
+    """``(main_mode, sub_mode)`` from a ``custom_mode`` word."""
+    return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
+
+
+def mode_from_main_sub(main_mode: int, sub_mode: int) -> FlightMode | None:
+    """The named mode for a ``(main, sub)`` pair, or None if PX4 has no such mode.
+
+    Non-AUTO main modes ignore the sub mode, as PX4 does.
+    """
+    if main_mode != MainMode.AUTO:
+        sub_mode = 0
+    return _BY_PAIR.get((int(main_mode), int(sub_mode)))
+
+
+def decode_custom_mode(custom_mode: int) -> FlightMode | None:
+    """The named mode in a ``HEARTBEAT.custom_mode`` word, or None if unknown."""
+    return mode_from_main_sub(*split_custom_mode(custom_mode))
+
+
+def decode_heartbeat(base_mode: int, custom_mode: int) -> DecodedMode:
+    """Decode a PX4 heartbeat's ``base_mode`` and ``custom_mode`` fields.
+
+    If ``MAV_MODE_FLAG_CUSTOM_MODE_ENABLED`` is not set the custom mode is meaningless and
+    ``mode`` is None.
+    """
+    main, sub = split_custom_mode(custom_mode)
+    mode = (
+        mode_from_main_sub(main, sub)
+        if base_mode & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        else None
+    )
+    return DecodedMode(
+        armed=bool(base_mode & MAV_MODE_FLAG_SAFETY_ARMED), mode=mode, main_mode=main, sub_mode=sub
+    )
+
+
+def encode_heartbeat_base_mode(mode: FlightMode, armed: bool) -> int:
+    """``HEARTBEAT.base_mode`` as PX4 fills it for ``mode`` (custom flag, armed, auto/guided)."""
+    base = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    if armed:
+        base |= MAV_MODE_FLAG_SAFETY_ARMED
+    if mode not in (FlightMode.MANUAL, FlightMode.ACRO):
+        base |= MAV_MODE_FLAG_STABILIZE_ENABLED
+    if mode.is_auto:
+        base |= MAV_MODE_FLAG_AUTO_ENABLED | MAV_MODE_FLAG_GUIDED_ENABLED
+    elif mode in (FlightMode.POSCTL, FlightMode.OFFBOARD):
+        base |= MAV_MODE_FLAG_GUIDED_ENABLED
+    if mode in (FlightMode.MANUAL, FlightMode.ALTCTL, FlightMode.POSCTL, FlightMode.STABILIZED,
+                FlightMode.ACRO, FlightMode.RATTITUDE):
+        base |= MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+    return base
+
+
+def set_mode_params(mode: FlightMode) -> tuple[float, float, float]:
+    """``MAV_CMD_DO_SET_MODE`` params 1-3 (base mode, main mode, sub mode) for ``mode``."""
+    return float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(mode.main_mode), float(mode.sub_mode)
+
+
+def mode_from_set_mode_params(param1: float, param2: float, param3: float) -> FlightMode | None:
+    """The mode a ``MAV_CMD_DO_SET_MODE`` asks for, or None if it is not a PX4 custom mode."""
+    if not int(param1) & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+        return None
+    return mode_from_main_sub(int(param2), int(param3))

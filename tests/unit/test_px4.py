@@ -1,0 +1,55 @@
+"""PX4 custom-mode encoding (companion.px4)."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from companion import px4
+from companion.px4 import FlightMode
+
+
+def test_known_custom_mode_words_match_px4() -> None:
+    # Values as PX4 SITL reports them in HEARTBEAT.custom_mode.
+    assert FlightMode.OFFBOARD.custom_mode == 393216
+    assert FlightMode.HOLD.custom_mode == 50593792
+    assert FlightMode.MISSION.custom_mode == 67371008
+    assert FlightMode.LAND.custom_mode == 100925440
+    assert FlightMode.POSCTL.custom_mode == 196608
+
+
+@pytest.mark.parametrize("mode", list(FlightMode))
+def test_every_mode_round_trips(mode: FlightMode) -> None:
+    assert px4.decode_custom_mode(mode.custom_mode) is mode
+    base = px4.encode_heartbeat_base_mode(mode, armed=True)
+    decoded = px4.decode_heartbeat(base, mode.custom_mode)
+    assert decoded.armed and decoded.mode is mode
+    assert px4.mode_from_set_mode_params(*px4.set_mode_params(mode)) is mode
+
+
+@given(st.integers(0, 255), st.integers(0, 255))
+def test_split_inverts_encode(main: int, sub: int) -> None:
+    assert px4.split_custom_mode(px4.encode_custom_mode(main, sub)) == (main, sub)
+
+
+def test_unknown_and_non_custom_modes_decode_to_none() -> None:
+    assert px4.decode_custom_mode(px4.encode_custom_mode(42, 0)) is None
+    assert px4.decode_custom_mode(px4.encode_custom_mode(4, 77)) is None
+    # Without the custom-mode flag the word carries no PX4 mode.
+    assert px4.decode_heartbeat(px4.MAV_MODE_FLAG_SAFETY_ARMED, FlightMode.HOLD.custom_mode).mode is None
+    assert px4.mode_from_set_mode_params(0.0, 4.0, 3.0) is None
+
+
+def test_non_auto_main_mode_ignores_sub_mode() -> None:
+    assert px4.decode_custom_mode(px4.encode_custom_mode(6, 3)) is FlightMode.OFFBOARD
+
+
+def test_disarmed_heartbeat() -> None:
+    base = px4.encode_heartbeat_base_mode(FlightMode.HOLD, armed=False)
+    assert not px4.decode_heartbeat(base, FlightMode.HOLD.custom_mode).armed
+
+
+def test_out_of_range_rejected() -> None:
+    with pytest.raises(ValueError, match="out of range"):
+        px4.encode_custom_mode(256, 0)
