@@ -76,15 +76,46 @@ class MqttConfig(StageConfig):
     #: Topics live under ``<topic_prefix>/<vehicle_id>/``.
     topic_prefix: str = Field(default="companion", pattern=r"^[A-Za-z0-9_/-]+$")
     username: str | None = None
+    #: File holding the password (first line); keeps the secret out of the config.
     password_file: str | None = None
+    #: Connect with TLS. The server certificate is checked against ``tls_ca_file`` (None =
+    #: the system's CA store); ``tls_cert_file``/``tls_key_file`` add a client certificate.
+    tls: bool = False
     tls_ca_file: str | None = None
     tls_cert_file: str | None = None
     tls_key_file: str | None = None
     keepalive_s: int = Field(default=10, ge=1)
+    #: Broker round-trip timeout (CONNACK, SUBACK, PUBACK).
+    timeout_s: float = Field(default=5.0, gt=0.0)
     reconnect_min_s: float = Field(default=0.5, gt=0.0)
     reconnect_max_s: float = Field(default=10.0, gt=0.0)
+    #: Events (command replies) kept while the broker is unreachable; the oldest is dropped.
     outbox_size: int = Field(default=100, ge=1)
+    #: Commands accepted per second (token bucket) and the burst allowed above that rate.
     command_rate_limit_hz: float = Field(default=5.0, gt=0.0)
+    command_burst: int = Field(default=5, ge=1)
+    #: Validated commands waiting for the service; further ones are refused while full.
+    command_queue_size: int = Field(default=16, ge=1)
+    #: The map picture is the largest payload: published at most this often.
+    map_rate_hz: float = Field(default=0.2, gt=0.0, le=10.0)
+
+    @model_validator(mode="after")
+    def _tls_and_backoff(self) -> "MqttConfig":
+        files = {"tls_ca_file": self.tls_ca_file, "tls_cert_file": self.tls_cert_file,
+                 "tls_key_file": self.tls_key_file}
+        given = [k for k, v in files.items() if v is not None]
+        if given and not self.tls:
+            raise ValueError(f"{', '.join(given)} set but tls is false (set tls: true)")
+        if (self.tls_cert_file is None) != (self.tls_key_file is None):
+            raise ValueError("tls_cert_file and tls_key_file must be given together")
+        if self.password_file is not None and self.username is None:
+            raise ValueError("password_file set but username is missing")
+        if self.reconnect_min_s > self.reconnect_max_s:
+            raise ValueError(
+                f"reconnect_min_s ({self.reconnect_min_s}) must be <= reconnect_max_s "
+                f"({self.reconnect_max_s})"
+            )
+        return self
 
 
 class ServiceConfig(StageConfig):
