@@ -78,8 +78,8 @@ class MqttConfig(StageConfig):
     username: str | None = None
     #: File holding the password (first line); keeps the secret out of the config.
     password_file: str | None = None
-    #: Connect with TLS. The server certificate is checked against ``tls_ca_file`` (None =
-    #: the system's CA store); ``tls_cert_file``/``tls_key_file`` add a client certificate.
+    #: Connect with TLS using the system's CA store. Setting ``tls_ca_file`` (the CA that
+    #: signed the broker's certificate) or a client certificate/key also turns TLS on.
     tls: bool = False
     tls_ca_file: str | None = None
     tls_cert_file: str | None = None
@@ -101,11 +101,6 @@ class MqttConfig(StageConfig):
 
     @model_validator(mode="after")
     def _tls_and_backoff(self) -> "MqttConfig":
-        files = {"tls_ca_file": self.tls_ca_file, "tls_cert_file": self.tls_cert_file,
-                 "tls_key_file": self.tls_key_file}
-        given = [k for k, v in files.items() if v is not None]
-        if given and not self.tls:
-            raise ValueError(f"{', '.join(given)} set but tls is false (set tls: true)")
         if (self.tls_cert_file is None) != (self.tls_key_file is None):
             raise ValueError("tls_cert_file and tls_key_file must be given together")
         if self.password_file is not None and self.username is None:
@@ -116,6 +111,13 @@ class MqttConfig(StageConfig):
                 f"({self.reconnect_max_s})"
             )
         return self
+
+    @property
+    def use_tls(self) -> bool:
+        """True if the connection to the broker is made with TLS."""
+        return self.tls or any(
+            f is not None for f in (self.tls_ca_file, self.tls_cert_file, self.tls_key_file)
+        )
 
 
 class ServiceConfig(StageConfig):
