@@ -1,0 +1,489 @@
+"""RealSense-like RGB-D frames of a simulated :class:`~companion.sim.world.Room` from any pose.
+
+One ray per pixel is cast with Open3D's tensor ``RaycastingScene`` (Embree) against a triangle
+mesh per primitive box (walls, floor, ceiling and every furniture part). Each primitive keeps
+its owner (object id, 0 for the building) and class index, so the instance and class masks
+come straight from the noise-free geometry.
+
+Pixel convention: pixel ``(u, v)`` samples the ray through image coordinates ``(u, v)`` with
+pixel centres at integer coordinates (OpenCV's convention), i.e. the camera-frame direction
+``((u - cx) / fx, (v - cy) / fy, 1)``. That is exactly what :func:`semmap.pointcloud.backproject`
+inverts, so back-projecting a noise-free rendered depth reproduces the surface points. Because
+the direction's z component is 1, the ray parameter ``t_hit`` *is* the z-depth.
+
+Appearance: the object's or building's base colour, Lambertian shading from the primitive's
+normal (a ceiling light direction plus a camera headlight and ambient), and a procedural
+texture per material fixed to the surfaces (floor planks, wood grain, fabric weave, mottled
+paint), so optical flow and feature trackers find stable corners that move with the geometry.
+
+Depth: D455-like. Gaussian noise with ``sigma = depth_noise_coeff * z**2``, millimetre
+quantisation, 0 (invalid) outside ``[depth_min_m, depth_max_m]`` and, with probability
+``depth_edge_dropout``, at depth discontinuities (stereo matching fails at occlusion edges).
+All randomness comes from a seeded :class:`numpy.random.Generator`, so runs are reproducible.
+
+Open3D is imported lazily (the ``sim`` extra), so importing this module costs nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.sim.world import Box, Room
+from semmap.errors import SimulationError
+from semmap.frames import Transform
+from semmap.types import CameraIntrinsics, Frame
+
+log = logging.getLogger(__name__)
+
+#: Material (texture) indices.
+MAT_WALL, MAT_FLOOR, MAT_CEILING, MAT_WOOD, MAT_FABRIC, MAT_BOARD = range(6)
+_CLASS_MATERIAL = {
+    "chair": MAT_WOOD,
+    "desk": MAT_WOOD,
+    "coffee_table": MAT_WOOD,
+    "conference_table": MAT_WOOD,
+    "sofa": MAT_FABRIC,
+    "whiteboard": MAT_BOARD,
+}
+#: Texture tiles: TEX_SIZE x TEX_SIZE texels of TEXEL_M metres (a power of two, so the
+#: wrap-around is a bit mask).
+TEX_SIZE = 256
+TEXEL_M = 0.01
+#: Floor and ceiling extend this far beyond the walls (seen through doorways).
+FLOOR_MARGIN_M = 3.0
+CEILING_COLOR_RGB = (235, 235, 230)
+#: Colour of pixels whose ray hits nothing (outside the building, beyond the floor).
+BACKGROUND_RGB = (30, 30, 35)
+_INVALID_GEOMETRY = 4294967295  # Open3D's RaycastingScene.INVALID_ID
+#: The six faces of a box mesh in triangle order (triangles 2k, 2k+1 are face k): the local
+#: axis the face is normal to and the normal's sign. Must match :func:`_box_mesh_arrays`.
+_FACE_AXES = ((2, -1.0), (2, 1.0), (1, -1.0), (1, 1.0), (0, -1.0), (0, 1.0))
+#: In-plane texture axes (u, v) of a face normal to local axis 0, 1, 2.
+_FACE_PLANE = ((1, 2), (0, 2), (0, 1))
+#: Shading weights: ambient + sun * max(0, n.L) + headlight * |n.d|.
+AMBIENT, SUN, HEADLIGHT = 0.38, 0.42, 0.25
+
+
+@dataclass(frozen=True, eq=False)
+class VisibleObject:
+    """Ground truth of one object seen in a frame (map frame, metres).
+
+    ``pixel_count`` counts its pixels in the instance mask (occlusion included);
+    ``bbox_xyxy_px`` is the mask's bounding box (half-open max, like detector boxes);
+    ``footprint_xy_m`` (4, 2) the oriented footprint of the whole object; ``z_range_m`` its
+    vertical extent above the floor; ``parts`` its primitive boxes.
+    """
+
+    object_id: int
+    class_name: str
+    class_index: int
+    pixel_count: int
+    bbox_xyxy_px: tuple[float, float, float, float]
+    center_xy_m: tuple[float, float]
+    yaw_rad: float
+    size_m: tuple[float, float, float]
+    footprint_xy_m: NDArray[np.float64]
+    z_range_m: tuple[float, float]
+    parts: tuple[Box, ...]
+
+    @property
+    def height_m(self) -> float:
+        return self.z_range_m[1]
+
+
+def _box_mesh_arrays(box: Box) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+    """(8, 3) vertices in the map frame and (12, 3) outward-wound triangles of a box."""
+    hx, hy, hz = (s / 2.0 for s in box.size_m)
+    corners = np.array(
+        [[sx * hx, sy * hy, sz * hz] for sz in (-1, 1) for sy in (-1, 1) for sx in (-1, 1)]
+    )
+    c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    verts = corners @ R.T + np.asarray(box.center_m)
+    # Vertex index = ix + 2*iy + 4*iz. Counter-clockwise seen from outside.
+    tris = np.array(
+        [
+            [0, 2, 1], [1, 2, 3],  # z-
+            [4, 5, 6], [5, 7, 6],  # z+
+            [0, 1, 4], [1, 5, 4],  # y-
+            [2, 6, 3], [3, 6, 7],  # y+
+            [0, 4, 2], [2, 4, 6],  # x-
+            [1, 3, 5], [3, 7, 5],  # x+
+        ]
+    )
+    return verts.astype(np.float32), tris.astype(np.int32)
+
+
+def _smooth_noise(rng: np.random.Generator, size: int, blur_px: float) -> NDArray[np.float32]:
+    """(size, size) zero-mean, unit-std noise blurred with wrap-around (tiles seamlessly)."""
+    import cv2
+
+    n = rng.standard_normal((size, size)).astype(np.float32)
+    if blur_px > 0:
+        pad = int(3 * blur_px) + 1
+        big = np.pad(n, pad, mode="wrap")
+        big = cv2.GaussianBlur(big, (0, 0), blur_px)
+        n = big[pad:-pad, pad:-pad]
+    n -= n.mean()
+    return n / max(float(n.std()), 1e-6)
+
+
+def make_textures(seed: int, size: int = TEX_SIZE) -> NDArray[np.float32]:
+    """(6, size, size) luminance factors (about 0.6..1.2) for the materials ``MAT_*``.
+
+    Seamlessly tiling, so a texel index wraps with a bit mask. Deterministic in ``seed``.
+    """
+    rng = np.random.default_rng([seed, 7919])
+    tex = np.ones((6, size, size), dtype=np.float32)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+
+    # Paint: gentle low-frequency mottling and a little fine grain.
+    tex[MAT_WALL] = 1.0 + 0.035 * _smooth_noise(rng, size, 14.0) + 0.02 * _smooth_noise(rng, size, 1.0)
+    tex[MAT_CEILING] = 1.0 + 0.03 * _smooth_noise(rng, size, 10.0)
+
+    # Floor: planks 16 texels (16 cm) wide along u, random lengths, per-plank tint, grain and
+    # dark seams: corners at plank ends give the tracker's optical flow something to hold.
+    floor = np.empty((size, size), dtype=np.float32)
+    plank_w = 16
+    grain = _smooth_noise(rng, size, 1.5)
+    for row0 in range(0, size, plank_w):
+        rows = slice(row0, row0 + plank_w)
+        cuts = [0]
+        while cuts[-1] < size:
+            cuts.append(cuts[-1] + int(rng.integers(48, 120)))
+        cuts[-1] = size
+        for a, b in zip(cuts[:-1], cuts[1:], strict=False):
+            floor[rows, a:b] = rng.uniform(0.75, 1.1)
+            floor[rows, a:min(a + 1, b)] = 0.45  # end seam
+        floor[row0, :] = 0.5  # side seam
+    streak = np.sin(2 * np.pi * (yy / 5.3 + 0.8 * _smooth_noise(rng, size, 6.0)))
+    tex[MAT_FLOOR] = floor * (1.0 + 0.06 * streak + 0.05 * grain)
+
+    # Wood: grain streaks along u with wobble, plus knots of darker tone.
+    wobble = _smooth_noise(rng, size, 8.0)
+    rings = np.sin(2 * np.pi * (yy / 7.0 + 0.6 * wobble))
+    knots = np.clip(_smooth_noise(rng, size, 4.0) - 2.0, 0.0, None)
+    tex[MAT_WOOD] = 1.0 + 0.10 * rings + 0.05 * _smooth_noise(rng, size, 1.0) - 0.25 * knots
+
+    # Fabric: a fine weave and soft blotches.
+    weave = np.sin(np.pi * xx / 1.5) * np.sin(np.pi * yy / 1.5)
+    tex[MAT_FABRIC] = 1.0 + 0.06 * weave + 0.08 * _smooth_noise(rng, size, 5.0)
+
+    # Whiteboard: nearly uniform, faint smudges, and a few marker strokes.
+    board = 1.0 + 0.02 * _smooth_noise(rng, size, 8.0)
+    for _ in range(6):
+        v0 = int(rng.integers(0, size))
+        u0, u1 = sorted(int(x) for x in rng.integers(0, size, 2))
+        board[v0:v0 + 2, u0:u1] = 0.35
+    tex[MAT_BOARD] = board
+    return np.clip(tex, 0.3, 1.3).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class DepthNoise:
+    """D455-like depth model (metres)."""
+
+    #: sigma = coeff * z**2.
+    noise_coeff: float = 0.003
+    #: Probability a pixel at a depth discontinuity is invalid.
+    edge_dropout: float = 0.5
+    min_m: float = 0.3
+    max_m: float = 6.0
+    #: Neighbouring depths differing by more than this fraction of the nearer are an edge.
+    edge_rel_jump: float = 0.05
+    #: Output quantisation step (RealSense z16 counts millimetres).
+    quantum_m: float = 0.001
+
+
+class RoomRenderer:
+    """Renders RGB-D :class:`Frame` s of one room (not thread-safe: one caller at a time).
+
+    ``class_names`` gives the class index of the ``"class"`` mask (the config's class order);
+    objects whose class is not in it get -1. ``seed`` seeds the textures and, when no
+    generator is passed to :meth:`render`, the per-frame noise (``(seed, frame index)``).
+    """
+
+    def __init__(
+        self,
+        room: Room,
+        class_names: Sequence[str],
+        intrinsics: CameraIntrinsics,
+        noise: DepthNoise | None = None,
+        seed: int = 0,
+        light_dir_map: tuple[float, float, float] = (0.35, 0.25, 1.0),
+        rgb_noise_std: float = 2.0,
+        n_threads: int = 0,
+    ) -> None:
+        try:
+            import open3d as o3d
+        except ImportError as exc:  # pragma: no cover - depends on the install
+            raise SimulationError(
+                "the simulated camera needs Open3D: install the 'sim' extra (pip install .[sim])"
+            ) from exc
+        self._o3d: Any = o3d
+        self.room = room
+        self.class_names = list(class_names)
+        self.intrinsics = intrinsics
+        self.noise = noise or DepthNoise()
+        self.seed = int(seed)
+        self.rgb_noise_std = float(rgb_noise_std)
+        self.n_threads = int(n_threads)
+        light = np.asarray(light_dir_map, dtype=np.float32)
+        self._light = light / np.linalg.norm(light)
+        self._textures = make_textures(self.seed)
+        self._tex_flat = self._textures.reshape(-1)
+        self._build_scene()
+        self._dirs_cam = self._pixel_directions(intrinsics)
+        self._rays = np.empty((self._dirs_cam.shape[0], 6), dtype=np.float32)
+        self._objects = {o.object_id: o for o in room.objects}
+
+    # --- scene -------------------------------------------------------------------------
+
+    def _building_boxes(self) -> list[tuple[Box, int, tuple[int, int, int]]]:
+        """Walls, floor and ceiling with their material and colour."""
+        r = self.room
+        m = FLOOR_MARGIN_M
+        cx, cy = r.width_m / 2.0, r.depth_m / 2.0
+        size_xy = (r.width_m + 2 * m, r.depth_m + 2 * m)
+        out: list[tuple[Box, int, tuple[int, int, int]]] = [
+            (Box((cx, cy, -0.05), (*size_xy, 0.1)), MAT_FLOOR, r.floor_color_rgb),
+            (Box((cx, cy, r.wall_height_m + 0.05), (*size_xy, 0.1)), MAT_CEILING, CEILING_COLOR_RGB),
+        ]
+        out.extend((w, MAT_WALL, r.wall_color_rgb) for w in r.walls)
+        return out
+
+    def _build_scene(self) -> None:
+        o3d = self._o3d
+        scene = o3d.t.geometry.RaycastingScene(nthreads=self.n_threads)
+        rng = np.random.default_rng([self.seed, 104729])
+        entries: list[tuple[Box, int, int, int, tuple[int, int, int]]] = [
+            (b, 0, -1, mat, col) for b, mat, col in self._building_boxes()
+        ]
+        for obj in self.room.objects:
+            cls = self.class_names.index(obj.class_name) if obj.class_name in self.class_names else -1
+            mat = _CLASS_MATERIAL.get(obj.class_name, MAT_WOOD)
+            entries.extend((p, obj.object_id, cls, mat, obj.color_rgb) for p in obj.parts)
+        n = len(entries)
+        # Per-primitive tables, one extra row (index n) for rays that hit nothing.
+        self._owner = np.zeros(n + 1, dtype=np.int32)
+        self._class = np.full(n + 1, -1, dtype=np.int16)
+        self._color = np.zeros((n + 1, 3), dtype=np.float32)
+        self._color[n] = BACKGROUND_RGB
+        # Per-face tables (6 faces per primitive in _FACE_AXES order, plus the miss row):
+        # world normal, sun-light term, and the affine map from a map-frame point to texel
+        # coordinates (u, v) on that face, offset into the material's texture.
+        nf = 6 * n
+        self._face_normal = np.zeros((nf + 1, 3), dtype=np.float32)
+        self._face_sun = np.zeros(nf + 1, dtype=np.float32)
+        self._face_tex = np.zeros((nf + 1, 2, 4), dtype=np.float32)
+        self._face_tex_base = np.zeros(nf + 1, dtype=np.int64)
+        self._boxes: list[Box] = []
+        for i, (box, owner, cls, mat, col) in enumerate(entries):
+            verts, tris = _box_mesh_arrays(box)
+            mesh = o3d.t.geometry.TriangleMesh()
+            mesh.vertex.positions = o3d.core.Tensor(verts)
+            mesh.triangle.indices = o3d.core.Tensor(tris)
+            gid = int(scene.add_triangles(mesh))
+            if gid != i:
+                raise SimulationError(f"unexpected Open3D geometry id {gid} for primitive {i}")
+            self._owner[i] = owner
+            self._class[i] = cls
+            self._color[i] = col
+            # Building surfaces share one texture frame so seams line up; furniture parts get
+            # a random offset so two chairs do not look stamped from one mould.
+            off = rng.uniform(0.0, TEX_SIZE * TEXEL_M, 2) if owner != 0 else np.zeros(2)
+            c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
+            axes = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # local x, y, z in map
+            centre = np.asarray(box.center_m, dtype=np.float64)
+            for k, (axis, sign) in enumerate(_FACE_AXES):
+                f = 6 * i + k
+                normal = sign * axes[axis]
+                self._face_normal[f] = normal
+                self._face_sun[f] = max(0.0, float(normal @ self._light))
+                for row, (plane_axis, o) in enumerate(zip(_FACE_PLANE[axis], off, strict=True)):
+                    a = axes[plane_axis]
+                    self._face_tex[f, row, :3] = a / TEXEL_M
+                    self._face_tex[f, row, 3] = (o - a @ centre) / TEXEL_M
+                self._face_tex_base[f] = mat * TEX_SIZE * TEX_SIZE
+            self._boxes.append(box)
+        self._n_prims = n
+        self._scene = scene
+        log.debug("raycasting scene: %d primitives (%d objects)", n, len(self.room.objects))
+
+    @property
+    def n_primitives(self) -> int:
+        return self._n_prims
+
+    @staticmethod
+    def _pixel_directions(intr: CameraIntrinsics) -> NDArray[np.float32]:
+        """(H*W, 3) camera-frame ray directions with z = 1 (see the module's pixel convention)."""
+        u = (np.arange(intr.width_px, dtype=np.float64) - intr.cx_px) / intr.fx_px
+        v = (np.arange(intr.height_px, dtype=np.float64) - intr.cy_px) / intr.fy_px
+        U, V = np.meshgrid(u, v)
+        return np.stack([U, V, np.ones_like(U)], axis=-1).reshape(-1, 3).astype(np.float32)
+
+    # --- rendering ---------------------------------------------------------------------
+
+    def cast(self, T_map_camera: Transform) -> dict[str, NDArray[Any]]:
+        """Noise-free ray cast from a camera pose (4, 4), map frame, optical axes.
+
+        Returns flat (H*W,) arrays, row-major over the image: ``"depth_m"`` float32 z-depth
+        (inf on a miss), ``"prim"`` primitive index (``n_primitives`` on a miss), ``"face"``
+        face index ``6 * prim + k`` (``6 * n_primitives`` on a miss), plus ``"dir_map"``
+        (H*W, 3) float32 ray directions (z-depth 1 in the camera) and ``"origin_map"`` (3,).
+        """
+        T = np.asarray(T_map_camera, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise SimulationError(f"T_map_camera must be a finite (4, 4) transform (got shape {T.shape})")
+        R = T[:3, :3].astype(np.float32)
+        dirs = self._dirs_cam @ R.T  # (N, 3)
+        rays = self._rays  # reused: a fresh 7 MB buffer per frame costs page faults
+        rays[:, :3] = T[:3, 3]
+        rays[:, 3:] = dirs
+        o3d = self._o3d
+        ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self.n_threads)
+        t_hit = ans["t_hit"].numpy()
+        gids = ans["geometry_ids"].numpy().view(np.int32)  # INVALID_ID reads as -1
+        tri = ans["primitive_ids"].numpy().view(np.int32)
+        miss = gids < 0
+        prim = np.where(miss, self._n_prims, gids)
+        face = np.where(miss, 6 * self._n_prims, 6 * gids + (tri >> 1))
+        return {
+            "depth_m": t_hit, "prim": prim, "face": face, "dir_map": dirs,
+            "origin_map": T[:3, 3].astype(np.float32),
+        }
+
+    def render(
+        self,
+        T_map_camera: Transform,
+        stamp_s: float = 0.0,
+        index: int = 0,
+        rng: np.random.Generator | None = None,
+    ) -> Frame:
+        """One RGB-D frame from camera pose ``T_map_camera`` (4, 4; map frame ENU, optical
+        camera axes).
+
+        ``rng`` drives all noise; None seeds a generator from ``(seed, index)``, so the same
+        pose and index always give the same frame. Masks are from the noise-free geometry.
+        """
+        intr = self.intrinsics
+        H, W = intr.height_px, intr.width_px
+        if rng is None:
+            rng = np.random.default_rng([self.seed, int(index) & 0x7FFFFFFF])
+        c = self.cast(T_map_camera)
+        prim = c["prim"]
+        rgb = self._shade(c, rng).reshape(H, W, 3)
+        depth = self._noisy_depth(c["depth_m"].reshape(H, W), rng)
+        masks: dict[str, NDArray[np.generic]] = {
+            "instance": self._owner[prim].reshape(H, W),
+            "class": self._class[prim].reshape(H, W),
+        }
+        return Frame(
+            stamp_s=float(stamp_s), rgb=rgb, depth_m=depth, intrinsics=intr,
+            T_map_camera=np.array(T_map_camera, dtype=np.float64), index=int(index), masks=masks,
+        )
+
+    def _shade(self, c: dict[str, NDArray[Any]], rng: np.random.Generator) -> NDArray[np.uint8]:
+        """(H*W, 3) uint8 colours: base colour x Lambert shading x material texture."""
+        face = c["face"]
+        d = c["dir_map"]
+        hit = face < 6 * self._n_prims
+        # |n.d| / |d|: the camera-side face is always the one hit (boxes are closed).
+        n_dot_d = np.abs(np.einsum("ij,ij->i", self._face_normal[face], d))
+        n_dot_d /= np.sqrt(np.einsum("ij,ij->i", d, d))
+        lum = AMBIENT + SUN * self._face_sun[face] + HEADLIGHT * n_dot_d
+        lum *= self._texture_lookup(c, hit)
+        if self.rgb_noise_std > 0:
+            lum += rng.standard_normal(lum.shape[0], dtype=np.float32) * np.float32(
+                self.rgb_noise_std / 128.0
+            )
+        lum[~hit] = 1.0
+        rgb = self._color[c["prim"]] * lum[:, None]
+        np.clip(rgb, 0.0, 255.0, out=rgb)
+        return rgb.astype(np.uint8)
+
+    def _texture_lookup(self, c: dict[str, NDArray[Any]], hit: NDArray[np.bool_]) -> NDArray[np.float32]:
+        """(H*W,) texture factor at each hit, from its face's texel coordinates."""
+        face = c["face"]
+        t = np.where(hit, c["depth_m"], np.float32(0.0))
+        p = c["origin_map"] + c["dir_map"] * t[:, None]  # (N, 3) hit points, map frame
+        A = self._face_tex[face]  # (N, 2, 4)
+        mask = TEX_SIZE - 1
+        iu = np.floor(np.einsum("ij,ij->i", A[:, 0, :3], p) + A[:, 0, 3]).astype(np.int64) & mask
+        iv = np.floor(np.einsum("ij,ij->i", A[:, 1, :3], p) + A[:, 1, 3]).astype(np.int64) & mask
+        return self._tex_flat[self._face_tex_base[face] + iv * TEX_SIZE + iu]
+
+    def _noisy_depth(self, z: NDArray[np.float32], rng: np.random.Generator) -> NDArray[np.float32]:
+        """(H, W) float32 metres with the D455-like noise model; 0 where invalid."""
+        nz = self.noise
+        finite = np.isfinite(z)
+        zf = np.where(finite, z, np.float32(1e6)).astype(np.float32)
+        # Depth discontinuities in the noise-free depth: both pixels of a jumping pair.
+        edge = np.zeros(z.shape, dtype=bool)
+        jump_h = np.abs(zf[:, 1:] - zf[:, :-1]) > nz.edge_rel_jump * np.minimum(zf[:, 1:], zf[:, :-1])
+        jump_v = np.abs(zf[1:, :] - zf[:-1, :]) > nz.edge_rel_jump * np.minimum(zf[1:, :], zf[:-1, :])
+        edge[:, 1:] |= jump_h
+        edge[:, :-1] |= jump_h
+        edge[1:, :] |= jump_v
+        edge[:-1, :] |= jump_v
+        out = zf.copy()
+        if nz.noise_coeff > 0:
+            out += rng.standard_normal(z.shape, dtype=np.float32) * (np.float32(nz.noise_coeff) * zf * zf)
+        if nz.quantum_m > 0:
+            out = (np.round(out / nz.quantum_m) * nz.quantum_m).astype(np.float32)
+        invalid = ~finite | (out < nz.min_m) | (out > nz.max_m)
+        if nz.edge_dropout > 0:
+            ev, eu = np.nonzero(edge)
+            drop = rng.random(len(ev)) < nz.edge_dropout
+            invalid[ev[drop], eu[drop]] = True
+        out[invalid] = 0.0
+        return out
+
+    # --- ground truth ------------------------------------------------------------------
+
+    def visible_objects(self, frame: Frame, min_pixels: int = 1) -> list[VisibleObject]:
+        """Objects present in the frame's instance mask with at least ``min_pixels`` pixels,
+        largest first, with their ground-truth geometry (map frame)."""
+        inst = frame.masks.get("instance")
+        if inst is None:
+            raise SimulationError("frame has no instance mask (not rendered by the simulator)")
+        ids, counts = np.unique(inst[inst > 0], return_counts=True)
+        out: list[VisibleObject] = []
+        for oid, cnt in zip(ids.tolist(), counts.tolist(), strict=True):
+            if cnt < min_pixels or oid not in self._objects:
+                continue
+            obj = self._objects[oid]
+            vv, uu = np.nonzero(inst == oid)
+            cls = self.class_names.index(obj.class_name) if obj.class_name in self.class_names else -1
+            out.append(
+                VisibleObject(
+                    object_id=oid, class_name=obj.class_name, class_index=cls, pixel_count=cnt,
+                    bbox_xyxy_px=(float(uu.min()), float(vv.min()), float(uu.max() + 1), float(vv.max() + 1)),
+                    center_xy_m=obj.center_xy_m, yaw_rad=obj.yaw_rad, size_m=obj.size_m,
+                    footprint_xy_m=obj.footprint_xy_m(), z_range_m=obj.z_range_m, parts=obj.parts,
+                )
+            )
+        out.sort(key=lambda o: -o.pixel_count)
+        return out
+
+
+def renderer_from_config(room: Room, cfg: Any, seed: int | None = None) -> RoomRenderer:
+    """A :class:`RoomRenderer` for a :class:`companion.config.CompanionConfig`: camera
+    intrinsics and depth range from ``cfg.camera``, noise from ``cfg.sim``, class order from
+    ``cfg.classes``; ``seed`` defaults to ``cfg.sim.seed``."""
+    cam = cfg.camera
+    noise = DepthNoise(
+        noise_coeff=cfg.sim.depth_noise_coeff, edge_dropout=cfg.sim.depth_edge_dropout,
+        min_m=cam.depth_min_m, max_m=cam.depth_max_m,
+    )
+    return RoomRenderer(
+        room, [c.name for c in cfg.classes], cam.intrinsics(), noise=noise,
+        seed=cfg.sim.seed if seed is None else seed,
+    )
