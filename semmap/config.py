@@ -142,6 +142,12 @@ class DetectorConfig(StageConfig):
     )
     intra_op_threads: int = Field(default=1, ge=0, le=64)
     graph_optimization: Literal["disable", "basic", "extended", "all"] = "all"
+    #: YOLOX only: the model was exported with ``--decode_in_inference`` (boxes already in
+    #: input pixels). YOLOX's exporter default is off: grid offsets decoded here.
+    yolox_predecoded: bool = False
+    #: TensorRT provider: fp16 engines, and a folder caching built engines (None = no cache).
+    trt_fp16: bool = True
+    trt_cache_dir: str | None = None
     # Oracle (simulation only) noise model.
     oracle_box_noise_px: float = Field(default=3.0, ge=0.0)
     oracle_miss_rate: float = Field(default=0.05, ge=0.0, le=1.0)
@@ -155,10 +161,17 @@ class TrackerConfig(StageConfig):
     track_high_thresh: float = Field(default=0.5, ge=0.0, le=1.0)
     track_low_thresh: float = Field(default=0.1, ge=0.0, le=1.0)
     new_track_thresh: float = Field(default=0.6, ge=0.0, le=1.0)
-    #: Frames a lost track is kept before removal.
+    #: Frames a lost track is kept before removal, counted at 30 Hz as in BoT-SORT (scaled by
+    #: frame_rate_hz / 30: 30 at 15 Hz keeps a lost track for 15 frames, one second).
     track_buffer_frames: int = Field(default=30, ge=1)
     #: Maximum (1 - IoU) cost accepted in the first association stage.
     match_thresh: float = Field(default=0.8, gt=0.0, le=1.0)
+    #: Pairs with (1 - IoU) above this cannot match on appearance alone.
+    proximity_thresh: float = Field(default=0.5, gt=0.0, le=1.0)
+    #: Maximum appearance cost (half cosine distance) for the optional appearance hook.
+    appearance_thresh: float = Field(default=0.25, gt=0.0, le=1.0)
+    #: CMC works on the image shrunk by this factor (speed; the flow is scaled back).
+    cmc_downscale: int = Field(default=2, ge=1, le=8)
     #: Camera-motion compensation: sparse optical flow on background features, or off.
     cmc_method: Literal["sparse_optflow", "none"] = "sparse_optflow"
     #: Fuse detection score into the IoU cost (BoT-SORT ``fuse_score``).

@@ -1,0 +1,1 @@
+"""Object detection: ONNX Runtime YOLOv8/YOLOX detectors and the simulator's oracle."""

@@ -1,0 +1,303 @@
+"""YOLOv8 / YOLOX object detection with ONNX Runtime.
+
+Everything that can be wrong with a model is found when the detector is built, not at the
+first frame in flight: the file, its protobuf, the input layout, the execution providers, the
+output layout (one warm-up inference checks the real output shape) and the class map. Each
+failure is a :class:`PerceptionError` that names the model file and the problem.
+
+Per frame, :meth:`OnnxDetector.detect` = :meth:`preprocess` (letterbox) + :meth:`infer`
+(ONNX Runtime) + :meth:`postprocess` (decode, per-class thresholds, class-aware NMS, back to
+original-image pixels). The three are public so benchmarks can time them separately.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+from numpy.typing import NDArray
+
+from semmap.config import DetectorConfig
+from semmap.detection.classmap import ClassMap, parse_names_metadata
+from semmap.detection.decode import (
+    Candidates,
+    HeadKind,
+    YoloxDecoder,
+    check_head,
+    decode_yolov8,
+    recognise_head,
+)
+from semmap.detection.letterbox import LetterboxTransform, letterbox
+from semmap.detection.nms import nms_class_aware
+from semmap.errors import PerceptionError
+from semmap.types import Detection
+
+log = logging.getLogger(__name__)
+
+_GRAPH_OPT = {
+    "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+    "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+}
+
+BUILTIN_PREFIX = "builtin:"
+
+
+def select_providers(preferred: Sequence[str], available: Sequence[str] | None = None) -> list[str]:
+    """The preferred execution providers this ONNX Runtime build has, in preference order.
+
+    Raises :class:`PerceptionError` naming both lists if none is available.
+    """
+    have = list(ort.get_available_providers() if available is None else available)
+    chosen = [p for p in preferred if p in have]
+    skipped = [p for p in preferred if p not in have]
+    if skipped:
+        log.info("ONNX Runtime providers not available here, skipped: %s", ", ".join(skipped))
+    if not chosen:
+        raise PerceptionError(
+            f"none of detector.providers {list(preferred)} is available in this ONNX Runtime "
+            f"build (available: {have})"
+        )
+    return chosen
+
+
+def _provider_entries(
+    providers: Sequence[str], trt_fp16: bool, trt_cache_dir: str | None
+) -> list[Any]:
+    """Provider list for InferenceSession, with TensorRT's engine cache and precision set."""
+    out: list[Any] = []
+    for p in providers:
+        if p == "TensorrtExecutionProvider":
+            opts: dict[str, Any] = {"trt_fp16_enable": trt_fp16}
+            if trt_cache_dir:
+                # Building a TensorRT engine takes minutes on a Jetson; cache it across runs.
+                opts.update(trt_engine_cache_enable=True, trt_engine_cache_path=trt_cache_dir)
+            out.append((p, opts))
+        else:
+            out.append(p)
+    return out
+
+
+def _static_dim(dim: Any) -> int | None:
+    return dim if isinstance(dim, int) and dim > 0 else None
+
+
+class OnnxDetector:
+    """A YOLOv8- or YOLOX-head detector behind ONNX Runtime, reporting our semantic classes."""
+
+    def __init__(
+        self,
+        model_path: str | Path,
+        semantic_classes: Sequence[str],
+        *,
+        head: str = "auto",
+        input_size_px: int = 320,
+        model_class_names: Sequence[str] | None = None,
+        class_map: Mapping[str, str] | None = None,
+        score_threshold: float = 0.25,
+        class_score_thresholds: Mapping[str, float] | None = None,
+        nms_iou: float = 0.6,
+        max_detections: int = 100,
+        providers: Sequence[str] = ("CPUExecutionProvider",),
+        intra_op_threads: int = 1,
+        graph_optimization: str = "all",
+        yolox_predecoded: bool = False,
+        trt_fp16: bool = True,
+        trt_cache_dir: str | None = None,
+    ) -> None:
+        """Load and check the model. See :class:`semmap.config.DetectorConfig` for the options.
+
+        ``input_size_px`` is used only when the model's input size is dynamic. Raises
+        :class:`PerceptionError` for any problem with the file, providers, layout or classes.
+        """
+        path = Path(model_path)
+        self.model_path = path
+        if not path.is_file():
+            raise PerceptionError(f"detector model {path}: file not found")
+        if graph_optimization not in _GRAPH_OPT:
+            raise PerceptionError(
+                f"graph_optimization must be one of {sorted(_GRAPH_OPT)} (got {graph_optimization!r})"
+            )
+        self.providers = select_providers(providers)
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = int(intra_op_threads)
+        so.inter_op_num_threads = 1
+        so.graph_optimization_level = _GRAPH_OPT[graph_optimization]
+        so.log_severity_level = 3
+        try:
+            self._session = ort.InferenceSession(
+                str(path), sess_options=so,
+                providers=_provider_entries(self.providers, trt_fp16, trt_cache_dir),
+            )
+        # ONNX Runtime's pybind exceptions (InvalidProtobuf, Fail, NoSuchFile, ...) derive
+        # straight from Exception, so this boundary has to catch that.
+        except Exception as exc:
+            raise PerceptionError(f"detector model {path}: ONNX Runtime cannot load it: {exc}") from exc
+        log.info("detector %s on %s", path.name, ", ".join(self._session.get_providers()))
+
+        inputs = self._session.get_inputs()
+        outputs = self._session.get_outputs()
+        if len(inputs) != 1:
+            raise PerceptionError(f"detector model {path}: expected 1 input, it has {len(inputs)}")
+        shape = list(inputs[0].shape)
+        if len(shape) != 4 or _static_dim(shape[1]) not in (None, 3):
+            raise PerceptionError(
+                f"detector model {path}: input {inputs[0].name!r} has shape {shape}; expected "
+                f"[1, 3, H, W]"
+            )
+        if inputs[0].type != "tensor(float)":
+            raise PerceptionError(
+                f"detector model {path}: input type {inputs[0].type}; expected tensor(float)"
+            )
+        h_s, w_s = _static_dim(shape[2]), _static_dim(shape[3])
+        if h_s is not None and w_s is not None:
+            self.input_hw_px: tuple[int, int] = (h_s, w_s)
+            if (h_s, w_s) != (input_size_px, input_size_px):
+                log.info("detector %s has a fixed %dx%d input; input_size_px=%d ignored",
+                         path.name, w_s, h_s, input_size_px)
+        else:
+            self.input_hw_px = (input_size_px, input_size_px)
+        if self.input_hw_px[0] % 32 or self.input_hw_px[1] % 32:
+            raise PerceptionError(
+                f"detector model {path}: input size {self.input_hw_px[1]}x{self.input_hw_px[0]} "
+                f"is not a multiple of 32 (the largest stride)"
+            )
+        self._input_name = inputs[0].name
+        self._output_name = outputs[0].name
+
+        names = list(model_class_names) if model_class_names is not None else self._metadata_names()
+        out_shape = self._probe_output_shape()
+        self.head: HeadKind
+        if head == "auto":
+            self.head, n_cls = recognise_head(out_shape, self.input_hw_px, len(names) if names else None)
+        elif head in ("yolov8", "yolox"):
+            self.head = head  # type: ignore[assignment]
+            n_cls = check_head(self.head, out_shape, len(names) if names else None)
+        else:
+            raise PerceptionError(f"detector.head must be auto, yolov8 or yolox (got {head!r})")
+        if not names:
+            # No names anywhere: class ids as strings, so a class map keyed by id still works.
+            names = [str(i) for i in range(n_cls)]
+        self.class_map = ClassMap(names, semantic_classes, class_map)
+        self.semantic_classes = list(semantic_classes)
+        self._yolox = YoloxDecoder(self.input_hw_px, yolox_predecoded) if self.head == "yolox" else None
+
+        thresholds = dict(class_score_thresholds or {})
+        unknown = sorted(set(thresholds) - set(self.semantic_classes))
+        if unknown:
+            raise PerceptionError(
+                f"detector.class_score_thresholds has unknown classes {unknown} "
+                f"(classes: {self.semantic_classes})"
+            )
+        #: (S,) score threshold per semantic class.
+        self._thresholds = np.array(
+            [thresholds.get(n, score_threshold) for n in self.semantic_classes], dtype=np.float32
+        )
+        self._score_floor = float(self._thresholds.min())
+        self.nms_iou = float(nms_iou)
+        self.max_detections = int(max_detections)
+        log.info(
+            "detector %s: %s head, %dx%d input, %d model classes, %d mapped",
+            path.name, self.head, self.input_hw_px[1], self.input_hw_px[0], n_cls,
+            int(self.class_map.wanted_mask.sum()),
+        )
+
+    @classmethod
+    def from_config(
+        cls,
+        cfg: DetectorConfig,
+        semantic_classes: Sequence[str],
+        builtin_dir: str | Path | None = None,
+    ) -> OnnxDetector:
+        """Build from :class:`DetectorConfig`. ``builtin:NAME`` resolves to ``builtin_dir/NAME.onnx``."""
+        if cfg.model_path is None:
+            raise PerceptionError("detector.kind is 'onnx' but detector.model_path is not set")
+        path = Path(cfg.model_path)
+        if cfg.model_path.startswith(BUILTIN_PREFIX):
+            name = cfg.model_path[len(BUILTIN_PREFIX):]
+            if builtin_dir is None:
+                raise PerceptionError(f"detector.model_path {cfg.model_path!r}: no built-in model folder given")
+            path = Path(builtin_dir) / f"{name}.onnx"
+        return cls(
+            path,
+            semantic_classes,
+            head=cfg.head,
+            input_size_px=cfg.input_size_px,
+            model_class_names=cfg.model_class_names,
+            class_map=cfg.class_map,
+            score_threshold=cfg.score_threshold,
+            class_score_thresholds=cfg.class_score_thresholds,
+            nms_iou=cfg.nms_iou,
+            max_detections=cfg.max_detections,
+            providers=cfg.providers,
+            intra_op_threads=cfg.intra_op_threads,
+            graph_optimization=cfg.graph_optimization,
+            yolox_predecoded=cfg.yolox_predecoded,
+            trt_fp16=cfg.trt_fp16,
+            trt_cache_dir=cfg.trt_cache_dir,
+        )
+
+    # --- start-up checks -------------------------------------------------------------
+
+    def _metadata_names(self) -> list[str] | None:
+        meta = self._session.get_modelmeta().custom_metadata_map
+        text = meta.get("names")
+        return parse_names_metadata(text) if text else None
+
+    def _probe_output_shape(self) -> tuple[int, ...]:
+        """Run one inference on a grey image: checks the graph runs and gives the real shape."""
+        h, w = self.input_hw_px
+        probe = np.full((1, 3, h, w), 0.5, dtype=np.float32)
+        try:
+            out = self._session.run([self._output_name], {self._input_name: probe})[0]
+        except Exception as exc:  # ONNX Runtime exceptions derive from Exception only
+            raise PerceptionError(
+                f"detector model {self.model_path}: warm-up inference at {w}x{h} failed: {exc}"
+            ) from exc
+        return tuple(int(d) for d in np.shape(out))
+
+    # --- per frame -------------------------------------------------------------------
+
+    def preprocess(self, image_rgb: NDArray[np.uint8]) -> tuple[NDArray[np.float32], LetterboxTransform]:
+        """(H, W, 3) uint8 RGB -> network tensor (1, 3, H_in, W_in) and the inverse transform."""
+        return letterbox(image_rgb, self.input_hw_px, self.head)
+
+    def infer(self, tensor: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Run the network; returns its raw output (see :mod:`semmap.detection.decode`)."""
+        try:
+            out = self._session.run([self._output_name], {self._input_name: tensor})[0]
+        except Exception as exc:  # ONNX Runtime exceptions derive from Exception only
+            raise PerceptionError(f"detector inference failed: {exc}") from exc
+        return np.asarray(out, dtype=np.float32)
+
+    def decode(self, raw: NDArray[np.float32]) -> Candidates:
+        """Raw output -> candidates above the lowest class threshold (network-input pixels)."""
+        mask = self.class_map.wanted_mask
+        if self._yolox is not None:
+            return self._yolox(raw, self._score_floor, mask)
+        return decode_yolov8(raw, self._score_floor, mask)
+
+    def postprocess(self, raw: NDArray[np.float32], transform: LetterboxTransform) -> list[Detection]:
+        """Decode, apply per-class thresholds and class-aware NMS, map to original pixels."""
+        cand = self.decode(raw)
+        sem = self.class_map.semantic_ids(cand.class_ids)
+        keep = cand.scores >= self._thresholds[sem]
+        boxes, scores, sem = cand.xyxy_in_px[keep], cand.scores[keep], sem[keep]
+        idx = nms_class_aware(boxes, scores, sem, self.nms_iou, self.max_detections)
+        orig = transform.boxes_to_original(boxes[idx])
+        dets = []
+        for (u0, v0, u1, v1), s, c in zip(orig.tolist(), scores[idx].tolist(), sem[idx].tolist(), strict=True):
+            if u1 - u0 < 1.0 or v1 - v0 < 1.0:
+                continue  # entirely in the padding
+            dets.append(Detection((u0, v0, u1, v1), float(s), self.semantic_classes[c]))
+        return dets
+
+    def detect(self, image_rgb: NDArray[np.uint8]) -> list[Detection]:
+        """Detections in ``image_rgb`` ((H, W, 3) uint8 RGB), boxes in its pixels, best first."""
+        tensor, transform = self.preprocess(image_rgb)
+        return self.postprocess(self.infer(tensor), transform)
