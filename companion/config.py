@@ -27,7 +27,7 @@ from semmap.config import (
     TrackerConfig,
     default_classes,
 )
-from semmap.errors import ConfigError
+from semmap.errors import ConfigError, LinkError
 
 log = logging.getLogger(__name__)
 
@@ -54,16 +54,34 @@ class LinkConfig(StageConfig):
     #: 32-byte MAVLink 2 signing key file; None = signing off.
     signing_key_path: str | None = None
     obstacle_distance_rate_hz: float = Field(default=10.0, ge=0.0, le=50.0)
+    #: OBSTACLE_DISTANCE range (metres): nearer obstacles are reported at the minimum;
+    #: a sector clear out to the maximum is reported as "no obstacle".
+    obstacle_distance_min_m: float = Field(default=0.2, ge=0.0)
+    obstacle_distance_max_m: float = Field(default=8.0, gt=0.0, le=600.0)
+    #: Seconds to wait for the vehicle to report OFFBOARD after requesting it.
+    offboard_engage_timeout_s: float = Field(default=3.0, gt=0.0)
     #: Send the SLAM pose to PX4 as external vision.
     external_vision: bool = False
 
     @field_validator("url")
     @classmethod
     def _url_scheme(cls, v: str) -> str:
-        schemes = ("udpin://", "udpout://", "udp://", "tcp://", "tcpin://", "serial://")
-        if not v.startswith(schemes):
-            raise ValueError(f"must start with one of {', '.join(schemes)} (got {v!r})")
+        from companion.mavlink.urls import parse_url  # local: config stays cheap to import
+
+        try:
+            parse_url(v)
+        except LinkError as exc:
+            raise ValueError(str(exc)) from exc
         return v
+
+    @model_validator(mode="after")
+    def _obstacle_range(self) -> "LinkConfig":
+        if self.obstacle_distance_min_m >= self.obstacle_distance_max_m:
+            raise ValueError(
+                f"obstacle_distance_min_m ({self.obstacle_distance_min_m}) must be below "
+                f"obstacle_distance_max_m ({self.obstacle_distance_max_m})"
+            )
+        return self
 
 
 class MqttConfig(StageConfig):

@@ -1,0 +1,10 @@
+"""Our own MAVLink link to a PX4 autopilot: transports, link, state, commands, offboard.
+
+Modules: :mod:`~companion.mavlink.urls` (connection URLs), :mod:`~companion.mavlink.transport`
+(UDP/TCP/serial on the event loop), :mod:`~companion.mavlink.link` (MavlinkLink, the one
+adapter over pymavlink), :mod:`~companion.mavlink.state` (VehicleState from telemetry),
+:mod:`~companion.mavlink.commands` (COMMAND_LONG with acks), :mod:`~companion.mavlink.failsafe`
+and :mod:`~companion.mavlink.offboard` (setpoint streaming and the failsafe rules),
+:mod:`~companion.mavlink.obstacle_distance` (OBSTACLE_DISTANCE from the costmap) and
+:mod:`~companion.mavlink.mission_download` (reading the autopilot's mission).
+"""
