@@ -1,0 +1,137 @@
+"""Camera-motion compensation: the global image motion between consecutive frames.
+
+BoT-SORT's sparse optical flow variant (``GMC`` with ``sparseOptFlow``), with the objects
+masked out as its feature-based variants do: corners are found on the background of the
+previous frame (``cv2.goodFeaturesToTrack``, outside detection boxes and the image border),
+followed into the current frame with pyramidal Lucas-Kanade
+(``cv2.calcOpticalFlowPyrLK``), and a 4-DoF similarity (rotation, uniform scale,
+translation) is fitted robustly with RANSAC (``cv2.estimateAffinePartial2D``). Moving or
+tracked objects therefore do not drag the estimate. The work runs on a downscaled grey image;
+the translation is scaled back to full-resolution pixels.
+
+The result is a (2, 3) affine ``A`` mapping previous-frame pixels to current-frame pixels:
+``p_curr = A[:, :2] @ p_prev + A[:, 2]``. When too few features survive (a blank wall, the
+first frame, a cut) it is the identity, which is what the tracker would assume without CMC.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from semmap.errors import FrameError
+
+log = logging.getLogger(__name__)
+
+IDENTITY = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+#: Fewer RANSAC inliers than this and the estimate is not trusted.
+MIN_INLIERS = 8
+
+
+class SparseFlowCMC:
+    """Frame-to-frame global motion from sparse optical flow on background features."""
+
+    def __init__(
+        self,
+        downscale: int = 2,
+        max_features: int = 300,
+        min_distance_px: float = 6.0,
+        quality_level: float = 0.01,
+        border_frac: float = 0.02,
+        ransac_reproj_px: float = 1.5,
+    ) -> None:
+        """``downscale``: shrink factor for the work image. ``min_distance_px`` and
+        ``ransac_reproj_px`` are in downscaled pixels. ``border_frac``: image border excluded
+        from feature detection on each side.
+        """
+        if downscale < 1:
+            raise ValueError(f"downscale must be >= 1 (got {downscale})")
+        self.downscale = int(downscale)
+        self.max_features = int(max_features)
+        self.min_distance_px = float(min_distance_px)
+        self.quality_level = float(quality_level)
+        self.border_frac = float(border_frac)
+        self.ransac_reproj_px = float(ransac_reproj_px)
+        self._prev_gray: NDArray[np.uint8] | None = None
+        self._prev_pts: NDArray[np.float32] | None = None
+        #: Inlier count of the last estimate (0 when it fell back to identity).
+        self.last_inliers = 0
+
+    def reset(self) -> None:
+        """Forget the previous frame (after a gap in the stream)."""
+        self._prev_gray = None
+        self._prev_pts = None
+
+    def _gray(self, image_rgb: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        if image_rgb.ndim == 3 and image_rgb.shape[2] == 3:
+            gray = cv2.cvtColor(image_rgb, cv2.COLOR_RGB2GRAY)
+        elif image_rgb.ndim == 2:
+            gray = image_rgb
+        else:
+            raise FrameError(f"CMC needs an (H, W, 3) RGB or (H, W) grey image (got {image_rgb.shape})")
+        if self.downscale > 1:
+            h, w = gray.shape
+            gray = cv2.resize(gray, (w // self.downscale, h // self.downscale),
+                              interpolation=cv2.INTER_AREA)
+        return np.asarray(gray, dtype=np.uint8)
+
+    def _features(
+        self, gray: NDArray[np.uint8], boxes_xyxy_px: NDArray[np.float64]
+    ) -> NDArray[np.float32] | None:
+        h, w = gray.shape
+        mask = np.zeros((h, w), np.uint8)
+        bh, bw = int(round(h * self.border_frac)), int(round(w * self.border_frac))
+        mask[bh:h - bh, bw:w - bw] = 255
+        if boxes_xyxy_px.size:
+            b = np.round(boxes_xyxy_px / self.downscale).astype(np.int64)
+            b[:, [0, 2]] = np.clip(b[:, [0, 2]], 0, w)
+            b[:, [1, 3]] = np.clip(b[:, [1, 3]], 0, h)
+            for u0, v0, u1, v1 in b:
+                mask[v0:v1, u0:u1] = 0
+        pts = cv2.goodFeaturesToTrack(
+            gray, maxCorners=self.max_features, qualityLevel=self.quality_level,
+            minDistance=self.min_distance_px, mask=mask, blockSize=3,
+        )
+        return None if pts is None else pts.astype(np.float32)
+
+    def apply(
+        self, image_rgb: NDArray[np.uint8], boxes_xyxy_px: Sequence[Sequence[float]] | NDArray[np.float64] = ()
+    ) -> NDArray[np.float64]:
+        """Affine (2, 3) from the previous frame to this one, in full-resolution pixels.
+
+        ``image_rgb``: (H, W, 3) uint8 RGB (or (H, W) grey). ``boxes_xyxy_px``: (N, 4) object
+        boxes in this frame, excluded from the features tracked into the next frame.
+        """
+        gray = self._gray(image_rgb)
+        boxes = np.asarray(boxes_xyxy_px, dtype=np.float64).reshape(-1, 4)
+        warp = IDENTITY.copy()
+        self.last_inliers = 0
+        prev_gray, prev_pts = self._prev_gray, self._prev_pts
+        if prev_gray is not None and prev_gray.shape != gray.shape:
+            log.warning("CMC: image size changed %s -> %s; motion reset", prev_gray.shape, gray.shape)
+            prev_gray = None
+        if prev_gray is not None and prev_pts is not None and len(prev_pts) >= MIN_INLIERS:
+            lk: Any = cv2.calcOpticalFlowPyrLK  # stubs reject nextPts=None, the binding needs it
+            nxt, status, _err = lk(
+                prev_gray, gray, prev_pts, None, winSize=(15, 15), maxLevel=3,
+            )
+            ok = status.reshape(-1).astype(bool)
+            p0, p1 = prev_pts.reshape(-1, 2)[ok], nxt.reshape(-1, 2)[ok]
+            if len(p0) >= MIN_INLIERS:
+                A, inliers = cv2.estimateAffinePartial2D(
+                    p0, p1, method=cv2.RANSAC, ransacReprojThreshold=self.ransac_reproj_px,
+                )
+                n_in = int(inliers.sum()) if inliers is not None else 0
+                if A is not None and n_in >= MIN_INLIERS:
+                    warp = A.astype(np.float64)
+                    warp[:, 2] *= self.downscale
+                    self.last_inliers = n_in
+        self._prev_gray = gray
+        self._prev_pts = self._features(gray, boxes)
+        return warp

@@ -1,0 +1,82 @@
+"""Camera-motion compensation on a real photograph warped by known motions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from semmap.errors import FrameError
+from semmap.tracking.cmc import IDENTITY, SparseFlowCMC
+
+
+@pytest.fixture(scope="module")
+def room_rgb(shared_data: Path) -> np.ndarray:
+    bgr = cv2.imread(str(shared_data / "rgbd" / "diningroom" / "color" / "1.png"))
+    assert bgr is not None
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def warp(img: np.ndarray, A: np.ndarray) -> np.ndarray:
+    return cv2.warpAffine(img, A, (img.shape[1], img.shape[0]), borderMode=cv2.BORDER_REFLECT)
+
+
+def rotation_about(deg: float, centre: tuple[float, float], t: tuple[float, float]) -> np.ndarray:
+    a = np.deg2rad(deg)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    c = np.asarray(centre)
+    return np.hstack([R, (c - R @ c + np.asarray(t))[:, None]])
+
+
+@pytest.mark.parametrize("downscale", [1, 2])
+@pytest.mark.parametrize(("deg", "t"), [(0.0, (14.0, -6.0)), (2.0, (-25.0, 3.0)), (-1.0, (0.0, 0.0))])
+def test_recovers_a_known_image_motion(room_rgb, downscale, deg, t) -> None:
+    A = rotation_about(deg, (320.0, 240.0), t)
+    cmc = SparseFlowCMC(downscale=downscale)
+    np.testing.assert_array_equal(cmc.apply(room_rgb), IDENTITY)  # first frame: nothing to compare
+    W = cmc.apply(warp(room_rgb, A))
+    assert cmc.last_inliers >= 20
+    # Compare where it matters: how the estimate moves points across the image.
+    pts = np.array([[0, 0], [639, 0], [0, 479], [639, 479], [320, 240]], float)
+    err = np.linalg.norm(pts @ W[:, :2].T + W[:, 2] - (pts @ A[:, :2].T + A[:, 2]), axis=1)
+    assert err.max() < 0.6
+
+
+def test_objects_are_masked_out(room_rgb) -> None:
+    # A big, strongly textured object moves 30 px left while the camera moves (10, 4).
+    # Its corners outnumber the background's: unmasked, RANSAC would follow the object.
+    rng = np.random.default_rng(0)
+    patch = cv2.resize(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8), (320, 240),
+                       interpolation=cv2.INTER_NEAREST)
+    A = np.array([[1.0, 0.0, 10.0], [0.0, 1.0, 4.0]])
+    f1, f2 = room_rgb.copy(), warp(room_rgb, A)
+    f1[100:340, 100:420] = patch
+    f2[100:340, 70:390] = patch
+    estimates = {}
+    for masked in (False, True):
+        cmc = SparseFlowCMC()
+        cmc.apply(f1, [(100, 100, 420, 340)] if masked else [])
+        estimates[masked] = cmc.apply(f2, [(70, 100, 390, 340)])
+    np.testing.assert_allclose(estimates[True], A, atol=0.15)
+    assert abs(estimates[False][0, 2] - 10.0) > 20.0
+
+
+def test_featureless_frames_give_the_identity() -> None:
+    cmc = SparseFlowCMC()
+    blank = np.full((480, 640, 3), 128, np.uint8)
+    cmc.apply(blank)
+    np.testing.assert_array_equal(cmc.apply(blank), IDENTITY)
+    assert cmc.last_inliers == 0
+
+
+def test_size_change_resets_instead_of_failing(room_rgb) -> None:
+    cmc = SparseFlowCMC()
+    cmc.apply(room_rgb)
+    np.testing.assert_array_equal(cmc.apply(cv2.resize(room_rgb, (320, 240))), IDENTITY)
+
+
+def test_bad_image_is_a_frame_error() -> None:
+    with pytest.raises(FrameError, match="RGB"):
+        SparseFlowCMC().apply(np.zeros((10, 10, 4), np.uint8))
