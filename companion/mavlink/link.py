@@ -1,0 +1,441 @@
+"""The MAVLink link: our one typed adapter over pymavlink.
+
+:class:`MavlinkLink` is an async context manager that opens a transport (see
+:mod:`companion.mavlink.transport`), parses every received chunk with pymavlink's MAVLink 2
+parser inside the event loop (no blocking ``recv_match``; every message of a datagram is
+dispatched), sends our own 1 Hz heartbeat as an onboard computer, and optionally signs
+outgoing messages (MAVLink 2 signing, key from a file).
+
+Consumers either register a synchronous listener (called for every matching message, used
+by the vehicle-state tracker and command acknowledgement) or iterate a
+:class:`Subscription`, an async iterator over a bounded queue that drops its oldest message
+(and logs) when the consumer is slow::
+
+    async with MavlinkLink("udpin://0.0.0.0:14540") as link:
+        async with link.subscribe("HEARTBEAT") as heartbeats:
+            async for msg in heartbeats:
+                ...
+
+Messages are built with the encoder ``link.mav`` (``link.mav.heartbeat_encode(...)``) and
+MAVLink enums are named through :data:`mavlink` (pymavlink's MAVLink 2 common dialect).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import time
+from collections.abc import AsyncIterator, Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.errors import ConfigError, LinkError
+from companion.mavlink.transport import Transport, make_transport
+from companion.mavlink.urls import parse_url
+
+log = logging.getLogger(__name__)
+
+Message = mavlink.MAVLink_message
+Listener = Callable[[Message], None]
+
+#: Seconds between 1970-01-01 and the MAVLink signing epoch (2015-01-01 00:00:00 UTC).
+_SIGNING_EPOCH_UNIX_S = 1420070400
+#: MAVLink 2 signing keys are 32 bytes.
+SIGNING_KEY_BYTES = 32
+DEFAULT_QUEUE_SIZE = 64
+
+
+@dataclass(frozen=True)
+class SigningConfig:
+    """MAVLink 2 message signing: sign what we send and reject unsigned/badly signed input.
+
+    ``allow_unsigned_ids``: message ids accepted without a valid signature (the MAVLink
+    guide suggests RADIO_STATUS, which radios inject unsigned).
+    """
+
+    key: bytes
+    link_id: int = 0
+    allow_unsigned_ids: frozenset[int] = frozenset({mavlink.MAVLINK_MSG_ID_RADIO_STATUS})
+
+    def __post_init__(self) -> None:
+        if len(self.key) != SIGNING_KEY_BYTES:
+            raise ConfigError(f"MAVLink signing key must be {SIGNING_KEY_BYTES} bytes (got {len(self.key)})")
+        if not 0 <= self.link_id <= 255:
+            raise ConfigError(f"MAVLink signing link_id must be 0..255 (got {self.link_id})")
+
+
+def load_signing_key(path: str | Path) -> bytes:
+    """Read a 32-byte signing key: the raw bytes, or 64 hex characters (whitespace ignored).
+
+    Raises :class:`ConfigError` naming the file when it is missing or malformed.
+    """
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read MAVLink signing key: {exc.strerror or exc}") from exc
+    if len(raw) == SIGNING_KEY_BYTES:
+        return raw
+    text = raw.decode("ascii", errors="replace").strip()
+    if len(text) == 2 * SIGNING_KEY_BYTES:
+        try:
+            return bytes.fromhex(text)
+        except ValueError:
+            pass
+    raise ConfigError(
+        f"{p}: MAVLink signing key must be {SIGNING_KEY_BYTES} raw bytes or "
+        f"{2 * SIGNING_KEY_BYTES} hex characters (got {len(raw)} bytes)"
+    )
+
+
+def signing_timestamp_now() -> int:
+    """The MAVLink signing timestamp for 'now': 10 us units since 2015-01-01 UTC."""
+    return int((time.time() - _SIGNING_EPOCH_UNIX_S) * 100_000)
+
+
+@dataclass(frozen=True)
+class LinkStats:
+    """Counters since the link opened."""
+
+    messages_received: int
+    messages_sent: int
+    bad_data: int
+    send_dropped: int
+    queue_dropped: int
+    signature_rejected: int
+
+
+class _Writer:
+    """The file-like object pymavlink's encoder writes packed messages into."""
+
+    def __init__(self) -> None:
+        self.transport: Transport | None = None
+
+    def write(self, buf: bytes) -> None:
+        if self.transport is None:
+            raise LinkError("MAVLink link is not open")
+        self.transport.send(bytes(buf))
+
+
+class Subscription:
+    """A bounded queue of received messages, as an async iterator and context manager.
+
+    When full, the oldest message is dropped (the consumer wants the newest) and the drop is
+    logged on the first occurrence and every 100th after.
+    """
+
+    def __init__(self, link: "MavlinkLink", msg_types: frozenset[str] | None, maxsize: int) -> None:
+        if maxsize < 1:
+            raise ValueError(f"subscription queue size must be >= 1 (got {maxsize})")
+        self._link = link
+        self.msg_types = msg_types
+        self._queue: asyncio.Queue[Message] = asyncio.Queue(maxsize)
+        self.dropped = 0
+        self._closed = False
+
+    def _offer(self, msg: Message) -> None:
+        if self._queue.full():
+            self._queue.get_nowait()
+            self.dropped += 1
+            self._link._queue_dropped += 1
+            if self.dropped == 1 or self.dropped % 100 == 0:
+                log.warning("slow subscriber to %s: dropped %d old messages",
+                            sorted(self.msg_types) if self.msg_types else "all", self.dropped)
+        self._queue.put_nowait(msg)
+
+    async def get(self, timeout_s: float | None = None) -> Message:
+        """The next message; raises :class:`TimeoutError` after ``timeout_s`` seconds."""
+        if timeout_s is None:
+            return await self._queue.get()
+        async with asyncio.timeout(timeout_s):
+            return await self._queue.get()
+
+    def get_nowait(self) -> Message | None:
+        """The next queued message or None."""
+        try:
+            return self._queue.get_nowait()
+        except asyncio.QueueEmpty:
+            return None
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._link._remove_subscription(self)
+
+    async def __aenter__(self) -> "Subscription":
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+    def __aiter__(self) -> AsyncIterator[Message]:
+        return self._iterate()
+
+    async def _iterate(self) -> AsyncIterator[Message]:
+        try:
+            while True:
+                yield await self._queue.get()
+        finally:
+            self.close()
+
+
+class MavlinkLink:
+    """An open MAVLink 2 connection with our identity and heartbeat (async context manager).
+
+    ``system_id``/``component_id``: our identity (the vehicle's system id and
+    ``MAV_COMP_ID_ONBOARD_COMPUTER``). ``heartbeat_rate_hz``: our heartbeat (0 = none, for
+    passive tools). ``signing``: MAVLink 2 signing, or None for off.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        system_id: int = 1,
+        component_id: int = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER,
+        heartbeat_rate_hz: float = 1.0,
+        mav_type: int = mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+        signing: SigningConfig | None = None,
+    ) -> None:
+        self.endpoint = parse_url(url)
+        self.system_id = system_id
+        self.component_id = component_id
+        self.heartbeat_rate_hz = heartbeat_rate_hz
+        self.mav_type = mav_type
+        self.signing = signing
+        self._writer = _Writer()
+        self.mav = mavlink.MAVLink(self._writer, srcSystem=system_id, srcComponent=component_id)
+        self.mav.robust_parsing = True
+        self._transport: Transport | None = None
+        self._listeners: list[tuple[frozenset[str] | None, Listener]] = []
+        self._subscriptions: list[Subscription] = []
+        self._tg: asyncio.TaskGroup | None = None
+        self._tasks: list[asyncio.Task[Any]] = []
+        self._boot_s = time.monotonic()
+        self._received = 0
+        self._sent = 0
+        self._bad_data = 0
+        self._queue_dropped = 0
+        self._bad_log_s = 0.0
+        self._received_by_type: collections.Counter[str] = collections.Counter()
+        if signing is not None:
+            self._setup_signing(signing)
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> "MavlinkLink":
+        """Build from a :class:`companion.config.LinkConfig` (reads the signing key file)."""
+        signing = None
+        if cfg.signing_key_path:
+            signing = SigningConfig(key=load_signing_key(cfg.signing_key_path))
+        return cls(
+            cfg.url,
+            system_id=cfg.system_id,
+            component_id=cfg.component_id,
+            heartbeat_rate_hz=cfg.heartbeat_rate_hz,
+            signing=signing,
+        )
+
+    # --- lifecycle -------------------------------------------------------------------
+
+    async def __aenter__(self) -> "MavlinkLink":
+        transport = make_transport(self.endpoint, self._on_bytes)
+        await transport.__aenter__()
+        self._transport = transport
+        self._writer.transport = transport
+        try:
+            self._tg = asyncio.TaskGroup()
+            await self._tg.__aenter__()
+            if self.heartbeat_rate_hz > 0:
+                self._tasks.append(self._tg.create_task(self._heartbeat_loop(), name="heartbeat"))
+        except BaseException:
+            await self._close_transport()
+            raise
+        log.info("MAVLink link up on %s as %d/%d%s", self.endpoint.url, self.system_id,
+                 self.component_id, " (signed)" if self.signing else "")
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        try:
+            for task in self._tasks:
+                task.cancel()
+            if self._tg is not None:
+                await self._tg.__aexit__(None, None, None)
+        finally:
+            self._tg = None
+            self._tasks.clear()
+            for sub in list(self._subscriptions):
+                sub.close()
+            await self._close_transport()
+
+    async def _close_transport(self) -> None:
+        transport, self._transport = self._transport, None
+        self._writer.transport = None
+        if transport is not None:
+            await transport.__aexit__(None, None, None)
+
+    @property
+    def transport(self) -> Transport:
+        if self._transport is None:
+            raise LinkError(f"{self.endpoint.url}: MAVLink link is not open")
+        return self._transport
+
+    @property
+    def is_open(self) -> bool:
+        return self._transport is not None
+
+    # --- sending ---------------------------------------------------------------------
+
+    def send(self, msg: Message) -> None:
+        """Encode and send one message now (never blocks). Raises LinkError if closed."""
+        if self._transport is None:
+            raise LinkError(f"{self.endpoint.url}: cannot send {msg.get_type()}: link is not open")
+        self.mav.send(msg)
+        self._sent += 1
+
+    def time_boot_ms(self) -> int:
+        """Milliseconds since this link object was created (MAVLink ``time_boot_ms``)."""
+        return int((time.monotonic() - self._boot_s) * 1000.0) & 0xFFFFFFFF
+
+    async def _heartbeat_loop(self) -> None:
+        period_s = 1.0 / self.heartbeat_rate_hz
+        next_s = time.monotonic()
+        while True:
+            self.send(self.mav.heartbeat_encode(
+                self.mav_type, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+            ))
+            next_s += period_s
+            await asyncio.sleep(max(0.0, next_s - time.monotonic()))
+
+    # --- receiving -------------------------------------------------------------------
+
+    def _on_bytes(self, data: bytes) -> None:
+        try:
+            msgs = self.mav.parse_buffer(data) or []
+        except Exception as exc:  # pymavlink raises plain exceptions on odd input
+            self._count_bad(f"parser error: {exc}")
+            self._reset_parser()
+            return
+        for msg in msgs:
+            if isinstance(msg, mavlink.MAVLink_bad_data):
+                self._count_bad(getattr(msg, "reason", "bad data"))
+                continue
+            if isinstance(msg, mavlink.MAVLink_unknown):
+                continue
+            self._dispatch(msg)
+        if self._transport is not None and self._transport.datagram and self.mav.buf_len():
+            # A datagram holds whole messages; a tail is garbage and must not swallow the
+            # start of the next datagram.
+            self._count_bad("truncated message at the end of a datagram")
+            self._reset_parser()
+
+    def _reset_parser(self) -> None:
+        self.mav.buf = bytearray()
+        self.mav.buf_index = 0
+        self.mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+
+    def _count_bad(self, reason: str) -> None:
+        self._bad_data += 1
+        now = time.monotonic()
+        if now - self._bad_log_s > 5.0:
+            self._bad_log_s = now
+            log.warning("%s: discarded malformed MAVLink input (%s; %d so far)",
+                        self.endpoint.url, reason, self._bad_data)
+
+    def _dispatch(self, msg: Message) -> None:
+        self._received += 1
+        mtype = msg.get_type()
+        self._received_by_type[mtype] += 1
+        for types, callback in list(self._listeners):
+            if types is None or mtype in types:
+                try:
+                    callback(msg)
+                except Exception:
+                    log.exception("MAVLink listener %r failed on %s", callback, mtype)
+        for sub in self._subscriptions:
+            if sub.msg_types is None or mtype in sub.msg_types:
+                sub._offer(msg)
+
+    def add_listener(self, callback: Listener, msg_types: Iterable[str] | None = None) -> Callable[[], None]:
+        """Call ``callback(msg)`` synchronously for each matching message; returns a remover.
+
+        Listeners run inside the receive path: keep them short and non-blocking.
+        """
+        entry = (frozenset(msg_types) if msg_types is not None else None, callback)
+        self._listeners.append(entry)
+
+        def remove() -> None:
+            if entry in self._listeners:
+                self._listeners.remove(entry)
+
+        return remove
+
+    def subscribe(self, *msg_types: str, maxsize: int = DEFAULT_QUEUE_SIZE) -> Subscription:
+        """A bounded async iterator over messages of these types (all types if none given)."""
+        sub = Subscription(self, frozenset(msg_types) if msg_types else None, maxsize)
+        self._subscriptions.append(sub)
+        return sub
+
+    def _remove_subscription(self, sub: Subscription) -> None:
+        if sub in self._subscriptions:
+            self._subscriptions.remove(sub)
+
+    async def wait_message(
+        self,
+        msg_type: str | Iterable[str],
+        timeout_s: float,
+        predicate: Callable[[Message], bool] | None = None,
+    ) -> Message:
+        """The next message of ``msg_type`` satisfying ``predicate``.
+
+        Raises :class:`TimeoutError` after ``timeout_s`` seconds.
+        """
+        types = (msg_type,) if isinstance(msg_type, str) else tuple(msg_type)
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[Message] = loop.create_future()
+
+        def on_msg(msg: Message) -> None:
+            if not fut.done() and (predicate is None or predicate(msg)):
+                fut.set_result(msg)
+
+        remove = self.add_listener(on_msg, types)
+        try:
+            async with asyncio.timeout(timeout_s):
+                return await fut
+        finally:
+            remove()
+
+    # --- signing and statistics ------------------------------------------------------
+
+    def _setup_signing(self, signing: SigningConfig) -> None:
+        s = self.mav.signing
+        s.secret_key = signing.key
+        s.link_id = signing.link_id
+        s.timestamp = signing_timestamp_now()
+        s.sign_outgoing = True
+        allowed = signing.allow_unsigned_ids
+        s.allow_unsigned_callback = lambda _mav, msg_id: msg_id in allowed
+
+    @property
+    def stats(self) -> LinkStats:
+        return LinkStats(
+            messages_received=self._received,
+            messages_sent=self._sent,
+            bad_data=self._bad_data,
+            send_dropped=self._transport.send_dropped if self._transport else 0,
+            queue_dropped=self._queue_dropped,
+            signature_rejected=self.mav.signing.reject_count + self.mav.signing.badsig_count,
+        )
+
+    def received_count(self, msg_type: str) -> int:
+        """How many messages of ``msg_type`` arrived since the link opened."""
+        return self._received_by_type[msg_type]

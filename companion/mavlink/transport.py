@@ -1,0 +1,408 @@
+"""Byte transports for the MAVLink link, driven by the asyncio event loop.
+
+Each transport is an async context manager. Received bytes are handed to the ``on_bytes``
+callback from inside the event loop as they arrive (one call per datagram or per read);
+:meth:`Transport.send` never blocks and never raises on a transient network condition: a
+datagram that cannot go out is dropped and counted, because MAVLink is a lossy protocol and a
+stalled sender is worse than a lost setpoint.
+
+* UDP in (``udpin://``): bound to a local port, replies to the address that sent last (PX4
+  sends from its own port to ours).
+* UDP out (``udpout://``): sends to a fixed address from an ephemeral port.
+* TCP client (``tcp://``): reconnects with back-off while open.
+* TCP server (``tcpin://``): one client at a time; a new client replaces the old one.
+* Serial (``serial://``): pyserial opens and configures the device; reads are driven by
+  ``loop.add_reader`` on its file descriptor, writes go through a small bounded buffer.
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import contextlib
+import logging
+import os
+from collections.abc import Callable
+from types import TracebackType
+from typing import Any
+
+from companion.errors import LinkError
+from companion.mavlink.urls import Endpoint, EndpointKind
+
+log = logging.getLogger(__name__)
+
+BytesCallback = Callable[[bytes], None]
+
+#: A stream transport drops outgoing bytes rather than buffer more than this.
+MAX_WRITE_BUFFER_BYTES = 64 * 1024
+TCP_RECONNECT_MIN_S = 0.2
+TCP_RECONNECT_MAX_S = 2.0
+
+
+class Transport(abc.ABC):
+    """One open byte channel to the peer."""
+
+    #: True when each received chunk is a whole datagram (no message spans two chunks).
+    datagram: bool = False
+
+    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
+        self.endpoint = endpoint
+        self._on_bytes = on_bytes
+        self.bytes_sent = 0
+        self.bytes_received = 0
+        self.send_dropped = 0
+
+    async def __aenter__(self) -> "Transport":
+        try:
+            await self._open()
+        except OSError as exc:
+            raise LinkError(f"{self.endpoint.url}: cannot open: {exc.strerror or exc}") from exc
+        log.info("link transport open: %s", self.describe())
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self._close()
+        log.info("link transport closed: %s", self.endpoint.url)
+
+    @abc.abstractmethod
+    async def _open(self) -> None: ...
+
+    @abc.abstractmethod
+    async def _close(self) -> None: ...
+
+    @abc.abstractmethod
+    def send(self, data: bytes) -> bool:
+        """Queue ``data`` for sending; False (and counted) if it had to be dropped."""
+
+    @property
+    @abc.abstractmethod
+    def connected(self) -> bool:
+        """True when a peer is known/connected, i.e. :meth:`send` can deliver."""
+
+    def describe(self) -> str:
+        return self.endpoint.url
+
+    def _deliver(self, data: bytes) -> None:
+        self.bytes_received += len(data)
+        self._on_bytes(data)
+
+    def _drop(self, reason: str, n: int, quiet: bool = False) -> bool:
+        self.send_dropped += 1
+        if quiet:
+            log.debug("%s: dropped %d outgoing bytes (%s)", self.endpoint.url, n, reason)
+        elif self.send_dropped == 1 or self.send_dropped % 100 == 0:
+            log.warning("%s: dropped outgoing bytes (%s; %d drops so far)",
+                        self.endpoint.url, reason, self.send_dropped)
+        return False
+
+
+# --- UDP ---------------------------------------------------------------------------------
+
+class _DatagramProtocol(asyncio.DatagramProtocol):
+    def __init__(self, owner: "UdpTransport") -> None:
+        self._owner = owner
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self._owner._on_datagram(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port-unreachable and friends: the peer is not up yet. MAVLink carries on.
+        log.debug("%s: socket error %s", self._owner.endpoint.url, exc)
+
+
+class UdpTransport(Transport):
+    """``udpin://`` (bind, reply to the last sender) or ``udpout://`` (fixed peer)."""
+
+    datagram = True
+
+    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
+        super().__init__(endpoint, on_bytes)
+        self._transport: asyncio.DatagramTransport | None = None
+        self._peer: Any = None
+
+    async def _open(self) -> None:
+        loop = asyncio.get_running_loop()
+        ep = self.endpoint
+        if ep.kind is EndpointKind.UDP_IN:
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _DatagramProtocol(self), local_addr=(ep.host, ep.port)
+            )
+        else:
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _DatagramProtocol(self), remote_addr=(ep.host, ep.port)
+            )
+            self._peer = (ep.host, ep.port)
+        self._transport = transport
+
+    async def _close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        """The bound (host, port); useful when the URL asked for port 0."""
+        if self._transport is None:
+            raise LinkError(f"{self.endpoint.url}: transport is not open")
+        sockname = self._transport.get_extra_info("sockname")
+        return str(sockname[0]), int(sockname[1])
+
+    @property
+    def peer(self) -> Any:
+        return self._peer
+
+    @property
+    def connected(self) -> bool:
+        return self._transport is not None and self._peer is not None
+
+    def describe(self) -> str:
+        if self._transport is None:
+            return self.endpoint.url
+        host, port = self.local_address
+        return f"{self.endpoint.url} (local {host}:{port})"
+
+    def _on_datagram(self, data: bytes, addr: Any) -> None:
+        if self.endpoint.kind is EndpointKind.UDP_IN and addr != self._peer:
+            log.info("%s: peer is now %s:%s", self.endpoint.url, addr[0], addr[1])
+            self._peer = addr
+        self._deliver(data)
+
+    def send(self, data: bytes) -> bool:
+        if self._transport is None:
+            return self._drop("transport closed", len(data))
+        if self._peer is None:
+            # Normal until the autopilot's first datagram tells us where it is.
+            return self._drop("no peer has sent to us yet", len(data), quiet=True)
+        if self._transport.get_write_buffer_size() > MAX_WRITE_BUFFER_BYTES:
+            return self._drop("socket buffer full", len(data))
+        if self.endpoint.kind is EndpointKind.UDP_OUT:
+            self._transport.sendto(data)
+        else:
+            self._transport.sendto(data, self._peer)
+        self.bytes_sent += len(data)
+        return True
+
+
+# --- TCP ---------------------------------------------------------------------------------
+
+class _StreamProtocol(asyncio.Protocol):
+    def __init__(self, owner: "_TcpBase") -> None:
+        self._owner = owner
+        self.transport: asyncio.Transport | None = None
+        self.closed = asyncio.get_running_loop().create_future()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        self._owner._on_connected(self)
+
+    def data_received(self, data: bytes) -> None:
+        self._owner._deliver(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._owner._on_disconnected(self, exc)
+        if not self.closed.done():
+            self.closed.set_result(None)
+
+
+class _TcpBase(Transport):
+    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
+        super().__init__(endpoint, on_bytes)
+        self._proto: _StreamProtocol | None = None
+
+    def _on_connected(self, proto: _StreamProtocol) -> None:
+        if self._proto is not None and self._proto.transport is not None:
+            log.info("%s: a new client replaces the previous one", self.endpoint.url)
+            self._proto.transport.close()
+        self._proto = proto
+        peer = proto.transport.get_extra_info("peername") if proto.transport else None
+        log.info("%s: connected (%s)", self.endpoint.url, peer)
+
+    def _on_disconnected(self, proto: _StreamProtocol, exc: Exception | None) -> None:
+        if self._proto is proto:
+            self._proto = None
+            log.warning("%s: connection lost%s", self.endpoint.url, f" ({exc})" if exc else "")
+
+    @property
+    def connected(self) -> bool:
+        return self._proto is not None and self._proto.transport is not None
+
+    def send(self, data: bytes) -> bool:
+        proto = self._proto
+        if proto is None or proto.transport is None or proto.transport.is_closing():
+            return self._drop("not connected", len(data))
+        if proto.transport.get_write_buffer_size() > MAX_WRITE_BUFFER_BYTES:
+            return self._drop("peer is not reading", len(data))
+        proto.transport.write(data)
+        self.bytes_sent += len(data)
+        return True
+
+
+class TcpClientTransport(_TcpBase):
+    """``tcp://host:port``: connects, and reconnects with back-off while open."""
+
+    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
+        super().__init__(endpoint, on_bytes)
+        self._tg: asyncio.TaskGroup | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    async def _open(self) -> None:
+        self._tg = asyncio.TaskGroup()
+        await self._tg.__aenter__()
+        self._task = self._tg.create_task(self._connect_loop(), name=f"tcp {self.endpoint.url}")
+
+    async def _close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+        if self._proto is not None and self._proto.transport is not None:
+            self._proto.transport.close()
+        if self._tg is not None:
+            await self._tg.__aexit__(None, None, None)
+            self._tg = None
+
+    async def _connect_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        delay_s = TCP_RECONNECT_MIN_S
+        while True:
+            try:
+                _, proto = await loop.create_connection(
+                    lambda: _StreamProtocol(self), self.endpoint.host, self.endpoint.port
+                )
+            except OSError as exc:
+                log.debug("%s: connect failed (%s); retrying in %.1f s",
+                          self.endpoint.url, exc.strerror or exc, delay_s)
+                await asyncio.sleep(delay_s)
+                delay_s = min(delay_s * 2.0, TCP_RECONNECT_MAX_S)
+                continue
+            delay_s = TCP_RECONNECT_MIN_S
+            await proto.closed
+
+
+class TcpServerTransport(_TcpBase):
+    """``tcpin://host:port``: accepts clients; the newest one is the peer."""
+
+    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
+        super().__init__(endpoint, on_bytes)
+        self._server: asyncio.Server | None = None
+
+    async def _open(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(
+            lambda: _StreamProtocol(self), self.endpoint.host, self.endpoint.port
+        )
+
+    async def _close(self) -> None:
+        if self._proto is not None and self._proto.transport is not None:
+            self._proto.transport.close()
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+            self._server = None
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        if self._server is None or not self._server.sockets:
+            raise LinkError(f"{self.endpoint.url}: transport is not open")
+        sockname = self._server.sockets[0].getsockname()
+        return str(sockname[0]), int(sockname[1])
+
+
+# --- serial ------------------------------------------------------------------------------
+
+class SerialTransport(Transport):
+    """``serial:///dev/ttyX:baud``: pyserial opens the port; the event loop reads its fd."""
+
+    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
+        super().__init__(endpoint, on_bytes)
+        self._serial: Any = None
+        self._fd = -1
+        self._pending = bytearray()
+
+    async def _open(self) -> None:
+        try:
+            import serial  # pyserial: a runtime dependency, imported where serial is used
+        except ImportError as exc:
+            raise LinkError(f"{self.endpoint.url}: pyserial is not installed") from exc
+        try:
+            self._serial = serial.Serial(
+                self.endpoint.device, self.endpoint.baud, timeout=0, write_timeout=0,
+                exclusive=True,
+            )
+        except (serial.SerialException, ValueError) as exc:
+            raise LinkError(f"{self.endpoint.url}: cannot open serial device: {exc}") from exc
+        self._fd = self._serial.fileno()
+        os.set_blocking(self._fd, False)
+        asyncio.get_running_loop().add_reader(self._fd, self._on_readable)
+
+    async def _close(self) -> None:
+        if self._serial is None:
+            return
+        loop = asyncio.get_running_loop()
+        loop.remove_reader(self._fd)
+        loop.remove_writer(self._fd)
+        with contextlib.suppress(OSError):
+            self._serial.close()
+        self._serial = None
+        self._fd = -1
+
+    @property
+    def connected(self) -> bool:
+        return self._serial is not None
+
+    def _on_readable(self) -> None:
+        try:
+            data = os.read(self._fd, 4096)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            # A USB adapter unplugged: stop reading; the heartbeat watchdog reports link loss.
+            log.error("%s: read failed (%s); serial link is down", self.endpoint.url, exc)
+            asyncio.get_running_loop().remove_reader(self._fd)
+            return
+        if data:
+            self._deliver(data)
+
+    def send(self, data: bytes) -> bool:
+        if self._serial is None:
+            return self._drop("port closed", len(data))
+        if len(self._pending) + len(data) > MAX_WRITE_BUFFER_BYTES:
+            return self._drop("serial output buffer full", len(data))
+        was_empty = not self._pending
+        self._pending += data
+        if was_empty:
+            self._flush()
+        self.bytes_sent += len(data)
+        return True
+
+    def _flush(self) -> None:
+        loop = asyncio.get_running_loop()
+        try:
+            n = os.write(self._fd, self._pending)
+        except BlockingIOError:
+            n = 0
+        except OSError as exc:
+            log.error("%s: write failed (%s)", self.endpoint.url, exc)
+            self._pending.clear()
+            loop.remove_writer(self._fd)
+            return
+        del self._pending[:n]
+        if self._pending:
+            loop.add_writer(self._fd, self._flush)
+        else:
+            loop.remove_writer(self._fd)
+
+
+def make_transport(endpoint: Endpoint, on_bytes: BytesCallback) -> Transport:
+    """The transport for an endpoint (not yet open: use it with ``async with``)."""
+    if endpoint.kind in (EndpointKind.UDP_IN, EndpointKind.UDP_OUT):
+        return UdpTransport(endpoint, on_bytes)
+    if endpoint.kind is EndpointKind.TCP_CLIENT:
+        return TcpClientTransport(endpoint, on_bytes)
+    if endpoint.kind is EndpointKind.TCP_SERVER:
+        return TcpServerTransport(endpoint, on_bytes)
+    return SerialTransport(endpoint, on_bytes)
