@@ -1,0 +1,404 @@
+"""Camera sources: recorded folders (real data), the simulated camera, RealSense with a fake SDK."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.config import CompanionConfig
+from companion.sources import (
+    FrameSource,
+    RealSenseFrameSource,
+    RecordedFrameSource,
+    SimFrameSource,
+    load_tum_pair,
+    make_frame_source,
+)
+from companion.sources.recorded import associate
+from semmap.errors import ConfigError, DataError, FrameError
+from semmap.frames import invert, pose_from_xyz_rpy, transform_points
+from semmap.pointcloud import backproject
+from semmap.types import CameraIntrinsics, Frame
+
+
+def reprojection_error_m(a: Frame, b: Frame) -> float:
+    """Median |depth| disagreement when frame a's points are projected into frame b."""
+    assert a.T_map_camera is not None and b.T_map_camera is not None
+    pts, _ = backproject(a.depth_m, a.intrinsics, min_m=0.3, max_m=6.0, stride_px=4)
+    in_b = transform_points(invert(b.T_map_camera) @ a.T_map_camera, pts)
+    K = b.intrinsics
+    z = in_b[:, 2]
+    ok = z > 0.3
+    u = np.round(K.fx_px * in_b[ok, 0] / z[ok] + K.cx_px).astype(int)
+    v = np.round(K.fy_px * in_b[ok, 1] / z[ok] + K.cy_px).astype(int)
+    inside = (u >= 0) & (u < K.width_px) & (v >= 0) & (v < K.height_px)
+    zb = b.depth_m[v[inside], u[inside]]
+    valid = zb > 0
+    assert valid.sum() > 1000
+    return float(np.median(np.abs(zb[valid] - z[ok][inside][valid])))
+
+
+# --- recorded folders ---------------------------------------------------------------------
+
+def test_diningroom_folder_layout(shared_data: Path) -> None:
+    src = RecordedFrameSource(shared_data / "rgbd" / "diningroom")
+    with src:
+        frames = list(src)
+    assert src.layout == "folders" and len(frames) == 5 and src.frames_read == 5
+    assert src.intrinsics == CameraIntrinsics(518.0, 519.0, 325.5, 253.5, 640, 480)
+    assert src.depth_scale == 1000.0
+    for i, f in enumerate(frames):
+        assert f.index == i and f.rgb.shape == (480, 640, 3) and f.rgb.dtype == np.uint8
+        d = f.depth_m[f.depth_m > 0]
+        assert f.depth_m.dtype == np.float32 and 1.0 < float(np.median(d)) < 5.0  # metres
+        assert f.T_map_camera is not None
+    # The world is roughly the first camera's frame: its pose is nearly the identity.
+    R0 = frames[0].T_map_camera[:3, :3]
+    assert math.degrees(math.acos((np.trace(R0) - 1) / 2)) < 20.0
+    # Poses are camera-to-world: consecutive frames' depths agree after reprojection.
+    assert reprojection_error_m(frames[0], frames[1]) < 0.12
+    assert reprojection_error_m(frames[3], frames[4]) < 0.12
+    # Colour is RGB, not OpenCV's BGR.
+    bgr = cv2.imread(str(shared_data / "rgbd" / "diningroom" / "color" / "1.png"))
+    assert np.array_equal(frames[0].rgb, bgr[:, :, ::-1])
+
+
+def test_depth_range_is_applied(shared_data: Path) -> None:
+    src = RecordedFrameSource(shared_data / "rgbd" / "diningroom", depth_min_m=1.0, depth_max_m=3.0)
+    d = src.frame_at(0).depth_m
+    valid = d[d > 0]
+    assert valid.min() >= 1.0 and valid.max() <= 3.0
+
+
+def test_tum_pairs_layout(shared_data: Path) -> None:
+    src = RecordedFrameSource(shared_data / "rgbd" / "tum_fr2_desk")
+    frames = list(src)
+    assert src.layout == "pairs" and len(frames) == 2 and src.depth_scale == 5000.0
+    assert src.intrinsics.fx_px == pytest.approx(520.9)
+    assert all(f.T_map_camera is None for f in frames)
+    d = frames[0].depth_m
+    assert 0.5 < float(np.median(d[d > 0])) < 3.0  # a desk at arm's length
+    assert src.read() is None
+
+
+def make_tum_folder(shared_data: Path, dst: Path) -> Path:
+    """A TUM RGB-D layout (rgb.txt, depth.txt, groundtruth.txt) made of the real fr2 frames."""
+    src = shared_data / "rgbd" / "tum_fr2_desk"
+    (dst / "rgb").mkdir(parents=True)
+    (dst / "depth").mkdir()
+    stamps = [1311868164.363181, 1311868164.399454]
+    for i, t in enumerate(stamps, start=1):
+        shutil.copy(src / f"{i}.png", dst / "rgb" / f"{t:.6f}.png")
+        shutil.copy(src / f"{i}_depth.png", dst / "depth" / f"{t + 0.008:.6f}.png")
+    (dst / "rgb.txt").write_text(
+        "# color images\n# timestamp filename\n"
+        + "".join(f"{t:.6f} rgb/{t:.6f}.png\n" for t in stamps)
+        + "1311868199.000000 rgb/orphan.png\n"  # no depth near it: dropped by association
+    )
+    (dst / "depth.txt").write_text("# depth\n" + "".join(f"{t + 0.008:.6f} depth/{t + 0.008:.6f}.png\n" for t in stamps))
+    (dst / "groundtruth.txt").write_text(
+        "# timestamp tx ty tz qx qy qz qw\n"
+        "1311868164.30 1.0 2.0 1.5 0 0 0 1\n"
+        "1311868164.40 2.0 2.0 1.5 0 0 0.0871557 0.9961947\n"
+    )
+    shutil.copy(src / "intrinsics.json", dst / "intrinsics.json")
+    return dst
+
+
+def test_tum_layout_associates_and_interpolates_ground_truth(shared_data: Path, tmp_path: Path) -> None:
+    src = RecordedFrameSource(make_tum_folder(shared_data, tmp_path / "tum"))
+    frames = list(src)
+    assert src.layout == "tum" and len(frames) == 2
+    assert frames[0].stamp_s == pytest.approx(1311868164.363181)
+    T = frames[0].T_map_camera
+    assert T is not None
+    # Linear between the two ground-truth poses at 63 % of the way.
+    assert T[0, 3] == pytest.approx(1.0 + 0.63181, abs=1e-4)
+    yaw = math.degrees(math.atan2(T[1, 0], T[0, 0]))
+    assert yaw == pytest.approx(10.0 * 0.63181, abs=0.05)
+    # The second colour frame is 0.6 ms before the last ground truth: interpolated as well.
+    assert frames[1].T_map_camera is not None
+    ref = RecordedFrameSource(shared_data / "rgbd" / "tum_fr2_desk").frame_at(0)
+    assert np.array_equal(frames[0].depth_m, ref.depth_m)
+
+
+def test_associate_is_one_to_one_and_respects_max_dt() -> None:
+    a = np.array([0.0, 0.033, 0.066, 0.5])
+    b = np.array([0.001, 0.030, 0.035, 0.07])
+    pairs = associate(a, b, max_dt_s=0.02)
+    assert pairs == [(0, 0), (1, 2), (2, 3)]  # 0.033 is closer to 0.035 than to 0.030
+    # Two colour frames competing for one depth frame: the closer wins, the other goes unpaired.
+    assert associate(np.array([0.0, 0.004]), np.array([0.003]), 0.02) == [(1, 0)]
+    assert associate(a, np.array([]), 0.02) == []
+
+
+def test_tum_fr1_case_pairs_have_consistent_poses(shared_data: Path) -> None:
+    prev, curr = load_tum_pair(shared_data / "rgbd" / "tum_fr1_xyz" / "case_1")
+    assert prev.rgb.shape == (480, 640, 3) and prev.T_map_camera is not None
+    assert np.linalg.norm(prev.T_map_camera[:3, 3] - curr.T_map_camera[:3, 3]) < 0.2
+    assert reprojection_error_m(prev, curr) < 0.1
+
+
+@pytest.fixture
+def dining_copy(shared_data: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "dining"
+    shutil.copytree(shared_data / "rgbd" / "diningroom", dst)
+    return dst
+
+
+def test_corrupt_colour_image_names_the_file_and_reading_continues(dining_copy: Path) -> None:
+    bad = dining_copy / "color" / "2.png"
+    bad.write_bytes(bad.read_bytes()[:200])  # truncated PNG
+    src = RecordedFrameSource(dining_copy)
+    assert src.read() is not None
+    with pytest.raises(FrameError, match=r"color/2\.png.*corrupt"):
+        src.read()
+    assert src.read().index == 2  # the caller may skip the bad frame
+
+
+def test_missing_depth_file_names_the_expected_file(dining_copy: Path) -> None:
+    (dining_copy / "depth" / "4.pgm").unlink()
+    src = RecordedFrameSource(dining_copy)
+    with pytest.raises(FrameError, match=r"depth/4\.pgm.*missing"):
+        src.frame_at(3)
+
+
+def test_wrong_kind_of_depth_image(dining_copy: Path) -> None:
+    img = cv2.imread(str(dining_copy / "color" / "1.png"), cv2.IMREAD_GRAYSCALE)
+    (dining_copy / "depth" / "1.pgm").unlink()
+    cv2.imwrite(str(dining_copy / "depth" / "1.png"), img)  # 8-bit
+    with pytest.raises(FrameError, match=r"depth/1\.png.*16-bit"):
+        RecordedFrameSource(dining_copy).frame_at(0)
+
+
+def test_image_size_must_match_intrinsics(dining_copy: Path) -> None:
+    small = cv2.imread(str(dining_copy / "color" / "1.png"))[:240, :320]
+    cv2.imwrite(str(dining_copy / "color" / "1.png"), small)
+    with pytest.raises(FrameError, match=r"color/1\.png: image is 320x240"):
+        RecordedFrameSource(dining_copy).frame_at(0)
+
+
+def test_bad_pose_line_names_file_and_line(dining_copy: Path) -> None:
+    lines = (dining_copy / "pose.txt").read_text().splitlines()
+    lines[2] = "1.0 2.0 three 0 0 0 1"
+    (dining_copy / "pose.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"pose\.txt:3: not a number"):
+        RecordedFrameSource(dining_copy).open()
+    (dining_copy / "pose.txt").write_text("\n".join(lines[:1]) + "\n")
+    with pytest.raises(DataError, match=r"pose\.txt: 1 poses for 5 colour frames"):
+        RecordedFrameSource(dining_copy).open()
+
+
+def test_bad_intrinsics_json_names_the_key(dining_copy: Path) -> None:
+    data = json.loads((dining_copy / "intrinsics.json").read_text())
+    data["fx"] = -1
+    (dining_copy / "intrinsics.json").write_text(json.dumps(data))
+    with pytest.raises(DataError, match=r"intrinsics\.json: fx: must be a positive number"):
+        RecordedFrameSource(dining_copy).open()
+    (dining_copy / "intrinsics.json").write_text("{not json")
+    with pytest.raises(DataError, match=r"intrinsics\.json: not valid JSON"):
+        RecordedFrameSource(dining_copy).open()
+
+
+def test_missing_intrinsics_fall_back_to_given_ones(dining_copy: Path) -> None:
+    (dining_copy / "intrinsics.json").unlink()
+    with pytest.raises(DataError, match="no intrinsics.json"):
+        RecordedFrameSource(dining_copy).open()
+    intr = CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 640, 480)
+    src = RecordedFrameSource(dining_copy, default_intrinsics=intr)
+    assert src.read().intrinsics == intr
+
+
+def test_unknown_folder_layouts(tmp_path: Path) -> None:
+    with pytest.raises(DataError, match="not found"):
+        RecordedFrameSource(tmp_path / "nope").open()
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match="not a recognised RGB-D recording"):
+        RecordedFrameSource(tmp_path / "empty").open()
+
+
+# --- the simulated camera -----------------------------------------------------------------
+
+SMALL_CAMERA = {"width_px": 160, "height_px": 120, "fx_px": 96.0, "fy_px": 96.0, "cx_px": 80.0, "cy_px": 60.0}
+
+
+def test_sim_source_renders_from_the_vehicle_pose() -> None:
+    pytest.importorskip("open3d")
+    cfg = CompanionConfig.model_validate({"camera": SMALL_CAMERA, "sim": {"n_objects": 3}})
+    poses = [(0.1 * i, pose_from_xyz_rpy(4.0, 3.0, 1.0, 0.0, 0.0, 0.3 * i)) for i in range(4)]
+    it = iter(poses)
+    src = make_frame_source(cfg, pose_provider=lambda: next(it, None))
+    assert isinstance(src, SimFrameSource) and isinstance(src, FrameSource)
+    with src:
+        frames = list(src)
+    assert len(frames) == 4 and [f.index for f in frames] == [0, 1, 2, 3]
+    T_bc = cfg.camera.extrinsics.T_body_camera()
+    for f, (t, T_mb) in zip(frames, poses, strict=True):
+        assert f.stamp_s == t
+        assert np.allclose(f.T_map_camera, T_mb @ T_bc)
+        assert f.rgb.shape == (120, 160, 3) and "instance" in f.masks
+    # The same flight replays to the same frames.
+    it2 = iter(poses)
+    again = SimFrameSource.from_config(cfg, lambda: next(it2, None), room=src.room)
+    assert np.array_equal(again.read().depth_m, frames[0].depth_m)
+
+
+def test_sim_source_stops_after_max_frames() -> None:
+    pytest.importorskip("open3d")
+    cfg = CompanionConfig.model_validate({"camera": SMALL_CAMERA, "sim": {"n_objects": 0}})
+    src = make_frame_source(cfg, pose_provider=lambda: (0.0, pose_from_xyz_rpy(3.0, 3.0, 1.0)), max_frames=2)
+    assert len(list(src)) == 2
+
+
+def test_factory_picks_the_configured_source(shared_data: Path) -> None:
+    with pytest.raises(ConfigError, match="pose provider"):
+        make_frame_source(CompanionConfig())
+    rec = make_frame_source(CompanionConfig.model_validate(
+        {"camera": {"source": "recorded", "recorded_path": str(shared_data / "rgbd" / "diningroom")}}
+    ))
+    assert isinstance(rec, RecordedFrameSource) and len(rec) == 5
+    live = make_frame_source(CompanionConfig.model_validate({"camera": {"source": "realsense", "realsense_serial": "123"}}))
+    assert isinstance(live, RealSenseFrameSource) and live.serial == "123"
+
+
+# --- RealSense with a fake SDK ------------------------------------------------------------
+
+class FakeVideoFrame:
+    def __init__(self, data: np.ndarray | None) -> None:
+        self.data = data
+
+    def __bool__(self) -> bool:
+        return self.data is not None
+
+    def get_data(self) -> np.ndarray:
+        assert self.data is not None
+        return self.data
+
+
+class FakeFrameset:
+    def __init__(self, depth: np.ndarray | None, color: np.ndarray | None, stamp_ms: float) -> None:
+        self.depth, self.color, self.stamp_ms = depth, color, stamp_ms
+
+    def get_depth_frame(self) -> FakeVideoFrame:
+        return FakeVideoFrame(self.depth)
+
+    def get_color_frame(self) -> FakeVideoFrame:
+        return FakeVideoFrame(self.color)
+
+    def get_timestamp(self) -> float:
+        return self.stamp_ms
+
+
+class FakePipeline:
+    """Plays a script: framesets, or exceptions to raise from wait_for_frames."""
+
+    def __init__(self, script: list[Any], depth_scale: float = 0.001, fail_start: bool = False) -> None:
+        self.script = list(script)
+        self.depth_scale = depth_scale
+        self.fail_start = fail_start
+        self.started_with: Any = None
+        self.stopped = False
+        self.timeouts: list[int] = []
+
+    def start(self, config: Any) -> Any:
+        if self.fail_start:
+            raise RuntimeError("No device connected")
+        self.started_with = config
+        intr = SimpleNamespace(fx=380.5, fy=380.0, ppx=321.2, ppy=239.1, width=640, height=480)
+        sensor = SimpleNamespace(get_depth_scale=lambda: self.depth_scale)
+        stream = SimpleNamespace(as_video_stream_profile=lambda: SimpleNamespace(get_intrinsics=lambda: intr))
+        return SimpleNamespace(
+            get_device=lambda: SimpleNamespace(first_depth_sensor=lambda: sensor),
+            get_stream=lambda s: stream,
+        )
+
+    def wait_for_frames(self, timeout_ms: int) -> Any:
+        self.timeouts.append(timeout_ms)
+        item = self.script.pop(0)
+        if isinstance(item, Exception):
+            raise item
+        return item
+
+    def stop(self) -> None:
+        self.stopped = True
+
+
+class FakeConfig:
+    def __init__(self) -> None:
+        self.streams: list[tuple[Any, ...]] = []
+        self.device: str | None = None
+
+    def enable_device(self, serial: str) -> None:
+        self.device = serial
+
+    def enable_stream(self, *args: Any) -> None:
+        self.streams.append(args)
+
+
+class FakeAlign:
+    def __init__(self, to: str) -> None:
+        assert to == "color"
+
+    def process(self, frames: Any) -> Any:
+        return frames
+
+
+FAKE_RS = SimpleNamespace(
+    stream=SimpleNamespace(depth="depth", color="color"), format=SimpleNamespace(z16="z16", rgb8="rgb8"),
+    config=FakeConfig, align=FakeAlign,
+)
+
+
+def good_frameset(depth_mm: int = 1500, stamp_ms: float = 1000.0) -> FakeFrameset:
+    depth = np.full((480, 640), depth_mm, dtype=np.uint16)
+    depth[0, 0] = 9000  # beyond the range
+    color = np.zeros((480, 640, 3), dtype=np.uint8)
+    color[..., 0] = 200
+    return FakeFrameset(depth, color, stamp_ms)
+
+
+def test_realsense_reads_aligned_frames_and_skips_bad_ones() -> None:
+    pipe = FakePipeline([
+        good_frameset(1500),
+        RuntimeError("Frame didn't arrive within 1000"),
+        FakeFrameset(None, np.zeros((480, 640, 3), np.uint8), 1066.0),  # no depth
+        FakeFrameset(np.zeros((240, 320), np.uint16), np.zeros((480, 640, 3), np.uint8), 1100.0),
+        good_frameset(2000, 1133.0),
+    ], depth_scale=0.001)
+    src = RealSenseFrameSource(serial="0123", rate_hz=30, depth_max_m=6.0, rs_module=FAKE_RS, pipeline=pipe)
+    with src:
+        a = src.read()
+        b = src.read()
+    assert pipe.started_with.device == "0123"
+    assert ("depth", 640, 480, "z16", 30) in pipe.started_with.streams
+    assert ("color", 640, 480, "rgb8", 30) in pipe.started_with.streams
+    assert src.intrinsics == CameraIntrinsics(380.5, 380.0, 321.2, 239.1, 640, 480)
+    assert a is not None and b is not None
+    assert a.depth_m[100, 100] == pytest.approx(1.5) and a.depth_m[0, 0] == 0.0
+    assert b.depth_m[100, 100] == pytest.approx(2.0)
+    assert a.rgb[0, 0, 0] == 200 and a.T_map_camera is None
+    assert b.stamp_s >= a.stamp_s and src.last_device_stamp_ms == 1133.0
+    assert src.dropped_frames == 3 and src.frames_read == 2
+    assert pipe.stopped
+
+
+def test_realsense_gives_up_after_too_many_failures_in_a_row() -> None:
+    pipe = FakePipeline([RuntimeError("timeout")] * 5)
+    src = RealSenseFrameSource(rs_module=FAKE_RS, pipeline=pipe, max_consecutive_failures=3)
+    with pytest.raises(FrameError, match="3 bad frames in a row"):
+        src.read()
+    assert src.dropped_frames == 3
+
+
+def test_realsense_start_failure_is_a_frame_error() -> None:
+    src = RealSenseFrameSource(serial="999", rs_module=FAKE_RS, pipeline=FakePipeline([], fail_start=True))
+    with pytest.raises(FrameError, match="RealSense 999: cannot start.*No device connected"):
+        src.open()
