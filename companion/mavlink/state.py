@@ -1,0 +1,305 @@
+"""The vehicle's state as telemetry reports it: a frozen snapshot and the tracker that builds it.
+
+:class:`VehicleStateTracker` listens on a :class:`~companion.mavlink.link.MavlinkLink` for
+the autopilot's messages (only those from the target system/component, so a ground station's
+heartbeat never counts as the autopilot's) and keeps the latest of each. ``snapshot()``
+returns a :class:`VehicleState` with ages computed against the tracker's clock
+(``time.monotonic`` unless a test injects one).
+
+Frames: PX4 local NED (x north, y east, z down, metres), attitude as roll/pitch/yaw in
+radians with yaw measured from north, clockwise.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+import logging
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Protocol
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.errors import LinkError
+from companion.px4 import FlightMode, decode_heartbeat
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+Vec3 = tuple[float, float, float]
+
+
+class LandedState(enum.Enum):
+    """``MAV_LANDED_STATE`` by name."""
+
+    UNDEFINED = mavlink.MAV_LANDED_STATE_UNDEFINED
+    ON_GROUND = mavlink.MAV_LANDED_STATE_ON_GROUND
+    IN_AIR = mavlink.MAV_LANDED_STATE_IN_AIR
+    TAKEOFF = mavlink.MAV_LANDED_STATE_TAKEOFF
+    LANDING = mavlink.MAV_LANDED_STATE_LANDING
+
+    @classmethod
+    def from_mavlink(cls, value: int) -> "LandedState":
+        try:
+            return cls(value)
+        except ValueError:
+            return cls.UNDEFINED
+
+
+@dataclass(frozen=True)
+class HomePosition:
+    """Where the vehicle will return to: global (WGS84, AMSL) and local NED coordinates."""
+
+    latitude_deg: float
+    longitude_deg: float
+    altitude_amsl_m: float
+    position_ned_m: Vec3
+
+
+@dataclass(frozen=True)
+class GlobalPosition:
+    """GLOBAL_POSITION_INT: WGS84 position, AMSL and relative-to-home altitude."""
+
+    latitude_deg: float
+    longitude_deg: float
+    altitude_amsl_m: float
+    relative_altitude_m: float
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """A snapshot of the autopilot's telemetry. Fields are None until first reported.
+
+    Ages are seconds since the last message of that kind, at snapshot time.
+    """
+
+    heartbeat_age_s: float | None
+    armed: bool
+    flight_mode: FlightMode | None
+    landed_state: LandedState
+    position_ned_m: Vec3 | None
+    velocity_ned_m_s: Vec3 | None
+    position_age_s: float | None
+    attitude_rpy_rad: Vec3 | None
+    battery_v: float | None
+    battery_remaining: float | None  # fraction 0..1
+    home: HomePosition | None
+    global_position: GlobalPosition | None
+    autopilot_system_status: int | None  # MAV_STATE
+
+    def heartbeat_fresh(self, timeout_s: float) -> bool:
+        """True if the autopilot's heartbeat is younger than ``timeout_s``."""
+        return self.heartbeat_age_s is not None and self.heartbeat_age_s <= timeout_s
+
+    def position_fresh(self, timeout_s: float) -> bool:
+        """True if LOCAL_POSITION_NED is younger than ``timeout_s``."""
+        return self.position_age_s is not None and self.position_age_s <= timeout_s
+
+    @property
+    def yaw_ned_rad(self) -> float | None:
+        """Heading from north, clockwise (radians), or None before the first ATTITUDE."""
+        return None if self.attitude_rpy_rad is None else self.attitude_rpy_rad[2]
+
+    @property
+    def in_air(self) -> bool:
+        return self.landed_state in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
+
+
+class StateTimeoutError(LinkError):
+    """The vehicle did not reach the awaited state in time; the message says which."""
+
+
+#: Everything the tracker reads.
+TRACKED_MESSAGES: frozenset[str] = frozenset({
+    "HEARTBEAT", "LOCAL_POSITION_NED", "ATTITUDE", "EXTENDED_SYS_STATE", "SYS_STATUS",
+    "BATTERY_STATUS", "HOME_POSITION", "GLOBAL_POSITION_INT",
+})
+
+_UINT16_MAX = 0xFFFF
+
+
+class VehicleStateTracker:
+    """Keeps the autopilot's latest telemetry; feed it with :meth:`handle` or :meth:`attach`.
+
+    ``target_system``/``target_component``: the autopilot's MAVLink address.
+    """
+
+    def __init__(
+        self,
+        target_system: int = 1,
+        target_component: int = mavlink.MAV_COMP_ID_AUTOPILOT1,
+        clock: Clock = time.monotonic,
+    ) -> None:
+        self.target_system = target_system
+        self.target_component = target_component
+        self._clock = clock
+        self._heartbeat_s: float | None = None
+        self._armed = False
+        self._mode: FlightMode | None = None
+        self._system_status: int | None = None
+        self._landed = LandedState.UNDEFINED
+        self._pos: Vec3 | None = None
+        self._vel: Vec3 | None = None
+        self._pos_s: float | None = None
+        self._rpy: Vec3 | None = None
+        self._battery_v: float | None = None
+        self._battery_remaining: float | None = None
+        self._home: HomePosition | None = None
+        self._global: GlobalPosition | None = None
+        self._changed = asyncio.Event()
+        self._unknown_mode_logged: set[int] = set()
+
+    def attach(self, link: "LinkLike") -> Callable[[], None]:
+        """Register on ``link``; returns the function that detaches again."""
+        return link.add_listener(self.handle, TRACKED_MESSAGES)
+
+    def handle(self, msg: mavlink.MAVLink_message) -> None:
+        """Update from one received message (ignores other senders and other types)."""
+        if msg.get_srcSystem() != self.target_system or msg.get_srcComponent() != self.target_component:
+            return
+        mtype = msg.get_type()
+        handler = _HANDLERS.get(mtype)
+        if handler is not None:
+            handler(self, msg)
+            self._changed.set()
+
+    # --- per-message updates ---------------------------------------------------------
+
+    def _on_heartbeat(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.type == mavlink.MAV_TYPE_GCS or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
+            return
+        decoded = decode_heartbeat(msg.base_mode, msg.custom_mode)
+        if decoded.mode is None and msg.custom_mode not in self._unknown_mode_logged:
+            self._unknown_mode_logged.add(msg.custom_mode)
+            log.warning("autopilot reports unknown PX4 mode (main %d, sub %d)",
+                        decoded.main_mode, decoded.sub_mode)
+        if decoded.mode != self._mode:
+            log.info("autopilot flight mode: %s -> %s",
+                     self._mode.name if self._mode else None,
+                     decoded.mode.name if decoded.mode else None)
+        if decoded.armed != self._armed:
+            log.info("autopilot %s", "armed" if decoded.armed else "disarmed")
+        self._heartbeat_s = self._clock()
+        self._armed = decoded.armed
+        self._mode = decoded.mode
+        self._system_status = msg.system_status
+
+    def _on_local_position(self, msg: mavlink.MAVLink_message) -> None:
+        self._pos = (float(msg.x), float(msg.y), float(msg.z))
+        self._vel = (float(msg.vx), float(msg.vy), float(msg.vz))
+        self._pos_s = self._clock()
+
+    def _on_attitude(self, msg: mavlink.MAVLink_message) -> None:
+        self._rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
+
+    def _on_extended_sys_state(self, msg: mavlink.MAVLink_message) -> None:
+        self._landed = LandedState.from_mavlink(msg.landed_state)
+
+    def _on_sys_status(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.voltage_battery != _UINT16_MAX:
+            self._battery_v = msg.voltage_battery / 1000.0
+        if msg.battery_remaining >= 0:
+            self._battery_remaining = msg.battery_remaining / 100.0
+
+    def _on_battery_status(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.id != 0:  # the first battery is the one that powers the vehicle
+            return
+        cells_mv = [v for v in msg.voltages if v != _UINT16_MAX]
+        cells_mv += [v for v in getattr(msg, "voltages_ext", ()) or () if v not in (0, _UINT16_MAX)]
+        if cells_mv:
+            self._battery_v = sum(cells_mv) / 1000.0
+        if msg.battery_remaining >= 0:
+            self._battery_remaining = msg.battery_remaining / 100.0
+
+    def _on_home(self, msg: mavlink.MAVLink_message) -> None:
+        self._home = HomePosition(
+            latitude_deg=msg.latitude * 1e-7,
+            longitude_deg=msg.longitude * 1e-7,
+            altitude_amsl_m=msg.altitude / 1000.0,
+            position_ned_m=(float(msg.x), float(msg.y), float(msg.z)),
+        )
+
+    def _on_global_position(self, msg: mavlink.MAVLink_message) -> None:
+        self._global = GlobalPosition(
+            latitude_deg=msg.lat * 1e-7,
+            longitude_deg=msg.lon * 1e-7,
+            altitude_amsl_m=msg.alt / 1000.0,
+            relative_altitude_m=msg.relative_alt / 1000.0,
+        )
+
+    # --- reading ---------------------------------------------------------------------
+
+    def snapshot(self) -> VehicleState:
+        """The current state, with ages computed now."""
+        now = self._clock()
+        return VehicleState(
+            heartbeat_age_s=None if self._heartbeat_s is None else now - self._heartbeat_s,
+            armed=self._armed,
+            flight_mode=self._mode,
+            landed_state=self._landed,
+            position_ned_m=self._pos,
+            velocity_ned_m_s=self._vel,
+            position_age_s=None if self._pos_s is None else now - self._pos_s,
+            attitude_rpy_rad=self._rpy,
+            battery_v=self._battery_v,
+            battery_remaining=self._battery_remaining,
+            home=self._home,
+            global_position=self._global,
+            autopilot_system_status=self._system_status,
+        )
+
+    async def wait_for(
+        self,
+        predicate: Callable[[VehicleState], bool],
+        timeout_s: float,
+        what: str,
+        poll_s: float = 0.05,
+    ) -> VehicleState:
+        """Wait until ``predicate(snapshot)`` holds; raises :class:`StateTimeoutError` naming ``what``.
+
+        Re-evaluates on every tracked message and at least every ``poll_s`` seconds (so
+        age-based predicates such as 'heartbeat lost' also resolve).
+        """
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while True:
+            state = self.snapshot()
+            if predicate(state):
+                return state
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                raise StateTimeoutError(f"timed out after {timeout_s:.1f} s waiting for {what}")
+            self._changed.clear()
+            try:
+                async with asyncio.timeout(min(poll_s, remaining)):
+                    await self._changed.wait()
+            except TimeoutError:
+                pass
+
+
+class LinkLike(Protocol):
+    """What :meth:`VehicleStateTracker.attach` needs of a link."""
+
+    def add_listener(
+        self, callback: Callable[[mavlink.MAVLink_message], None], msg_types: Iterable[str] | None = None
+    ) -> Callable[[], None]: ...
+
+
+_HANDLERS: dict[str, Callable[[VehicleStateTracker, mavlink.MAVLink_message], None]] = {
+    "HEARTBEAT": VehicleStateTracker._on_heartbeat,
+    "LOCAL_POSITION_NED": VehicleStateTracker._on_local_position,
+    "ATTITUDE": VehicleStateTracker._on_attitude,
+    "EXTENDED_SYS_STATE": VehicleStateTracker._on_extended_sys_state,
+    "SYS_STATUS": VehicleStateTracker._on_sys_status,
+    "BATTERY_STATUS": VehicleStateTracker._on_battery_status,
+    "HOME_POSITION": VehicleStateTracker._on_home,
+    "GLOBAL_POSITION_INT": VehicleStateTracker._on_global_position,
+}
+
+
+def distance_m(a: Vec3, b: Vec3) -> float:
+    """Euclidean distance between two NED points (metres)."""
+    return math.dist(a, b)
