@@ -222,7 +222,7 @@ def _whiteboard(rng: np.random.Generator) -> tuple[tuple[float, float, float], l
     for sx in (-1, 1):
         x = sx * (W / 2 + post / 2)
         parts.append(Box((x, 0.0, top / 2), (post, post, top)))  # upright
-        parts.append(Box((x, 0.0, 0.025), (0.05, foot, 0.05)))  # foot on the floor
+        parts.append(Box((x, 0.0, 0.025), (post, foot, 0.05)))  # foot, within the footprint
     return (W + 2 * post, foot, top), parts
 
 
