@@ -1,0 +1,648 @@
+"""A SITL-free PX4 stand-in speaking MAVLink 2 over UDP, for tests and ``companion sim-autopilot``.
+
+One UDP socket bound to ``local_port`` (PX4: 14580) sends every message to the configured
+remote ports (PX4: 14540 for the onboard/API link, 14550 for a ground station) and to any
+address that has sent it a packet, which is how PX4 learns a partner. Incoming datagrams are
+parsed per sender so one peer's garbage cannot corrupt another's stream.
+
+Behaviour follows PX4 v1.14/1.15 where clients can observe it: heartbeats with PX4 custom
+modes, the command protocol (acks within one physics tick, duplicates re-acked without
+re-executing), parameters with byte-wise encoding, the mission protocol, offboard that is
+refused without a setpoint stream and falls back to Hold when setpoints stop for
+``COM_OF_LOSS_T``, auto-disarm after landing (``COM_DISARM_LAND``) and when not taking off after
+arming (``COM_DISARM_PRFLT``).
+
+Faults for tests are set on :attr:`MockAutopilot.faults` while it runs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import random
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.errors import SimulationError
+from companion.geo import GeoOrigin
+from companion.px4 import FlightMode
+from companion.sim.autopilot import offboard, telemetry
+from companion.sim.autopilot.commands import CommandHandler
+from companion.sim.autopilot.mission_server import MissionItem, MissionServer
+from companion.sim.autopilot.navigator import Navigator
+from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
+from companion.sim.autopilot.vehicle import KinematicMulticopter, VehicleLimits, VehicleState
+from semmap.frames import Transform
+
+log = logging.getLogger(__name__)
+
+_LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
+
+
+@dataclass
+class Faults:
+    """Fault injection, changeable at any time while the mock runs."""
+
+    #: Cut the link both ways (nothing sent, everything received is discarded).
+    drop_link: bool = False
+    drop_outgoing: bool = False
+    drop_incoming: bool = False
+    #: Extra one-way latency added to everything the mock sends (seconds).
+    delay_s: float = 0.0
+    #: Commands (MAV_CMD ids) answered with MAV_RESULT_DENIED.
+    reject_commands: set[int] = field(default_factory=set)
+    #: Commands (MAV_CMD ids) never answered (the client times out).
+    ignore_commands: set[int] = field(default_factory=set)
+    #: Probability per outgoing byte of being replaced by a random byte.
+    corrupt_bytes_rate: float = 0.0
+    #: Upload of this mission item index is rejected with MAV_MISSION_DENIED.
+    reject_mission_seq: int | None = None
+    #: Pre-arm checks fail (SYS_STATUS health bit cleared, arming denied).
+    prearm_fail: bool = False
+
+
+@dataclass(frozen=True)
+class VisionSample:
+    """An external-vision pose received (VISION_POSITION_ESTIMATE or ODOMETRY), NED."""
+
+    stamp_s: float  # mock clock
+    msg_type: str
+    time_usec: int
+    position_ned_m: tuple[float, float, float]
+    q_wxyz: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class FailsafeEvent:
+    stamp_s: float
+    reason: str
+    action: FlightMode
+
+
+class _Protocol(asyncio.DatagramProtocol):
+    def __init__(self, owner: MockAutopilot) -> None:
+        self._owner = owner
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        self._owner._on_datagram(data, (str(addr[0]), int(addr[1])))
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable when nobody listens on a remote port yet: normal for UDP.
+        log.debug("mock autopilot socket error: %s", exc)
+
+
+class MockAutopilot:
+    """The mock PX4. Use ``async with MockAutopilot(...) as ap:``.
+
+    ``local_port=0`` binds an ephemeral port (see :attr:`local_port`); ``remote_ports`` are
+    sent to on ``remote_host``. All positions are local NED metres around ``home``.
+    """
+
+    def __init__(
+        self,
+        *,
+        host: str = "127.0.0.1",
+        local_port: int = 14580,
+        remote_ports: Iterable[int] = (14540, 14550),
+        remote_host: str = "127.0.0.1",
+        home: GeoOrigin | None = None,
+        system_id: int = 1,
+        params: dict[str, float] | None = None,
+        physics_rate_hz: float = 100.0,
+        stream_rates_hz: dict[str, float] | None = None,
+        seed: int = 0,
+    ) -> None:
+        if physics_rate_hz <= 0:
+            raise SimulationError(f"physics_rate_hz must be > 0 (got {physics_rate_hz})")
+        unknown = set(stream_rates_hz or {}) - set(telemetry.STREAMS)
+        if unknown:
+            raise SimulationError(f"unknown telemetry streams {sorted(unknown)} "
+                                  f"(known: {sorted(telemetry.STREAMS)})")
+        self.host = host
+        self._requested_port = local_port
+        self._remotes: list[tuple[str, int]] = [(remote_host, int(p)) for p in remote_ports]
+        self._learned: dict[tuple[str, int], float] = {}
+        self.home = home or GeoOrigin()
+        self.system_id = system_id
+        self.params = ParamStore({"MAV_SYS_ID": system_id, **(params or {})})
+        self.faults = Faults()
+        self._rng = random.Random(seed)
+        self._dt_s = 1.0 / physics_rate_hz
+        self._mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=1)
+        self._mav.robust_parsing = True
+        self._transport: asyncio.DatagramTransport | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._t0 = time.monotonic()
+        self.vehicle = KinematicMulticopter(self._limits_from_params())
+        self._mode = FlightMode.HOLD
+        self._armed = False
+        self._armed_at_s = 0.0
+        self._has_flown = False
+        self._landed_since_s: float | None = 0.0
+        self.landed_state = _LANDED
+        self.missions = MissionServer(self._mav, self.send, self._on_mission_changed,
+                                      self._on_set_current)
+        self.navigator = Navigator(self.vehicle, self.params, self.home, self.set_mode,
+                                   self._on_item_reached, self._on_current_changed)
+        self.navigator.enter(FlightMode.HOLD)
+        self.commands = CommandHandler(self)
+        # offboard
+        self._last_setpoint_s = -math.inf
+        self._offboard_target = None
+        self.setpoints: deque[offboard.ReceivedSetpoint] = deque(maxlen=2000)
+        self.vision: deque[VisionSample] = deque(maxlen=2000)
+        self.failsafes: list[FailsafeEvent] = []
+        self.messages_received: Counter[str] = Counter()
+        self.last_received: dict[str, Any] = {}
+        self.bad_packets = 0
+        self.peer_heartbeats: dict[tuple[int, int], float] = {}
+        self.reached_items: list[int] = []
+        # telemetry schedule: name -> [interval_s or 0, next_due_s]
+        rates = {name: rate for name, (_id, _enc, rate) in telemetry.STREAMS.items()}
+        rates.update(stream_rates_hz or {})
+        self._streams: dict[str, list[float]] = {
+            n: [1.0 / r if r > 0 else 0.0, 0.0] for n, r in rates.items()}
+        self._default_rates = dict(rates)
+        self._battery_pct = 100.0
+
+    # --- lifecycle -----------------------------------------------------------------------
+
+    async def __aenter__(self) -> MockAutopilot:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    async def start(self) -> None:
+        """Bind the socket and start the physics/telemetry loop."""
+        loop = asyncio.get_running_loop()
+        try:
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _Protocol(self), local_addr=(self.host, self._requested_port))
+        except OSError as exc:
+            raise SimulationError(
+                f"mock autopilot cannot bind UDP {self.host}:{self._requested_port}: {exc}"
+            ) from exc
+        self._transport = transport  # type: ignore[assignment]
+        self._t0 = time.monotonic()
+        self._task = asyncio.create_task(self._run(), name="mock-autopilot")
+        log.info("mock autopilot (system %d) on udp %s:%d -> %s", self.system_id, self.host,
+                 self.local_port, ", ".join(f"{h}:{p}" for h, p in self._remotes))
+
+    async def stop(self) -> None:
+        """Stop the loop and close the socket (idempotent)."""
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+
+    async def serve_forever(self) -> None:
+        """Run until cancelled (the CLI's main loop)."""
+        if self._task is None:
+            await self.start()
+        assert self._task is not None
+        await self._task
+
+    @property
+    def local_port(self) -> int:
+        """The bound UDP port (useful with ``local_port=0``)."""
+        if self._transport is None:
+            return self._requested_port
+        return int(self._transport.get_extra_info("sockname")[1])
+
+    def add_remote(self, host: str, port: int) -> None:
+        """Also stream to ``host:port`` from now on."""
+        if (host, port) not in self._remotes:
+            self._remotes.append((host, port))
+
+    # --- state for tests and the simulator -----------------------------------------------
+
+    def now_s(self) -> float:
+        """Seconds since the mock started (its clock for every recorded stamp)."""
+        return time.monotonic() - self._t0
+
+    @property
+    def mode(self) -> FlightMode:
+        return self._mode
+
+    @property
+    def armed(self) -> bool:
+        return self._armed
+
+    @property
+    def in_air(self) -> bool:
+        return self.landed_state != _LANDED
+
+    @property
+    def position_ned_m(self) -> tuple[float, float, float]:
+        return self.vehicle.position_ned_m
+
+    def state(self) -> VehicleState:
+        return self.vehicle.state()
+
+    def T_map_body(self) -> tuple[float, Transform]:  # noqa: N802 - frame names
+        """``(stamp_s, T_map_body)``: the body pose in the map frame (ENU, origin = local NED
+        origin = home), stamped on the mock clock."""
+        return self.vehicle.stamp_s, self.vehicle.T_map_body()
+
+    def mission_items(self, mission_type: int = 0) -> list[MissionItem]:
+        return self.missions.items(mission_type)
+
+    async def wait_until(self, predicate: Callable[[], bool], timeout_s: float,
+                         what: str = "condition") -> None:
+        """Poll ``predicate`` every 20 ms; raise TimeoutError naming ``what`` on timeout."""
+        deadline = time.monotonic() + timeout_s
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"mock autopilot: timed out after {timeout_s} s waiting for "
+                                   f"{what} (mode {self._mode.name}, armed {self._armed}, "
+                                   f"position {self.position_ned_m})")
+            await asyncio.sleep(0.02)
+
+    def inject_garbage(self, n_bytes: int = 64) -> None:
+        """Send ``n_bytes`` random bytes (including a MAVLink 2 start byte) to every peer."""
+        data = bytes([0xFD]) + bytes(self._rng.getrandbits(8) for _ in range(max(0, n_bytes - 1)))
+        for addr in self._targets():
+            self._sendto(data, addr)
+
+    # --- mode and arming (used by the command handler and the navigator) ----------------
+
+    def set_mode(self, mode: FlightMode, *, takeoff_alt_m: float | None = None,
+                 hold_at_ned_m: tuple[float, float, float] | None = None) -> None:
+        """Switch mode unconditionally (checks live in the command handler)."""
+        if mode is not self._mode:
+            log.info("mode %s -> %s", self._mode.name, mode.name)
+        self._mode = mode
+        self.navigator.enter(mode, takeoff_alt_m=takeoff_alt_m, hold_at_ned_m=hold_at_ned_m)
+        if mode is FlightMode.OFFBOARD:
+            if self._offboard_target is not None:
+                self.vehicle.set_target(self._offboard_target)
+        elif not mode.is_auto:
+            self.vehicle.hold_here()
+        self._send_now("HEARTBEAT")
+
+    def arm(self) -> None:
+        if not self._armed:
+            log.info("armed")
+        self._armed = True
+        self._armed_at_s = self.now_s()
+        self._has_flown = False
+        self._landed_since_s = None
+        self.vehicle.motors_on = True
+        if self._mode is FlightMode.MISSION or self._mode.is_auto:
+            self.navigator.enter(self._mode)
+        elif self._mode is not FlightMode.OFFBOARD:
+            self.vehicle.hold_here()
+        self._send_now("HEARTBEAT")
+
+    def disarm(self) -> None:
+        if self._armed:
+            log.info("disarmed")
+        self._armed = False
+        self.vehicle.motors_on = False
+        self._send_now("HEARTBEAT")
+
+    def offboard_available(self) -> bool:
+        """True when setpoints arrived within COM_OF_LOSS_T (PX4's offboard signal check)."""
+        return self.now_s() - self._last_setpoint_s < self.params.get("COM_OF_LOSS_T")
+
+    # --- the loop ------------------------------------------------------------------------
+
+    async def _run(self) -> None:
+        last = time.monotonic()
+        next_tick = last
+        while True:
+            next_tick += self._dt_s
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            else:
+                next_tick = time.monotonic()  # overloaded: don't try to catch up
+                await asyncio.sleep(0)
+            now = time.monotonic()
+            dt = min(now - last, 0.1)
+            last = now
+            try:
+                self._tick(dt)
+            except Exception:  # keep the autopilot alive; a test sees the log
+                log.exception("mock autopilot tick failed")
+
+    def _tick(self, dt_s: float) -> None:
+        now = self.now_s()
+        self.vehicle.step(dt_s)
+        self.navigator.tick(self.vehicle.stamp_s)
+        self._check_offboard(now)
+        self._update_landed(now)
+        self.missions.reject_seq = self.faults.reject_mission_seq
+        self.missions.tick(now)
+        if self._armed:
+            self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
+        self._stream(now)
+        for addr, seen in list(self._learned.items()):
+            if now - seen > 10.0:
+                del self._learned[addr]
+
+    def _check_offboard(self, now: float) -> None:
+        if self._mode is not FlightMode.OFFBOARD:
+            return
+        if now - self._last_setpoint_s > self.params.get("COM_OF_LOSS_T"):
+            action = {3: FlightMode.RTL, 4: FlightMode.LAND}.get(
+                int(self.params.get("COM_OBL_RC_ACT")), FlightMode.HOLD)
+            if action is FlightMode.RTL and not self.in_air:
+                action = FlightMode.HOLD
+            log.warning("offboard setpoints lost for > %.1f s: failsafe -> %s",
+                        self.params.get("COM_OF_LOSS_T"), action.name)
+            self.failsafes.append(FailsafeEvent(now, "offboard setpoint loss", action))
+            self.set_mode(action)
+
+    def _wants_climb(self) -> bool:
+        tgt = self.vehicle.target
+        p = tgt.position_ned_m
+        if p is not None and math.isfinite(p[2]) and p[2] < self.vehicle.position_ned_m[2] - 0.05:
+            return True
+        v = tgt.velocity_ned_m_s
+        return v is not None and math.isfinite(v[2]) and v[2] < -0.05
+
+    def _update_landed(self, now: float) -> None:
+        on_ground = (not self._armed) or (self.vehicle.on_ground and not self._wants_climb())
+        if on_ground:
+            self.landed_state = _LANDED
+            if self._landed_since_s is None:
+                self._landed_since_s = now
+        else:
+            self._landed_since_s = None
+            if -self.vehicle.position_ned_m[2] > 0.1:
+                self._has_flown = True
+            if self._mode is FlightMode.TAKEOFF:
+                self.landed_state = mavlink.MAV_LANDED_STATE_TAKEOFF
+            elif self._mode is FlightMode.LAND or (
+                    self.vehicle.target.velocity_ned_m_s is not None
+                    and self._mode.is_auto and self.vehicle.target.velocity_ned_m_s[2] > 0):
+                self.landed_state = mavlink.MAV_LANDED_STATE_LANDING
+            else:
+                self.landed_state = mavlink.MAV_LANDED_STATE_IN_AIR
+        if not self._armed or self._landed_since_s is None:
+            return
+        landed_for = now - self._landed_since_s
+        if self._has_flown:
+            limit = self.params.get("COM_DISARM_LAND")
+            if limit > 0 and landed_for >= limit:
+                log.info("landed for %.1f s: auto-disarm", landed_for)
+                self.disarm()
+                if self._mode in (FlightMode.LAND, FlightMode.RTL):
+                    self.set_mode(FlightMode.HOLD)
+        else:
+            limit = self.params.get("COM_DISARM_PRFLT")
+            if limit > 0 and now - self._armed_at_s >= limit:
+                log.info("no takeoff %.1f s after arming: auto-disarm", limit)
+                self.disarm()
+
+    # --- telemetry -----------------------------------------------------------------------
+
+    def snapshot(self) -> telemetry.Snapshot:
+        now = self.now_s()
+        health = telemetry.SENSORS_OK
+        if self.faults.prearm_fail:
+            health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        nav = self.navigator
+        return telemetry.Snapshot(
+            time_boot_ms=int(now * 1000), time_usec=int(now * 1e6), vehicle=self.vehicle.state(),
+            home=self.home, mode=self._mode, armed=self._armed, landed_state=self.landed_state,
+            sensors_health=health, mission_seq=nav.mission_seq, mission_total=nav.mission_count,
+            mission_state=int(nav.mission_state), battery_remaining_pct=int(self._battery_pct),
+            system_id=self.system_id)
+
+    def _stream(self, now: float) -> None:
+        snap: telemetry.Snapshot | None = None
+        for name, sched in self._streams.items():
+            interval, due = sched
+            if interval <= 0 or now < due:
+                continue
+            sched[1] = due + interval if now - due < interval else now + interval
+            snap = snap or self.snapshot()
+            self.send(telemetry.STREAMS[name][1](self._mav, snap))
+
+    def _send_now(self, name: str) -> None:
+        if self._transport is not None:
+            self.send(telemetry.STREAMS[name][1](self._mav, self.snapshot()))
+
+    def set_stream_interval(self, msg_id: int, interval_us: float) -> bool:
+        """MAV_CMD_SET_MESSAGE_INTERVAL semantics; False if the message is not streamable."""
+        for name, (mid, _enc, _rate) in telemetry.STREAMS.items():
+            if mid == msg_id:
+                if interval_us < 0:
+                    self._streams[name][0] = 0.0
+                elif interval_us == 0:
+                    rate = self._default_rates[name]
+                    self._streams[name][0] = 1.0 / rate if rate > 0 else 0.0
+                else:
+                    self._streams[name][0] = max(interval_us * 1e-6, self._dt_s)
+                self._streams[name][1] = self.now_s()
+                return True
+        return False
+
+    def send_message_by_id(self, msg_id: int) -> bool:
+        """Send one message now (MAV_CMD_REQUEST_MESSAGE); False if it is not available."""
+        enc = telemetry.ON_REQUEST.get(msg_id)
+        if enc is None:
+            return False
+        self.send(enc(self._mav, self.snapshot()))
+        return True
+
+    # --- sending -------------------------------------------------------------------------
+
+    def _targets(self) -> list[tuple[str, int]]:
+        return self._remotes + [a for a in self._learned if a not in self._remotes]
+
+    def send(self, msg: Any) -> None:
+        """Encode ``msg`` (a pymavlink message) and send it to every peer."""
+        if self._transport is None:
+            return
+        buf = msg.pack(self._mav)
+        self._mav.seq = (self._mav.seq + 1) % 256
+        for addr in self._targets():
+            self._sendto(buf, addr)
+
+    def _sendto(self, data: bytes, addr: tuple[str, int]) -> None:
+        f = self.faults
+        if f.drop_link or f.drop_outgoing or self._transport is None:
+            return
+        if f.corrupt_bytes_rate > 0:
+            b = bytearray(data)
+            for i in range(len(b)):
+                if self._rng.random() < f.corrupt_bytes_rate:
+                    b[i] = self._rng.getrandbits(8)
+            data = bytes(b)
+        if f.delay_s > 0:
+            asyncio.get_running_loop().call_later(f.delay_s, self._sendto_now, data, addr)
+        else:
+            self._sendto_now(data, addr)
+
+    def _sendto_now(self, data: bytes, addr: tuple[str, int]) -> None:
+        if self._transport is not None:
+            try:
+                self._transport.sendto(data, addr)
+            except OSError as exc:
+                log.debug("send to %s:%d failed: %s", addr[0], addr[1], exc)
+
+    # --- receiving -----------------------------------------------------------------------
+
+    def _on_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
+        if self.faults.drop_link or self.faults.drop_incoming:
+            return
+        # A UDP datagram carries whole MAVLink packets: parse each one on its own so a
+        # truncated or corrupt packet cannot swallow the start of the next datagram.
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        try:
+            msgs = parser.parse_buffer(data) or []
+        except Exception as exc:  # pymavlink raises plain MAVError/struct errors on junk
+            self.bad_packets += 1
+            log.debug("unparseable datagram from %s:%d: %s", addr[0], addr[1], exc)
+            return
+        for msg in msgs:
+            if msg.get_type() == "BAD_DATA":
+                self.bad_packets += 1
+                continue
+            self._learned[addr] = self.now_s()
+            try:
+                self._handle(msg)
+            except Exception:  # a bad field must not take the autopilot down
+                self.bad_packets += 1
+                log.exception("error handling %s from %s:%d", msg.get_type(), *addr)
+
+    def _for_us(self, msg: Any) -> bool:
+        ts = getattr(msg, "target_system", 0)
+        return ts in (0, self.system_id)
+
+    def _handle(self, msg: Any) -> None:
+        mtype = msg.get_type()
+        self.messages_received[mtype] += 1
+        self.last_received[mtype] = msg
+        if msg.get_srcSystem() == self.system_id and msg.get_srcComponent() == 1:
+            return  # our own echo
+        if not self._for_us(msg):
+            return
+        now = self.now_s()
+        if mtype == "HEARTBEAT":
+            self.peer_heartbeats[(msg.get_srcSystem(), msg.get_srcComponent())] = now
+        elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
+            self.commands.handle(msg, now)
+        elif self.missions.handle(msg, now):
+            pass
+        elif mtype in ("SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT",
+                       "SET_ATTITUDE_TARGET"):
+            self._on_setpoint(msg, now)
+        elif mtype in ("VISION_POSITION_ESTIMATE", "ODOMETRY"):
+            self._on_vision(msg, now)
+        elif mtype == "PARAM_REQUEST_LIST":
+            for i in range(len(self.params)):
+                self._send_param(self.params.name_at(i) or "")
+        elif mtype == "PARAM_REQUEST_READ":
+            name = param_id_str(msg.param_id)
+            if msg.param_index >= 0:
+                name = self.params.name_at(msg.param_index) or ""
+            if name in self.params:
+                self._send_param(name)
+            else:
+                log.warning("PARAM_REQUEST_READ for unknown parameter %r", name)
+        elif mtype == "PARAM_SET":
+            self._on_param_set(msg)
+        elif mtype == "TIMESYNC":
+            if msg.tc1 == 0:
+                self.send(self._mav.timesync_encode(time.monotonic_ns(), msg.ts1))
+
+    def _send_param(self, name: str) -> None:
+        spec = self.params.spec(name)
+        value = encode_value(self.params.get(name), spec.param_type)
+        self.send(self._mav.param_value_encode(name.encode("ascii"), value, spec.param_type,
+                                               len(self.params), self.params.index_of(name)))
+
+    def _on_param_set(self, msg: Any) -> None:
+        name = param_id_str(msg.param_id)
+        if name not in self.params:
+            log.warning("PARAM_SET for unknown parameter %r ignored", name)
+            return
+        spec = self.params.spec(name)
+        raw = decode_value(msg.param_value, msg.param_type) if msg.param_type else msg.param_value
+        if not math.isfinite(raw):
+            log.warning("PARAM_SET %s: non-finite value ignored", name)
+        else:
+            self.params.set(name, raw)
+            self.vehicle.limits = self._limits_from_params()
+        del spec
+        self._send_param(name)
+
+    def _limits_from_params(self) -> VehicleLimits:
+        p = self.params.get
+        return VehicleLimits(
+            max_speed_xy_m_s=p("MPC_XY_VEL_MAX"), max_speed_up_m_s=p("MPC_Z_VEL_MAX_UP"),
+            max_speed_down_m_s=p("MPC_Z_VEL_MAX_DN"), max_accel_xy_m_s2=p("MPC_ACC_HOR"),
+            max_accel_z_m_s2=p("MPC_ACC_UP_MAX"),
+            max_yaw_rate_rad_s=math.radians(p("MPC_YAWRAUTO_MAX")))
+
+    def _on_setpoint(self, msg: Any, now: float) -> None:
+        mtype = msg.get_type()
+        try:
+            if mtype == "SET_POSITION_TARGET_LOCAL_NED":
+                target = offboard.target_from_local_ned(msg, self.vehicle.position_ned_m,
+                                                        self.vehicle.yaw_rad)
+            elif mtype == "SET_POSITION_TARGET_GLOBAL_INT":
+                target = offboard.target_from_global_int(msg, self.home)
+            else:
+                target = offboard.target_from_attitude(msg, self.params.get("MPC_Z_VEL_MAX_UP"))
+        except offboard.UnsupportedSetpointError as exc:
+            log.warning("%s ignored: %s", mtype, exc)
+            return
+        frame = int(getattr(msg, "coordinate_frame", 0))
+        self.setpoints.append(offboard.ReceivedSetpoint(now, mtype, frame, int(msg.type_mask),
+                                                        target))
+        self._last_setpoint_s = now
+        self._offboard_target = target
+        if self._mode is FlightMode.OFFBOARD:
+            self.vehicle.set_target(target)
+
+    def _on_vision(self, msg: Any, now: float) -> None:
+        if msg.get_type() == "ODOMETRY":
+            q = tuple(float(v) for v in msg.q)
+            sample = VisionSample(now, "ODOMETRY", int(msg.time_usec),
+                                  (float(msg.x), float(msg.y), float(msg.z)), q)  # type: ignore[arg-type]
+        else:
+            q = telemetry.quaternion_wxyz(msg.roll, msg.pitch, msg.yaw)
+            sample = VisionSample(now, "VISION_POSITION_ESTIMATE", int(msg.usec),
+                                  (float(msg.x), float(msg.y), float(msg.z)), q)  # type: ignore[arg-type]
+        self.vision.append(sample)
+
+    # --- mission callbacks ---------------------------------------------------------------
+
+    def _on_mission_changed(self, mission_type: int) -> None:
+        if mission_type == mavlink.MAV_MISSION_TYPE_MISSION:
+            self.navigator.set_mission(self.missions.items(mission_type))
+            self.reached_items.clear()
+
+    def _on_set_current(self, seq: int) -> bool:
+        ok = self.navigator.set_current(seq)
+        if not ok:
+            log.warning("set current mission item %d out of range", seq)
+        return ok
+
+    def _on_current_changed(self, seq: int) -> None:
+        self._send_now("MISSION_CURRENT")
+
+    def _on_item_reached(self, seq: int) -> None:
+        log.info("mission item %d reached", seq)
+        self.reached_items.append(seq)
+        self.send(self._mav.mission_item_reached_encode(seq))
+        self._send_now("MISSION_CURRENT")

@@ -1,0 +1,371 @@
+"""PX4's navigator in miniature: the automatic modes (takeoff, hold, land, RTL, mission).
+
+Each tick the navigator turns the active auto mode into a :class:`~.vehicle.Target` for the
+kinematic vehicle, and reports what happened (item reached, mode finished) through callbacks so
+the MAVLink side can send ``MISSION_ITEM_REACHED``/``MISSION_CURRENT`` and switch modes the way
+PX4 does: TAKEOFF ends in HOLD, a finished mission holds at its last waypoint, LAND and RTL end
+on the floor where the autopilot disarms.
+
+Mission items are read in their stored MAVLink form (``MISSION_ITEM_INT`` fields) and converted
+to local NED around home with :class:`companion.geo.GeoOrigin`.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.geo import GeoOrigin
+from companion.px4 import FlightMode
+from companion.sim.autopilot.mission_server import GLOBAL_FRAMES, MissionItem
+from companion.sim.autopilot.params import ParamStore
+from companion.sim.autopilot.vehicle import KinematicMulticopter, Target
+
+log = logging.getLogger(__name__)
+
+_NAN3 = (math.nan, math.nan, math.nan)
+
+
+class MissionState(enum.IntEnum):
+    """``MISSION_STATE`` as reported in ``MISSION_CURRENT``."""
+
+    NO_MISSION = mavlink.MISSION_STATE_NO_MISSION
+    NOT_STARTED = mavlink.MISSION_STATE_NOT_STARTED
+    ACTIVE = mavlink.MISSION_STATE_ACTIVE
+    PAUSED = mavlink.MISSION_STATE_PAUSED
+    COMPLETE = mavlink.MISSION_STATE_COMPLETE
+
+
+class _Phase(enum.Enum):
+    IDLE = "idle"
+    CLIMB = "climb"  # vertical climb before heading off (takeoff, RTL, mission from ground)
+    GOTO = "goto"  # fly to a point at constant altitude
+    WAIT = "wait"  # hold position until a time
+    DESCEND = "descend"
+    LAND = "land"
+    DONE = "done"
+
+
+@dataclass
+class _Leg:
+    """The navigator's current leg (one mission item or one stage of an auto mode)."""
+
+    phase: _Phase
+    target_ned_m: tuple[float, float, float]
+    yaw_rad: float | None = None
+    accept_radius_m: float = 0.5
+    until_s: float = 0.0  # for WAIT
+    hold_s: float = 0.0  # hold time after arriving (NAV_WAYPOINT param1)
+    reported: bool = False  # MISSION_ITEM_REACHED already sent for this leg
+
+
+class Navigator:
+    """Auto-mode logic. ``set_mode(mode)`` is called when a mode ends by itself (e.g. takeoff
+    done -> HOLD); ``item_reached(seq)`` and ``current_changed(seq)`` report mission progress.
+    """
+
+    def __init__(
+        self,
+        vehicle: KinematicMulticopter,
+        params: ParamStore,
+        home: GeoOrigin,
+        set_mode: Callable[[FlightMode], None],
+        item_reached: Callable[[int], None],
+        current_changed: Callable[[int], None],
+    ) -> None:
+        self._vehicle = vehicle
+        self._params = params
+        self.home = home
+        self._set_mode = set_mode
+        self._item_reached = item_reached
+        self._current_changed = current_changed
+        self.mode: FlightMode | None = None
+        self._legs: list[_Leg] = []
+        self._mission: list[MissionItem] = []
+        self.mission_seq = 0
+        self.mission_state = MissionState.NO_MISSION
+        self._jump_counts: dict[int, int] = {}
+        self._speed_xy_m_s: float | None = None
+        self.landed_by_navigator = False
+
+    # --- mission storage -----------------------------------------------------------------
+
+    def set_mission(self, items: list[MissionItem]) -> None:
+        """A new mission was uploaded (or cleared): restart it from its current item."""
+        self._mission = list(items)
+        self._jump_counts.clear()
+        start = next((i for i, it in enumerate(items) if it.current), 0)
+        self.mission_seq = start if items else 0
+        self.mission_state = MissionState.NOT_STARTED if items else MissionState.NO_MISSION
+        if self.mode is FlightMode.MISSION:
+            self._start_mission_item(self._now())
+        self._current_changed(self.mission_seq)
+
+    def set_cruise_speed(self, speed_xy_m_s: float) -> None:
+        """Horizontal speed for missions and repositioning (DO_CHANGE_SPEED), m/s."""
+        self._speed_xy_m_s = speed_xy_m_s
+
+    @property
+    def mission_count(self) -> int:
+        return len(self._mission)
+
+    def set_current(self, seq: int) -> bool:
+        """Jump to mission item ``seq``; False if out of range."""
+        if not 0 <= seq < len(self._mission):
+            return False
+        self.mission_seq = seq
+        if self.mission_state is MissionState.COMPLETE:
+            self.mission_state = MissionState.NOT_STARTED
+        if self.mode is FlightMode.MISSION:
+            self._start_mission_item(self._now())
+        self._current_changed(seq)
+        return True
+
+    # --- mode entry ----------------------------------------------------------------------
+
+    def _now(self) -> float:
+        return self._vehicle.stamp_s
+
+    def _pos(self) -> tuple[float, float, float]:
+        return self._vehicle.position_ned_m
+
+    def enter(self, mode: FlightMode, takeoff_alt_m: float | None = None,
+              hold_at_ned_m: tuple[float, float, float] | None = None) -> None:
+        """Start auto ``mode`` (non-auto modes leave the navigator idle)."""
+        if self.mode is FlightMode.MISSION and mode is not FlightMode.MISSION:
+            if self.mission_state is MissionState.ACTIVE:
+                self.mission_state = MissionState.PAUSED
+        self.mode = mode
+        self.landed_by_navigator = False
+        self._legs = []
+        n, e, d = self._pos()
+        yaw = self._vehicle.yaw_rad
+        if mode is FlightMode.TAKEOFF:
+            alt = takeoff_alt_m if takeoff_alt_m is not None else self._params.get("MIS_TAKEOFF_ALT")
+            self._legs = [_Leg(_Phase.CLIMB, (n, e, -abs(alt)), yaw, accept_radius_m=0.1)]
+        elif mode is FlightMode.HOLD:
+            target = hold_at_ned_m if hold_at_ned_m is not None else self._brake_point()
+            prev = self._vehicle.target.position_ned_m
+            if hold_at_ned_m is None and prev is not None and math.isfinite(prev[2]) \
+                    and abs(prev[2] - d) < 0.5:
+                # Hold the altitude being flown to (e.g. the takeoff altitude), not the
+                # altitude the vehicle happens to pass through.
+                target = (target[0], target[1], prev[2])
+            self._legs = [_Leg(_Phase.WAIT, target, yaw, until_s=math.inf)]
+        elif mode is FlightMode.LAND:
+            self._legs = [_Leg(_Phase.LAND, (n, e, math.nan), yaw)]
+        elif mode is FlightMode.RTL:
+            self._legs = self._rtl_legs()
+        elif mode is FlightMode.MISSION:
+            if self.mission_state in (MissionState.COMPLETE, MissionState.NO_MISSION):
+                self.mission_seq = 0
+                self._jump_counts.clear()
+            self.mission_state = (MissionState.ACTIVE if self._mission
+                                  else MissionState.NO_MISSION)
+            self._start_mission_item(self._now())
+        self._apply_leg()
+
+    def _brake_point(self) -> tuple[float, float, float]:
+        """Where the vehicle stops if it brakes now at the horizontal acceleration limit."""
+        (n, e, d), (vn, ve, _vd) = self._pos(), self._vehicle.velocity_ned_m_s
+        a = self._vehicle.limits.max_accel_xy_m_s2
+        speed = math.hypot(vn, ve)
+        if speed < 1e-3:
+            return (n, e, d)
+        s = speed * speed / (2.0 * a)
+        return (n + vn / speed * s, e + ve / speed * s, d)
+
+    def _rtl_legs(self) -> list[_Leg]:
+        n, e, d = self._pos()
+        yaw = self._vehicle.yaw_rad
+        ret_alt = self._params.get("RTL_RETURN_ALT")
+        desc_alt = self._params.get("RTL_DESCEND_ALT")
+        cruise_d = min(d, -ret_alt)
+        legs = []
+        if cruise_d < d - 0.05:
+            legs.append(_Leg(_Phase.CLIMB, (n, e, cruise_d), yaw, accept_radius_m=0.2))
+        legs.append(_Leg(_Phase.GOTO, (0.0, 0.0, cruise_d), None, accept_radius_m=0.3))
+        if -desc_alt > cruise_d + 0.05:
+            legs.append(_Leg(_Phase.DESCEND, (0.0, 0.0, -desc_alt), None, accept_radius_m=0.2))
+        delay = self._params.get("RTL_LAND_DELAY")
+        if delay > 0:
+            legs.append(_Leg(_Phase.WAIT, (0.0, 0.0, -desc_alt), None, hold_s=delay))
+        legs.append(_Leg(_Phase.LAND, (0.0, 0.0, math.nan), None))
+        return legs
+
+    # --- mission items -------------------------------------------------------------------
+
+    def _item_ned(self, it: MissionItem) -> tuple[float, float, float]:
+        """Local NED of an item; lat/lon 0 means "here" (PX4 convention for takeoff/land)."""
+        n, e, d = self._pos()
+        if it.frame in GLOBAL_FRAMES and (it.x != 0 or it.y != 0):
+            alt_amsl = it.z if it.frame in (mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_INT) \
+                else self.home.alt_m + it.z
+            return self.home.to_ned(it.lat_deg, it.lon_deg, alt_amsl)
+        if it.frame in GLOBAL_FRAMES:
+            alt_d = -(it.z if it.frame not in (mavlink.MAV_FRAME_GLOBAL,
+                                               mavlink.MAV_FRAME_GLOBAL_INT)
+                      else it.z - self.home.alt_m)
+            return (n, e, alt_d)
+        return (n, e, d)
+
+    def _accept_radius(self, it: MissionItem) -> float:
+        return it.param2 if it.param2 > 0 else self._params.get("NAV_ACC_RAD")
+
+    def _start_mission_item(self, now_s: float) -> None:
+        """Build the legs for the current item, skipping over non-navigation items."""
+        self._legs = []
+        guard = 0
+        while self.mission_seq < len(self._mission) and guard < 1000:
+            guard += 1
+            it = self._mission[self.mission_seq]
+            legs = self._legs_for_item(it, now_s)
+            if legs is None:  # a DO/condition item, executed instantly
+                self._item_done_instant(it)
+                continue
+            if self._vehicle.on_ground and legs[0].phase is not _Phase.CLIMB \
+                    and it.command != mavlink.MAV_CMD_NAV_LAND:
+                # PX4 takes off before flying a mission started on the ground.
+                n, e, _ = self._pos()
+                alt = max(self._params.get("MIS_TAKEOFF_ALT"), -legs[0].target_ned_m[2]
+                          if math.isfinite(legs[0].target_ned_m[2]) else 0.0)
+                legs.insert(0, _Leg(_Phase.CLIMB, (n, e, -alt), self._vehicle.yaw_rad,
+                                    accept_radius_m=0.2))
+            self._legs = legs
+            self._current_changed(self.mission_seq)
+            return
+        if self.mission_seq >= len(self._mission) and self._mission:
+            self._mission_complete()
+
+    def _legs_for_item(self, it: MissionItem, now_s: float) -> list[_Leg] | None:
+        c = it.command
+        if c in (mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_LOITER_TIME,
+                 mavlink.MAV_CMD_NAV_LOITER_UNLIM):
+            tgt = self._item_ned(it)
+            yaw = math.radians(it.param4) if c == mavlink.MAV_CMD_NAV_WAYPOINT and \
+                math.isfinite(it.param4) else None
+            hold = it.param1 if c in (mavlink.MAV_CMD_NAV_WAYPOINT,
+                                      mavlink.MAV_CMD_NAV_LOITER_TIME) else math.inf
+            return [_Leg(_Phase.GOTO, tgt, yaw, self._accept_radius(it), hold_s=max(0.0, hold))]
+        if c == mavlink.MAV_CMD_NAV_TAKEOFF:
+            n, e, d = self._item_ned(it)
+            return [_Leg(_Phase.CLIMB, (n, e, d), self._vehicle.yaw_rad, accept_radius_m=0.2)]
+        if c == mavlink.MAV_CMD_NAV_LAND:
+            n, e, d = self._item_ned(it)
+            cur_d = self._pos()[2]
+            return [_Leg(_Phase.GOTO, (n, e, cur_d), None, self._accept_radius(it)),
+                    _Leg(_Phase.LAND, (n, e, math.nan), None)]
+        if c == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            return self._rtl_legs()
+        if c == mavlink.MAV_CMD_NAV_DELAY:
+            return [_Leg(_Phase.WAIT, self._pos(), None, until_s=now_s + max(0.0, it.param1))]
+        return None
+
+    def _item_done_instant(self, it: MissionItem) -> None:
+        c = it.command
+        if c == mavlink.MAV_CMD_DO_CHANGE_SPEED and it.param2 > 0:
+            self._speed_xy_m_s = it.param2
+        elif c == mavlink.MAV_CMD_DO_JUMP:
+            target, repeats = int(it.param1), int(it.param2)
+            done = self._jump_counts.get(it.seq, 0)
+            if 0 <= target < len(self._mission) and (repeats < 0 or done < repeats):
+                self._jump_counts[it.seq] = done + 1
+                self.mission_seq = target
+                return
+        elif c == mavlink.MAV_CMD_CONDITION_YAW and it.param4 == 0:
+            n, e, d = self._pos()
+            self._vehicle.set_target(Target(position_ned_m=(n, e, d),
+                                            yaw_rad=math.radians(it.param1)))
+        self.mission_seq += 1
+
+    def _mission_complete(self) -> None:
+        self.mission_seq = len(self._mission) - 1
+        self.mission_state = MissionState.COMPLETE
+        log.info("mission complete")
+        n, e, d = self._pos()
+        if self._vehicle.on_ground:
+            self._legs = [_Leg(_Phase.DONE, (n, e, d), None)]
+        else:
+            self._legs = [_Leg(_Phase.WAIT, (n, e, d), self._vehicle.yaw_rad, until_s=math.inf)]
+
+    # --- the tick ------------------------------------------------------------------------
+
+    def _apply_leg(self) -> None:
+        if not self._legs:
+            return
+        leg = self._legs[0]
+        speed = self._speed_xy_m_s if self.mode is FlightMode.MISSION else None
+        if leg.phase is _Phase.LAND:
+            land_speed = self._params.get("MPC_LAND_SPEED")
+            n, e, _ = leg.target_ned_m
+            self._vehicle.set_target(Target(position_ned_m=(n, e, math.nan),
+                                            velocity_ned_m_s=(0.0, 0.0, land_speed),
+                                            yaw_rad=leg.yaw_rad, speed_xy_m_s=speed))
+            return
+        if leg.phase is _Phase.DONE:
+            self._vehicle.hold_here()
+            return
+        yaw = leg.yaw_rad
+        if yaw is None and leg.phase is _Phase.GOTO:
+            n, e, _ = self._pos()
+            dn, de = leg.target_ned_m[0] - n, leg.target_ned_m[1] - e
+            yaw = math.atan2(de, dn) if math.hypot(dn, de) > 1.0 else None
+        self._vehicle.set_target(Target(position_ned_m=leg.target_ned_m, yaw_rad=yaw,
+                                        speed_xy_m_s=speed))
+
+    def tick(self, now_s: float) -> None:
+        """Advance the active auto mode (call once per physics step, after the vehicle moved)."""
+        if self.mode is None or not self.mode.is_auto or not self._legs:
+            return
+        if not self._vehicle.motors_on:
+            return
+        leg = self._legs[0]
+        n, e, d = self._pos()
+        tn, te, td = leg.target_ned_m
+        arrived = False
+        if leg.phase in (_Phase.CLIMB, _Phase.DESCEND):
+            arrived = abs(d - td) < leg.accept_radius_m
+        elif leg.phase is _Phase.GOTO:
+            arrived = (math.hypot(tn - n, te - e) < leg.accept_radius_m
+                       and abs(td - d) < max(0.3, leg.accept_radius_m))
+            if arrived and self.mode is FlightMode.MISSION and len(self._legs) == 1:
+                # PX4 reports an item reached on arrival, before any hold time.
+                self._item_reached(self.mission_seq)
+                leg.reported = True
+            if arrived and leg.hold_s > 0:
+                leg.phase, leg.until_s = _Phase.WAIT, now_s + leg.hold_s
+                arrived = False
+        elif leg.phase is _Phase.WAIT:
+            arrived = now_s >= leg.until_s
+        elif leg.phase is _Phase.LAND:
+            arrived = self._vehicle.on_ground
+        if arrived:
+            self._legs.pop(0)
+            if not self._legs:
+                self._mode_leg_sequence_done(now_s, report_reached=not leg.reported)
+        self._apply_leg()
+
+    def _mode_leg_sequence_done(self, now_s: float, report_reached: bool) -> None:
+        mode = self.mode
+        if mode is FlightMode.TAKEOFF:
+            self._set_mode(FlightMode.HOLD)
+        elif mode in (FlightMode.LAND, FlightMode.RTL):
+            self.landed_by_navigator = True
+            n, e, d = self._pos()
+            self._legs = [_Leg(_Phase.DONE, (n, e, d), None)]
+        elif mode is FlightMode.MISSION:
+            if report_reached:
+                self._item_reached(self.mission_seq)
+            if self._vehicle.on_ground and self._mission[self.mission_seq].command in (
+                    mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH):
+                self.landed_by_navigator = True
+            self.mission_seq += 1
+            if self.mission_seq >= len(self._mission):
+                self._mission_complete()
+            else:
+                self._start_mission_item(now_s)
