@@ -333,6 +333,10 @@ class MqttBridge:
         if kind is None:
             return
         raw = payload if isinstance(payload, (bytes, bytearray, str)) else str(payload)
+        if len(raw) == 0:
+            # An empty message is how MQTT clears a retained one: not a command, no reply.
+            self._log.debug("ground link: ignoring an empty message on %s", topic)
+            return
         if retain:
             # A retained command would run again on every reconnect: refuse it.
             result: Command | Rejection = Rejection(

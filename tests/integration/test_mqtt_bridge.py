@@ -412,3 +412,24 @@ async def test_outbox_drops_oldest_events_and_logs(tmp_path: Path,
     drops = [r for r in caplog.records if "outbox full" in r.getMessage()]
     assert len(drops) == 15
     assert any("not publishing telemetry" in r.getMessage() for r in caplog.records)
+
+
+async def test_a_full_command_queue_refuses_instead_of_queueing(broker: MosquittoBroker) -> None:
+    async with ground_station(broker) as ground, \
+            MqttBridge(mqtt_cfg(broker, command_queue_size=1), validator()) as bridge:
+        assert await bridge.wait_connected(WAIT_S)
+        for i in range(2):  # nobody consumes commands meanwhile
+            await ground.send("vehicle", {"schema_version": 1, "request_id": f"q-{i}",
+                                          "action": "hold"})
+        assert (await ground.reply_to("q-0"))["ok"] is True
+        busy = await ground.reply_to("q-1")
+        assert busy["ok"] is False and busy["reason"].startswith("service busy")
+        assert (await next_command(bridge)).request_id == "q-0"
+
+
+async def test_empty_and_foreign_messages_are_ignored_quietly() -> None:
+    bridge = MqttBridge(MqttConfig(vehicle_id=VEHICLE), validator())
+    bridge.handle_message(f"{BASE}/cmd/goal", b"")  # how MQTT clears a retained message
+    bridge.handle_message(f"{BASE}/status", b"{}")  # not a command topic
+    bridge.handle_message(f"{BASE}/cmd/goal", 12345)  # not bytes at all: refused, no raise
+    assert bridge.stats.commands_rejected == 1 and bridge.stats.commands_accepted == 0
