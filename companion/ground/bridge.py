@@ -168,6 +168,7 @@ class MqttBridge:
         self._map_pending = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self._client: aiomqtt.Client | None = None
+        self._up_since_s: float | None = None
         self._rng = random.Random()
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -202,8 +203,8 @@ class MqttBridge:
                     client.publish(self.topics.online, offline, qos=1, retain=True),
                     self.cfg.timeout_s,
                 )
-            except (aiomqtt.MqttError, asyncio.TimeoutError) as exc:
-                self._log.warning("ground link: could not publish offline: %s", exc)
+            except (aiomqtt.MqttError, asyncio.TimeoutError) as err:
+                self._log.warning("ground link: could not publish offline: %s", err)
         for task in self._tasks:
             task.cancel()
         for task in self._tasks:
@@ -472,13 +473,16 @@ class MqttBridge:
         return GroundLinkError(f"{where}: {text}")
 
     async def _run(self) -> None:
-        """Connect, run a session, and reconnect with exponential backoff, forever."""
+        """Connect, run a session, and reconnect with exponential backoff, forever.
+
+        The backoff restarts from ``reconnect_min_s`` only after a session that lasted at
+        least ``reconnect_max_s``, so a broker that accepts and then drops us at once (a
+        duplicate client id, an overloaded broker) is not hammered.
+        """
         delay_s = self.cfg.reconnect_min_s
         while True:
-            session_started = False
             try:
                 async with self._make_client() as client:
-                    session_started = True
                     await self._session(client)
             except aiomqtt.MqttError as exc:
                 err = self._describe_failure(exc)
@@ -489,14 +493,15 @@ class MqttBridge:
                 err = GroundLinkError(f"MQTT broker {self.cfg.host}:{self.cfg.port}: session ended")
             finally:
                 self._client = None
+                up_since_s, self._up_since_s = self._up_since_s, None
                 if self._connected.is_set():
                     self._connected.clear()
                     self.stats.disconnects += 1
             self.last_error = err
-            if session_started:
-                delay_s = self.cfg.reconnect_min_s
-            else:
+            if up_since_s is None:
                 self.stats.connect_failures += 1
+            elif self._clock() - up_since_s >= self.cfg.reconnect_max_s:
+                delay_s = self.cfg.reconnect_min_s
             wait_s = delay_s * self._rng.uniform(0.8, 1.2)
             self._log.warning("ground link down: %s; retrying in %.1f s", err, wait_s)
             await asyncio.sleep(wait_s)
@@ -504,7 +509,12 @@ class MqttBridge:
 
     async def _session(self, client: aiomqtt.Client) -> None:
         """One connected session: subscribe, announce, resend state, then pump both ways."""
-        await client.subscribe(self.topics.command_filter, qos=1)
+        granted = await client.subscribe(self.topics.command_filter, qos=1)
+        if any(getattr(rc, "is_failure", False) or rc == 0x80 for rc in granted):
+            # Some brokers refuse a subscription their ACL forbids; state still goes out.
+            self._log.error("ground link: the broker refused the subscription to %s: "
+                            "no commands will arrive (check the broker's ACL for %s)",
+                            self.topics.command_filter, self.cfg.username or "anonymous")
         await client.publish(
             self.topics.online, encode(online_message(self.cfg.vehicle_id, True)),
             qos=1, retain=True,
@@ -514,6 +524,7 @@ class MqttBridge:
         for topic in self._state:  # the broker may have lost everything (restart)
             self._dirty[topic] = None
         self._client = client
+        self._up_since_s = self._clock()
         self._connected.set()
         self._log.info("ground link up: %s:%d as %s, commands on %s",
                        self.cfg.host, self.cfg.port, self._client_id, self.topics.command_filter)
