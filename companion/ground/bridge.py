@@ -124,6 +124,11 @@ def make_tls_context(cfg: MqttConfig) -> ssl.SSLContext | None:
     return ctx
 
 
+def _as_is(msg: BaseModel) -> BaseModel:
+    """The builder for a message that is already built."""
+    return msg
+
+
 class MqttBridge:
     """Async context manager owning the connection to the broker (see the module doc).
 
@@ -433,8 +438,13 @@ class MqttBridge:
             if costmap is None:
                 continue
             last_s = self._clock()
-            self._put_state("map", self.topics.map, 1, True, map_message,
-                            self.cfg.vehicle_id, costmap)
+            try:
+                # PNG encoding of a large grid takes milliseconds: keep it off the loop.
+                msg = await asyncio.to_thread(map_message, self.cfg.vehicle_id, costmap)
+            except (ValidationError, ValueError) as exc:
+                self._log.warning("ground link: not publishing map: %s", exc)
+                continue
+            self._put_state("map", self.topics.map, 1, True, _as_is, msg)
 
     # --- the connection -----------------------------------------------------------------
 

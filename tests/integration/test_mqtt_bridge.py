@@ -433,3 +433,20 @@ async def test_empty_and_foreign_messages_are_ignored_quietly() -> None:
     bridge.handle_message(f"{BASE}/status", b"{}")  # not a command topic
     bridge.handle_message(f"{BASE}/cmd/goal", 12345)  # not bytes at all: refused, no raise
     assert bridge.stats.commands_rejected == 1 and bridge.stats.commands_accepted == 0
+
+
+async def test_map_goes_out_at_a_low_rate_newest_first(broker: MosquittoBroker) -> None:
+    spec = GridSpec(0.1, (0.0, 0.0), (20, 30))
+
+    def costmap(stamp_s: float) -> Costmap:
+        return Costmap(spec, np.zeros(spec.shape_rc, np.uint8), VerticalBand(0.4, 0.8), stamp_s)
+
+    async with ground_station(broker) as ground, \
+            MqttBridge(mqtt_cfg(broker, map_rate_hz=2.0), validator()) as bridge:
+        assert await bridge.wait_connected(WAIT_S)
+        bridge.publish_map(costmap(1.0))
+        await ground.wait_for("map", lambda m: m["map_stamp_s"] == 1.0)
+        bridge.publish_map(costmap(2.0))  # superseded before its turn comes
+        bridge.publish_map(costmap(3.0))
+        await ground.wait_for("map", lambda m: m["map_stamp_s"] == 3.0)
+        assert [m["map_stamp_s"] for m in ground.messages("map")] == [1.0, 3.0]
