@@ -189,10 +189,13 @@ class GeometryConfig(StageConfig):
     """Point-cloud processing of each tracked object."""
 
     #: Fraction of the box trimmed from each side before taking points (box edges leak).
-    box_shrink_frac: float = Field(default=0.05, ge=0.0, lt=0.5)
+    box_shrink_frac: float = Field(default=0.0, ge=0.0, lt=0.5)
     voxel_size_m: float = Field(default=0.03, gt=0.0, le=0.5)
     #: Euclidean clustering distance threshold (epsilon of the reference design).
-    cluster_distance_m: float = Field(default=0.08, gt=0.0, le=1.0)
+    cluster_distance_m: float = Field(default=0.05, gt=0.0, le=1.0)
+    #: The distance grows to this many sampled-pixel spacings at the 90th-percentile range,
+    #: so a surface seen at a grazing angle (sparse rows) stays one cluster.
+    cluster_pixel_gaps: float = Field(default=3.0, ge=0.0)
     min_cluster_points: int = Field(default=20, ge=1)
     ransac_distance_m: float = Field(default=0.02, gt=0.0)
     ransac_iterations: int = Field(default=100, ge=1)
@@ -200,6 +203,19 @@ class GeometryConfig(StageConfig):
     plane_max_tilt_deg: float = Field(default=15.0, ge=0.0, le=45.0)
     #: Points within this height of the floor belong to the floor, not the object.
     floor_clearance_m: float = Field(default=0.04, ge=0.0)
+    #: ... plus this times the squared camera range (depth noise grows with range squared).
+    floor_clearance_per_m2: float = Field(default=0.006, ge=0.0)
+    #: Clusters with at least this fraction of the largest cluster's pixels compete; the
+    #: nearest wins (the object stands in front of what its box also shows).
+    cluster_min_pixel_frac: float = Field(default=0.3, gt=0.0, le=1.0)
+    #: ... and must span at least this fraction of the box area (an occluder spans less).
+    cluster_min_box_cover: float = Field(default=0.5, gt=0.0, le=1.0)
+    #: Pixels taken from one box at most: larger boxes are sampled with a coarser pixel stride.
+    max_box_points: int = Field(default=4000, ge=100)
+    #: Horizontal-plane RANSAC inliers (voxels) needed to report a top plane.
+    min_plane_points: int = Field(default=15, ge=3)
+    #: Height of the object = this quantile of its points' heights (robust to stray pixels).
+    height_quantile: float = Field(default=0.995, gt=0.5, le=1.0)
 
 
 class MapConfig(StageConfig):
@@ -223,13 +239,34 @@ class MapConfig(StageConfig):
     stale_after_s: float = Field(default=2.0, gt=0.0)
     # Object map.
     existence_hit_logodds: float = Field(default=0.85, gt=0.0)
-    existence_initial: float = Field(default=0.5, gt=0.0, lt=1.0)
+    #: Prior before the first observation: one sighting alone does not confirm an object.
+    existence_initial: float = Field(default=0.3, gt=0.0, lt=1.0)
     #: Objects below this existence probability are removed.
     existence_remove_below: float = Field(default=0.15, ge=0.0, lt=1.0)
     #: Objects at or above this existence probability are in the costmap.
     existence_confirm: float = Field(default=0.6, gt=0.0, lt=1.0)
     #: Footprint IoU at which a re-observed object (new track) merges into a known one.
     reassociate_iou: float = Field(default=0.3, gt=0.0, le=1.0)
+    #: ... or whose centroid is this close (xy, metres): partial views overlap little.
+    reassociate_distance_m: float = Field(default=0.35, ge=0.0)
+    #: A track's observation farther than this from its object's centroid starts a new
+    #: object (the tracker switched identities).
+    track_gate_m: float = Field(default=1.0, gt=0.0)
+    #: Existence is clamped here, so a long-seen object that is gone still fades.
+    existence_max: float = Field(default=0.98, gt=0.5, lt=1.0)
+    #: Unconfirmed objects not seen again for this long are dropped.
+    tentative_timeout_s: float = Field(default=5.0, gt=0.0)
+    #: Position noise of one observation: base + per_m * range from the camera.
+    position_sigma_m: float = Field(default=0.05, gt=0.0)
+    position_sigma_per_m: float = Field(default=0.02, ge=0.0)
+    #: Fused footprint: minimum-area oriented rectangle of the observed hull, or the hull.
+    footprint_shape: Literal["rectangle", "hull"] = "rectangle"
+    #: Observations farther than this add to the footprint only while no nearer one exists
+    #: (far depth is noisy and would grow the footprint).
+    footprint_max_range_m: float = Field(default=4.0, gt=0.0)
+    #: Negative evidence: the measured depth at an object's centroid pixel must be at least
+    #: expected - tolerance (not occluded) for a missed detection to count against it.
+    visibility_tolerance_m: float = Field(default=0.3, gt=0.0)
     #: Decay length of the safety margin's cost beyond the class margin, metres.
     margin_decay_m: float = Field(default=0.3, gt=0.0)
 

@@ -1,0 +1,324 @@
+"""Mapping accuracy on seeded simulated rooms: object geometry and the object map.
+
+Run: ``python bench/mapping.py`` (20 rooms) or ``--quick`` (3 short rooms, under a minute on
+an idle machine). Each room is flown once around a loop at 1.0-1.5 m, the camera looking at
+the room's centre and tilted down; every frame is rendered (RGB-D and instance masks), boxes
+come from the masks (an oracle detector with box noise, misses, class confusions and false
+positives), track ids come from instance ids (a new id whenever an object was out of view for
+a while, so re-association after a lost track is exercised), and the geometry + object map
+run on each frame.
+
+Figures (section ``objects``), against the ground truth of objects seen well during the flight:
+
+* position error: xy distance between the map object's footprint centre and the ground-truth
+  footprint centre (``center_xy_m``). The fused centroid of the object's points is not
+  comparable with that (a chair's points crowd on its backrest), so it is reported separately
+  against the ground-truth volume centroid, for information;
+* footprint IoU (polygons rasterised at 1 cm), height error (top of the object above the floor),
+  class correctness, and spurious objects (confirmed map objects matching no real one).
+
+The output is structured in sections (``SECTIONS``): each section is a function taking the
+parsed arguments and returning (table lines, figures dict). The last line printed is one JSON
+object with every section's figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from companion.sim.groundtruth import clearance_m  # noqa: E402
+from companion.sim.render import DepthNoise, RoomRenderer  # noqa: E402
+from companion.sim.world import Room, generate_room  # noqa: E402
+from semmap.config import ExtrinsicsConfig, GeometryConfig, MapConfig, default_classes  # noqa: E402
+from semmap.frames import pose_from_xyz_rpy  # noqa: E402
+from semmap.geometry import observe_object  # noqa: E402
+from semmap.grid import GridSpec, rasterize_polygon  # noqa: E402
+from semmap.objects import CameraView, MappedObject, ObjectMap  # noqa: E402
+from semmap.types import CameraIntrinsics, Frame, Track  # noqa: E402
+
+INTRINSICS = CameraIntrinsics(383.0, 383.0, 320.0, 240.0, 640, 480)
+DEPTH_RANGE_M = (0.3, 6.0)
+
+
+@dataclass(frozen=True)
+class OracleNoise:
+    """Detector failure modes of the mask-based oracle."""
+
+    box_noise_px: float = 3.0
+    miss_rate: float = 0.05
+    confusion_rate: float = 0.05
+    false_positive_rate: float = 0.02
+    min_visible_px: int = 400
+    #: A track id is retired after the object was unseen for this many frames.
+    lost_after_frames: int = 8
+
+
+def flight_poses(room: Room, n_frames: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """Camera poses ``T_map_camera`` on a loop inset from the walls, looking at the centre."""
+    altitude = float(rng.uniform(1.0, 1.5))
+    pitch = math.radians(float(rng.uniform(15.0, 25.0)))
+    inset = 0.7
+    x0, x1, y0, y1 = inset, room.width_m - inset, inset, room.depth_m - inset
+    corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]])
+    seg = np.linalg.norm(np.diff(corners, axis=0), axis=1)
+    s = np.linspace(0.0, seg.sum(), n_frames, endpoint=False)
+    T_body_camera = ExtrinsicsConfig(xyz_m=(0.1, 0.0, 0.0), rpy_deg=(0.0, math.degrees(pitch), 0.0)).T_body_camera()
+    centre = np.array([room.width_m / 2, room.depth_m / 2])
+    poses = []
+    for si in s:
+        k = int(np.searchsorted(np.cumsum(seg), si, side="right"))
+        t = (si - (np.cumsum(seg)[k - 1] if k > 0 else 0.0)) / seg[k]
+        xy = corners[k] + t * (corners[k + 1] - corners[k])
+        if clearance_m(room, np.array([[xy[0], xy[1], altitude]]), 0.3)[0] < 0.3:
+            continue  # the vehicle would be inside furniture here
+        yaw = math.atan2(centre[1] - xy[1], centre[0] - xy[0])
+        T_map_body = pose_from_xyz_rpy(xy[0], xy[1], altitude, 0.0, 0.0, yaw)
+        poses.append(T_map_body @ T_body_camera)  # full SE(3) composition
+    return poses
+
+
+class MaskOracle:
+    """Boxes and track ids from a rendered frame's instance mask (see the module doc)."""
+
+    def __init__(self, room: Room, noise: OracleNoise, rng: np.random.Generator) -> None:
+        self.room = room
+        self.noise = noise
+        self.rng = rng
+        self.class_names = [c.name for c in default_classes()]
+        self._track_of: dict[int, tuple[int, int]] = {}  # object id -> (track id, last frame)
+        self._next_track = 1
+        self._fp_track = 100000
+
+    def tracks(self, frame: Frame) -> list[Track]:
+        inst = np.asarray(frame.masks["instance"])
+        H, W = inst.shape
+        ids, counts = np.unique(inst[inst > 0], return_counts=True)
+        out: list[Track] = []
+        nz = self.noise
+        for oid, cnt in zip(ids.tolist(), counts.tolist(), strict=True):
+            if cnt < nz.min_visible_px or self.rng.random() < nz.miss_rate:
+                continue
+            vv, uu = np.nonzero(inst == oid)
+            box = np.array([uu.min(), vv.min(), uu.max() + 1, vv.max() + 1], dtype=np.float64)
+            box += self.rng.normal(0.0, nz.box_noise_px, 4)
+            box = np.clip(box, 0, [W, H, W, H])
+            cls = self.room.object_by_id(oid).class_name
+            if self.rng.random() < nz.confusion_rate:
+                cls = self.class_names[int(self.rng.integers(len(self.class_names)))]
+            tid, last = self._track_of.get(oid, (0, -10**9))
+            if frame.index - last > nz.lost_after_frames:
+                tid = self._next_track
+                self._next_track += 1
+            self._track_of[oid] = (tid, frame.index)
+            score = float(np.clip(0.55 + 0.4 * min(1.0, cnt / 5000.0) + self.rng.normal(0, 0.05), 0.3, 0.99))
+            out.append(Track(tid, (box[0], box[1], box[2], box[3]), score, cls))
+        if self.rng.random() < nz.false_positive_rate:
+            w, h = self.rng.uniform(40, 200, 2)
+            u, v = self.rng.uniform(0, W - w), self.rng.uniform(0, H - h)
+            cls = self.class_names[int(self.rng.integers(len(self.class_names)))]
+            self._fp_track += 1
+            out.append(Track(self._fp_track, (u, v, u + w, v + h), float(self.rng.uniform(0.3, 0.6)), cls))
+        return out
+
+
+@dataclass
+class RoomResult:
+    """Per-object figures of one room."""
+
+    position_err_m: list[float]
+    centroid_err_m: list[float]
+    iou: list[float]
+    height_err_m: list[float]
+    class_ok: list[bool]
+    n_gt: int
+    n_matched: int
+    n_spurious: int
+    geometry_ms: list[float]
+
+
+def raster_iou(a_xy_m: np.ndarray, b_xy_m: np.ndarray, resolution_m: float = 0.01) -> float:
+    """IoU of two polygons rasterised on a common grid."""
+    pts = np.concatenate([a_xy_m, b_xy_m])
+    lo, hi = pts.min(axis=0) - 0.05, pts.max(axis=0) + 0.05
+    spec = GridSpec.covering(lo[0], lo[1], hi[0], hi[1], resolution_m)
+    a, b = rasterize_polygon(spec, a_xy_m), rasterize_polygon(spec, b_xy_m)
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 0.0
+
+
+def map_room(
+    seed: int, n_frames: int, noise: OracleNoise | None = None,
+    geometry: GeometryConfig | None = None, map_cfg: MapConfig | None = None,
+) -> tuple[Room, ObjectMap, dict[int, int], list[float]]:
+    """Fly one seeded room and build its object map. Returns the room, the map, how many
+    frames each ground-truth object was well visible in, and per-frame geometry times (ms)."""
+    rng = np.random.default_rng(seed)
+    room = generate_room(seed, width_m=float(rng.uniform(6.0, 8.0)), depth_m=float(rng.uniform(5.0, 6.5)))
+    classes = default_classes()
+    cfg_by_name = {c.name: c for c in classes}
+    renderer = RoomRenderer(room, [c.name for c in classes], INTRINSICS,
+                            noise=DepthNoise(min_m=DEPTH_RANGE_M[0], max_m=DEPTH_RANGE_M[1]), seed=seed)
+    oracle = MaskOracle(room, noise or OracleNoise(), rng)
+    geo = geometry or GeometryConfig()
+    omap = ObjectMap(classes, map_cfg or MapConfig())
+    seen: dict[int, int] = {}
+    times: list[float] = []
+    for i, T in enumerate(flight_poses(room, n_frames, rng)):
+        stamp = i / 15.0
+        frame = renderer.render(T, stamp_s=stamp, index=i)
+        inst = np.asarray(frame.masks["instance"])
+        ids, counts = np.unique(inst[inst > 0], return_counts=True)
+        for oid, cnt in zip(ids.tolist(), counts.tolist(), strict=True):
+            if cnt >= 2000:
+                seen[oid] = seen.get(oid, 0) + 1
+        tracks = oracle.tracks(frame)
+        t0 = time.perf_counter()
+        obs = []
+        for tr in tracks:
+            o = observe_object(frame.depth_m, INTRINSICS, T, tr, cfg_by_name[tr.class_name], geo,
+                               depth_range_m=DEPTH_RANGE_M, stamp_s=stamp, rng=rng)
+            if o is not None:
+                obs.append(o)
+        times.append((time.perf_counter() - t0) * 1e3)
+        omap.update(obs, stamp, CameraView(frame.depth_m, INTRINSICS, T, DEPTH_RANGE_M))
+    return room, omap, seen, times
+
+
+def score_room(room: Room, omap: ObjectMap, seen: dict[int, int], min_frames: int = 3) -> RoomResult:
+    """Match confirmed map objects to well-seen ground-truth objects (best footprint IoU)."""
+    objs: list[MappedObject] = omap.objects(confirmed_only=True)
+    gts = [o for o in room.objects if seen.get(o.object_id, 0) >= min_frames]
+    pairs = []
+    for gi, g in enumerate(gts):
+        for mi, m in enumerate(objs):
+            iou = raster_iou(g.footprint_xy_m(), m.footprint_xy_m)
+            if iou > 0:
+                pairs.append((iou, gi, mi))
+    pairs.sort(reverse=True)
+    used_g: set[int] = set()
+    used_m: set[int] = set()
+    res = RoomResult([], [], [], [], [], len(gts), 0, 0, [])
+    for iou, gi, mi in pairs:
+        if gi in used_g or mi in used_m:
+            continue
+        used_g.add(gi)
+        used_m.add(mi)
+        g, m = gts[gi], objs[mi]
+        res.iou.append(iou)
+        res.position_err_m.append(float(np.linalg.norm(m.footprint_center_xy_m - np.array(g.center_xy_m))))
+        res.centroid_err_m.append(float(np.linalg.norm(np.array(m.position_map_m[:2]) - g.centroid_m()[:2])))
+        res.height_err_m.append(abs(m.z_max_m - g.height_m))
+        res.class_ok.append(m.class_name == g.class_name)
+    res.n_matched = len(used_g)
+    # Spurious: confirmed objects that overlap no real object at all (real but unscored
+    # objects, e.g. seen in fewer frames, are not spurious).
+    all_fp = [o.footprint_xy_m() for o in room.objects]
+    for mi, m in enumerate(objs):
+        if mi not in used_m and not any(raster_iou(fp, m.footprint_xy_m) > 0 for fp in all_fp):
+            res.n_spurious += 1
+    return res
+
+
+def _pct(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def objects_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]]:
+    """Object geometry + object map accuracy over seeded rooms."""
+    n_rooms, n_frames = (3, 40) if args.quick else (args.rooms, args.frames)
+    results = []
+    lines = [f"{'seed':>4} {'gt':>3} {'match':>5} {'spur':>4} {'pos p95 cm':>10} "
+             f"{'IoU med':>7} {'h p95 cm':>8} {'class %':>7}"]
+    for k in range(n_rooms):
+        seed = args.seed + k
+        room, omap, seen, times = map_room(seed, n_frames)
+        r = score_room(room, omap, seen)
+        r.geometry_ms = times
+        results.append(r)
+        lines.append(
+            f"{seed:>4} {r.n_gt:>3} {r.n_matched:>5} {r.n_spurious:>4} "
+            f"{_pct(r.position_err_m, 95) * 100:>10.1f} {_pct(r.iou, 50):>7.2f} "
+            f"{_pct(r.height_err_m, 95) * 100:>8.1f} {100 * np.mean(r.class_ok) if r.class_ok else float('nan'):>7.0f}"
+        )
+    pos = [e for r in results for e in r.position_err_m]
+    cen = [e for r in results for e in r.centroid_err_m]
+    iou = [e for r in results for e in r.iou]
+    h = [e for r in results for e in r.height_err_m]
+    cls = [c for r in results for c in r.class_ok]
+    n_gt = sum(r.n_gt for r in results)
+    n_match = sum(r.n_matched for r in results)
+    figures = {
+        "rooms": n_rooms,
+        "objects_scored": len(pos),
+        "objects_gt": n_gt,
+        "recall": n_match / n_gt if n_gt else float("nan"),
+        "position_err_m_p50": _pct(pos, 50),
+        "position_err_m_p95": _pct(pos, 95),
+        "centroid_vs_gt_centroid_err_m_p95": _pct(cen, 95),
+        "footprint_iou_median": _pct(iou, 50),
+        "footprint_iou_p10": _pct(iou, 10),
+        "height_err_m_p95": _pct(h, 95),
+        "class_correct_frac": float(np.mean(cls)) if cls else float("nan"),
+        "spurious_objects": int(sum(r.n_spurious for r in results)),
+        "geometry_ms_per_frame_p50": _pct([t for r in results for t in r.geometry_ms], 50),
+    }
+    targets = {
+        "position_err_m_p95": (figures["position_err_m_p95"] <= 0.10, "<= 0.10"),
+        "footprint_iou_median": (figures["footprint_iou_median"] >= 0.8, ">= 0.8"),
+        "height_err_m_p95": (figures["height_err_m_p95"] <= 0.05, "<= 0.05"),
+        "class_correct_frac": (figures["class_correct_frac"] >= 0.95, ">= 0.95"),
+        "spurious_objects": (figures["spurious_objects"] == 0, "== 0"),
+    }
+    lines.append("")
+    for key, (ok, target) in targets.items():
+        lines.append(f"  {key:<28} {figures[key]:>8.3f}  target {target:<7} {'PASS' if ok else 'FAIL'}")
+    figures["targets_met"] = all(ok for ok, _ in targets.values())
+    return lines, figures
+
+
+#: Benchmark sections in print order: name -> function(args) -> (table lines, figures).
+#: The occupancy-grid agreement figure is a section of its own, registered here beside
+#: ``objects``.
+SECTIONS: dict[str, Callable[[argparse.Namespace], tuple[list[str], dict[str, Any]]]] = {
+    "objects": objects_section,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="3 short rooms (under a minute)")
+    ap.add_argument("--rooms", type=int, default=20)
+    ap.add_argument("--frames", type=int, default=80, help="frames per room")
+    ap.add_argument("--seed", type=int, default=1000)
+    ap.add_argument("--section", choices=sorted(SECTIONS), action="append",
+                    help="run only these sections (default: all)")
+    args = ap.parse_args(argv)
+    out: dict[str, Any] = {}
+    for name, fn in SECTIONS.items():
+        if args.section and name not in args.section:
+            continue
+        t0 = time.perf_counter()
+        lines, figures = fn(args)
+        print(f"== {name} ({time.perf_counter() - t0:.0f} s)")
+        for line in lines:
+            print(line)
+        print()
+        out[name] = figures
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,332 @@
+"""Geometry of one tracked detection: depth in its box -> an object observation in the map.
+
+The pipeline per track (one I/O-free step, :func:`observe_object`):
+
+1. The box, shrunk by ``box_shrink_frac`` on each side (box edges leak background), is
+   back-projected through the pinhole model; large boxes are sampled with a pixel stride so at
+   most ``max_box_points`` pixels are used. Invalid depth never becomes a point.
+2. Points go to the map frame with the full rigid transform ``T_map_camera`` (which callers
+   compose as ``T_map_body @ T_body_camera``, in SE(3)).
+3. Points within ``floor_clearance_m`` of the floor plane are dropped: the floor is not part
+   of any object, and it would join every leg into one cluster with the room.
+4. Voxel downsampling, then Euclidean clustering (:mod:`semmap.clustering`). The object is
+   the cluster covering most pixels of the box: a tight box is mostly its object, while a
+   background wall far behind it can own more voxels than the object does.
+5. Hollow-bottom classes: RANSAC finds the seat / top plane, constrained near horizontal.
+6. Footprint: the convex hull of the projection of the object's points (top and legs alike)
+   onto the map plane, so the space between the legs is inside it. Heights are true heights
+   above the floor plane; the position is the centroid of the object's (downsampled) points.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import ConvexHull, QhullError
+
+from semmap.clustering import euclidean_clusters, voxel_downsample
+from semmap.config import ClassConfig, GeometryConfig
+from semmap.frames import Transform
+from semmap.pointcloud import backproject
+from semmap.ransac import Plane, fit_plane
+from semmap.types import CameraIntrinsics, Track
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectObservation:
+    """What one frame tells about one tracked object, in the map frame (metres).
+
+    ``footprint_xy_m``: (M, 2) convex polygon, counter-clockwise, the object's projection on
+    the map plane. ``z_min_m``/``z_max_m``: its height range above the floor. ``top_plane``:
+    the horizontal seat/top plane found by RANSAC (hollow classes), ``top_height_m`` its height
+    above the floor at the object's centroid. ``n_points`` counts the pixels of the object,
+    ``n_voxels`` its downsampled points. ``range_m``: camera-to-centroid distance.
+    ``at_image_edge``: the box touches the image border, so the view may be partial.
+    """
+
+    track_id: int
+    class_name: str
+    score: float
+    stamp_s: float
+    centroid_map_m: tuple[float, float, float]
+    footprint_xy_m: NDArray[np.float64]  # (M, 2)
+    z_min_m: float
+    z_max_m: float
+    n_points: int
+    n_voxels: int
+    range_m: float
+    top_plane: Plane | None = None
+    top_height_m: float | None = None
+    at_image_edge: bool = False
+
+    @property
+    def centroid_xy_m(self) -> NDArray[np.float64]:
+        return np.asarray(self.centroid_map_m[:2], dtype=np.float64)
+
+    @property
+    def height_m(self) -> float:
+        """The top of the object above the floor."""
+        return self.z_max_m
+
+
+def shrink_box(
+    xyxy_px: tuple[float, float, float, float], frac: float, width_px: int, height_px: int
+) -> tuple[int, int, int, int]:
+    """Integer half-open pixel window (u0, v0, u1, v1) of a box shrunk by ``frac`` of its width
+    and height on each side, clipped to the image."""
+    u0, v0, u1, v1 = xyxy_px
+    du, dv = (u1 - u0) * frac, (v1 - v0) * frac
+    a = max(0, int(math.floor(u0 + du)))
+    b = max(0, int(math.floor(v0 + dv)))
+    c = min(width_px, int(math.ceil(u1 - du)))
+    d = min(height_px, int(math.ceil(v1 - dv)))
+    return a, b, c, d
+
+
+def convex_footprint(xy_m: NDArray[np.floating], min_width_m: float = 0.0) -> NDArray[np.float64]:
+    """Counter-clockwise convex hull (M, 2) of (N, 2) points.
+
+    Degenerate inputs (fewer than three points, all on a line: a board seen edge-on) give a
+    rectangle around the points at least ``min_width_m`` wide, never a zero-area polygon.
+    """
+    xy = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
+    if len(xy) >= 3:
+        try:
+            hull = ConvexHull(xy)
+            poly = xy[hull.vertices]  # counter-clockwise for 2D hulls
+            if hull.volume >= (min_width_m * 0.5) ** 2:
+                return poly
+        except QhullError:
+            pass
+    return _thin_rectangle(xy, min_width_m)
+
+
+def _thin_rectangle(xy: NDArray[np.float64], min_width_m: float) -> NDArray[np.float64]:
+    """Oriented rectangle along the principal axis of (N, 2) points, each side at least
+    ``min_width_m`` long."""
+    if len(xy) == 0:
+        raise ValueError("no points to build a footprint from")
+    c = xy.mean(axis=0)
+    d = xy - c
+    if len(xy) >= 2 and np.ptp(d, axis=0).max() > 0:
+        _, _, vt = np.linalg.svd(d, full_matrices=False)
+        axis = vt[0]
+    else:
+        axis = np.array([1.0, 0.0])
+    perp = np.array([-axis[1], axis[0]])
+    a, b = d @ axis, d @ perp
+    half = min_width_m / 2.0
+    a0, a1 = min(a.min(), -half), max(a.max(), half)
+    b0, b1 = min(b.min(), -half), max(b.max(), half)
+    corners = np.array([[a0, b0], [a1, b0], [a1, b1], [a0, b1]])
+    return c + corners[:, :1] * axis + corners[:, 1:] * perp
+
+
+def min_area_rectangle(polygon_xy_m: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Smallest-area oriented rectangle (4, 2), counter-clockwise, enclosing a polygon (M, 2).
+
+    Rotating calipers on the convex hull: the optimum has a side along a hull edge, so every
+    edge direction is tried at once (vectorised).
+    """
+    hull = convex_footprint(polygon_xy_m)
+    edges = np.roll(hull, -1, axis=0) - hull
+    lengths = np.linalg.norm(edges, axis=1)
+    edges = edges[lengths > 1e-12] / lengths[lengths > 1e-12, None]  # (E, 2) unit directions
+    if len(edges) == 0:
+        return hull
+    perp = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
+    a = hull @ edges.T  # (M, E)
+    b = hull @ perp.T
+    area = (a.max(0) - a.min(0)) * (b.max(0) - b.min(0))
+    k = int(np.argmin(area))
+    a0, a1, b0, b1 = a[:, k].min(), a[:, k].max(), b[:, k].min(), b[:, k].max()
+    corners = np.array([[a0, b0], [a1, b0], [a1, b1], [a0, b1]])
+    return corners[:, :1] * edges[k] + corners[:, 1:] * perp[k]
+
+
+def polygon_area_m2(polygon_xy_m: NDArray[np.floating]) -> float:
+    """Area of a simple polygon (M, 2) by the shoelace formula, any winding."""
+    p = np.asarray(polygon_xy_m, dtype=np.float64).reshape(-1, 2)
+    if len(p) < 3:
+        return 0.0
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+
+
+def _pick_cluster(
+    labels: NDArray[np.int64], range_m: NDArray[np.float64], uv: NDArray[np.int64],
+    window: tuple[int, int, int, int], min_frac: float, min_cover: float,
+) -> int:
+    """The object's cluster (``labels`` (N,) ordered by size, ``uv`` (N, 2) pixels).
+
+    Candidates hold at least ``min_frac`` of the largest cluster's pixels. A tight box is
+    spanned by its object, so candidates whose pixel extent covers less than ``min_cover`` of
+    the box area are dropped (an occluder in front covers part of it); of the rest, the one
+    nearest the camera wins (the wall behind also spans the box, but farther away).
+    """
+    counts = np.bincount(labels)
+    candidates = np.nonzero(counts >= min_frac * counts.max())[0]
+    if len(candidates) == 1:
+        return int(candidates[0])
+    u0, v0, u1, v1 = window
+    area = float(max(1, (u1 - u0) * (v1 - v0)))
+    best, best_range = 0, math.inf
+    for c in candidates:
+        sel = labels == c
+        cu, cv = uv[sel, 0], uv[sel, 1]
+        cover = (int(cu.max()) - int(cu.min()) + 1) * (int(cv.max()) - int(cv.min()) + 1) / area
+        med = float(np.median(range_m[sel]))
+        if cover >= min_cover and med < best_range:
+            best, best_range = int(c), med
+    return best
+
+
+def _ccw(poly: NDArray[np.float64]) -> NDArray[np.float64]:
+    x, y = poly[:, 0], poly[:, 1]
+    signed = float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
+    return poly if signed >= 0 else poly[::-1]
+
+
+def convex_intersection(
+    a_xy_m: NDArray[np.floating], b_xy_m: NDArray[np.floating]
+) -> NDArray[np.float64]:
+    """Intersection (K, 2) of two convex polygons (M, 2), (L, 2) by Sutherland-Hodgman
+    clipping; empty (0, 2) when they do not overlap."""
+    subject = _ccw(np.asarray(a_xy_m, dtype=np.float64).reshape(-1, 2))
+    clip = _ccw(np.asarray(b_xy_m, dtype=np.float64).reshape(-1, 2))
+    if len(subject) < 3 or len(clip) < 3:
+        return np.zeros((0, 2))
+    out = subject
+    for i in range(len(clip)):
+        if len(out) == 0:
+            break
+        p, q = clip[i], clip[(i + 1) % len(clip)]
+        e = q - p
+        # Left of the directed edge (inside for a counter-clockwise clip polygon) is >= 0.
+        side = e[0] * (out[:, 1] - p[1]) - e[1] * (out[:, 0] - p[0])
+        nxt = np.roll(out, -1, axis=0)
+        side_n = np.roll(side, -1)
+        pts: list[NDArray[np.float64]] = []
+        for j in range(len(out)):
+            if side[j] >= 0:
+                pts.append(out[j])
+            if (side[j] >= 0) != (side_n[j] >= 0):
+                t = side[j] / (side[j] - side_n[j])
+                pts.append(out[j] + t * (nxt[j] - out[j]))
+        out = np.array(pts) if pts else np.zeros((0, 2))
+    return out
+
+
+def convex_iou(a_xy_m: NDArray[np.floating], b_xy_m: NDArray[np.floating]) -> float:
+    """Intersection over union of two convex polygons (M, 2), (L, 2); 0 when disjoint."""
+    inter = polygon_area_m2(convex_intersection(a_xy_m, b_xy_m))
+    if inter <= 0.0:
+        return 0.0
+    union = polygon_area_m2(a_xy_m) + polygon_area_m2(b_xy_m) - inter
+    return inter / union if union > 0 else 0.0
+
+
+def observe_object(
+    depth_m: NDArray[np.floating],
+    intrinsics: CameraIntrinsics,
+    T_map_camera: Transform,
+    track: Track,
+    class_cfg: ClassConfig,
+    params: GeometryConfig,
+    floor: Plane | None = None,
+    depth_range_m: tuple[float, float] = (0.0, math.inf),
+    stamp_s: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> ObjectObservation | None:
+    """The object a track's box shows, or None when its depth holds no object.
+
+    ``depth_m``: (H, W) metres, 0/NaN invalid; pixels outside ``depth_range_m`` are invalid
+    too. ``T_map_camera``: (4, 4) optical camera -> map. ``floor``: the floor plane in the map
+    frame with its normal up (default: z = 0, the map plane). ``class_cfg.hollow`` decides
+    whether a top plane is searched. Returns None when fewer than ``min_cluster_points``
+    voxels survive (an empty, distant or all-floor box).
+    """
+    floor = floor if floor is not None else Plane.horizontal()
+    H, W = np.asarray(depth_m).shape
+    window = shrink_box(track.xyxy_px, params.box_shrink_frac, W, H)
+    u0, v0, u1, v1 = window
+    area = max(0, u1 - u0) * max(0, v1 - v0)
+    if area == 0:
+        return None
+    stride = max(1, int(math.ceil(math.sqrt(area / params.max_box_points))))
+    pts_cam, uv = backproject(depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride)
+    if len(pts_cam) < params.min_cluster_points:
+        return None
+    R = T_map_camera[:3, :3]
+    t = T_map_camera[:3, 3]
+    pts = pts_cam.astype(np.float64) @ R.T + t  # (N, 3) map frame
+    heights = floor.signed_distance_m(pts)  # (N,)
+    rng_cam = pts_cam[:, 2].astype(np.float64)  # (N,) z-depth
+    clearance = params.floor_clearance_m + params.floor_clearance_per_m2 * rng_cam**2
+    above = heights > clearance
+    pts, heights, rng_cam, clearance, uv = (
+        pts[above], heights[above], rng_cam[above], clearance[above], uv[above]
+    )
+    if len(pts) < params.min_cluster_points:
+        return None
+
+    vox, inverse = voxel_downsample(pts, params.voxel_size_m)  # (M, 3), (N,)
+    spacing_m = stride * float(np.quantile(rng_cam, 0.9)) / min(intrinsics.fx_px, intrinsics.fy_px)
+    eps = max(params.cluster_distance_m, params.cluster_pixel_gaps * spacing_m)
+    vox_label = euclidean_clusters(vox, eps)
+    point_label = vox_label[inverse]
+    best = _pick_cluster(point_label, rng_cam, uv, window, params.cluster_min_pixel_frac,
+                         params.cluster_min_box_cover)
+    obj_vox = vox[vox_label == best]
+    if len(obj_vox) < params.min_cluster_points:
+        return None
+    on_obj = point_label == best
+    obj_h = heights[on_obj]
+    # Clearance at the object's lowest point: the floor cut removed up to that much of it.
+    lowest_clearance = float(clearance[on_obj][int(np.argmin(obj_h))])
+
+    z_max = float(np.quantile(obj_h, params.height_quantile))
+    z_min = float(obj_h.min())
+    # Standing on the floor: its lowest points were cut with the floor, so it reaches z = 0.
+    if z_min <= lowest_clearance + params.voxel_size_m:
+        z_min = 0.0
+    centroid = obj_vox.mean(axis=0)
+
+    top_plane: Plane | None = None
+    top_height: float | None = None
+    if class_cfg.hollow != "none":
+        fit = fit_plane(
+            obj_vox, params.ransac_distance_m, params.ransac_iterations, rng,
+            up=floor.normal_array, max_tilt_rad=math.radians(params.plane_max_tilt_deg),
+            min_inliers=params.min_plane_points,
+        )
+        if fit is not None:
+            top_plane = fit.plane
+            inl = obj_vox[fit.inliers]
+            top_height = float(np.median(floor.signed_distance_m(inl)))
+
+    # Projection onto the map plane: all object points, the top among them, so the space
+    # between legs lies inside the hull.
+    footprint = convex_footprint(obj_vox[:, :2], min_width_m=params.voxel_size_m)
+    cam_pos = T_map_camera[:3, 3]
+    bu0, bv0, bu1, bv1 = track.xyxy_px
+    touches = bu0 <= 1 or bv0 <= 1 or bu1 >= W - 1 or bv1 >= H - 1
+    return ObjectObservation(
+        track_id=track.track_id,
+        class_name=track.class_name,
+        score=float(track.score),
+        stamp_s=float(stamp_s),
+        centroid_map_m=(float(centroid[0]), float(centroid[1]), float(centroid[2])),
+        footprint_xy_m=footprint,
+        z_min_m=z_min,
+        z_max_m=z_max,
+        n_points=int(on_obj.sum()),
+        n_voxels=len(obj_vox),
+        range_m=float(np.linalg.norm(centroid - cam_pos)),
+        top_plane=top_plane,
+        top_height_m=top_height,
+        at_image_edge=bool(touches),
+    )

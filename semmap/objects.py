@@ -1,0 +1,518 @@
+"""The object map: persistent objects fused from per-frame observations.
+
+Each frame's :class:`~semmap.geometry.ObjectObservation` list is associated to known objects:
+first by track id (the tracker already did the frame-to-frame work), then, for a new track id,
+by class and footprint overlap or centroid distance, so the same table seen again after its
+track was lost is the same object. Unmatched observations start new objects.
+
+Every object fuses:
+
+* class probabilities: a Bayesian update per observation with the detector's score as the
+  likelihood of the reported class and the rest spread evenly over the other classes;
+* existence (log-odds): raised by each observation; lowered by the class's ``miss_decay``
+  each frame the object should be visible (its centroid projects into the image, in range,
+  not occluded by nearer depth) but no observation matched it; clamped below
+  ``existence_max`` so that even a long-seen object fades once it is gone;
+* position: inverse-variance fusion of observed centroids (noise grows with range);
+* footprint: the convex hull of every observed hull (views from different sides complete
+  each other), reported as that hull or its minimum-area rectangle;
+* height range: robust quantiles over recent observations (partial views cut the top).
+
+Objects below ``existence_remove_below`` are removed, and unconfirmed ones not seen again
+within ``tentative_timeout_s``, so false positives fade away.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semmap.config import ClassConfig, MapConfig
+from semmap.costmap import ObjectFootprint
+from semmap.errors import MapError
+from semmap.frames import Transform, invert
+from semmap.geometry import (
+    ObjectObservation,
+    convex_footprint,
+    convex_intersection,
+    convex_iou,
+    min_area_rectangle,
+    polygon_area_m2,
+)
+from semmap.pointcloud import valid_depth_mask
+from semmap.types import CameraIntrinsics
+
+log = logging.getLogger(__name__)
+
+#: Observations kept per object for the robust height estimate.
+_HISTORY = 30
+#: Class probabilities never drop below this, so a later majority can still win.
+_MIN_CLASS_PROB = 1e-4
+#: Any-class merge: a new track over an object of another class merges at this IoU.
+_CROSS_CLASS_IOU = 0.6
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+def _sigmoid(x: float) -> float:
+    return 1.0 / (1.0 + math.exp(-x))
+
+
+def _consistent(a_xy_m: NDArray[np.float64], b_xy_m: NDArray[np.float64]) -> bool:
+    """Two footprints of one object overlap: the intersection covers at least a fifth of the
+    smaller one. A view of something else (an occluder's points) is kept out of the hull."""
+    inter = polygon_area_m2(convex_intersection(a_xy_m, b_xy_m))
+    smaller = min(polygon_area_m2(a_xy_m), polygon_area_m2(b_xy_m))
+    return smaller > 0 and inter >= 0.2 * smaller
+
+
+def _robust_rectangle(
+    hull_xy_m: NDArray[np.float64], views: list[NDArray[np.float64]]
+) -> NDArray[np.float64]:
+    """Oriented rectangle (4, 2) of an object from its observed hulls.
+
+    The orientation is the minimum-area rectangle's of the union ``hull_xy_m``; each side is
+    placed at the 75th percentile of where the individual views put it, so depth noise (which
+    a union of hulls turns into ever-growing extents) and the odd stray view do not inflate
+    it, while partial views (which fall short on their hidden side) are outvoted by views
+    from the other side.
+    """
+    rect = min_area_rectangle(hull_xy_m)
+    if len(views) < 3:
+        return rect
+    ax = rect[1] - rect[0]
+    ay = rect[3] - rect[0]
+    nx, ny = np.linalg.norm(ax), np.linalg.norm(ay)
+    if nx < 1e-9 or ny < 1e-9:
+        return rect
+    ax, ay = ax / nx, ay / ny
+    ext = np.array([[(v @ ax).min(), (v @ ax).max(), (v @ ay).min(), (v @ ay).max()] for v in views])
+    a0, b0 = np.quantile(ext[:, 0], 0.25), np.quantile(ext[:, 2], 0.25)
+    a1, b1 = np.quantile(ext[:, 1], 0.75), np.quantile(ext[:, 3], 0.75)
+    corners = np.array([[a0, b0], [a1, b0], [a1, b1], [a0, b1]])
+    return corners[:, :1] * ax + corners[:, 1:] * ay
+
+
+@dataclass(frozen=True)
+class CameraView:
+    """What one frame could see: for "should be visible but is not" (negative evidence).
+
+    ``depth_m``: (H, W) metres, 0/NaN invalid. ``T_map_camera``: (4, 4). Points beyond
+    ``depth_range_m`` or within ``margin_px`` of the image border are not expected to be seen.
+    """
+
+    depth_m: NDArray[np.floating]
+    intrinsics: CameraIntrinsics
+    T_map_camera: Transform
+    depth_range_m: tuple[float, float] = (0.3, 6.0)
+    tolerance_m: float = 0.3
+    margin_px: int = 10
+
+    def expects_visible(self, points_map_m: NDArray[np.floating]) -> NDArray[np.bool_]:
+        """(N,) True where a map point (N, 3) projects inside the image, within range, and the
+        measured depth there (median of a 5x5 patch) is not nearer than the point by more than
+        the tolerance. Pixels without valid depth are not evidence either way (False)."""
+        pts = np.asarray(points_map_m, dtype=np.float64).reshape(-1, 3)
+        out = np.zeros(len(pts), dtype=bool)
+        if len(pts) == 0:
+            return out
+        T = invert(np.asarray(self.T_map_camera, dtype=np.float64))
+        pc = pts @ T[:3, :3].T + T[:3, 3]  # (N, 3) camera frame
+        K = self.intrinsics
+        z = pc[:, 2]
+        in_range = (z >= self.depth_range_m[0]) & (z <= self.depth_range_m[1])
+        zs = np.where(in_range, z, 1.0)
+        u = K.fx_px * pc[:, 0] / zs + K.cx_px
+        v = K.fy_px * pc[:, 1] / zs + K.cy_px
+        m = self.margin_px
+        inside = in_range & (u >= m) & (u < K.width_px - m) & (v >= m) & (v < K.height_px - m)
+        d = np.asarray(self.depth_m)
+        for i in np.nonzero(inside)[0]:
+            ui, vi = int(u[i]), int(v[i])
+            patch = d[max(0, vi - 2) : vi + 3, max(0, ui - 2) : ui + 3]
+            ok = valid_depth_mask(patch, self.depth_range_m[0], self.depth_range_m[1])
+            if ok.sum() == 0:
+                continue
+            measured = float(np.median(patch[ok]))
+            out[i] = measured >= z[i] - self.tolerance_m
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class MappedObject:
+    """One persistent object of the map (map frame, metres, seconds).
+
+    ``class_probs`` maps every configured class to its probability; ``class_name`` is the most
+    likely. ``position_map_m``: fused centroid of the object's points, with isotropic standard
+    deviation ``position_std_m``. ``footprint_xy_m``: (M, 2) counter-clockwise polygon.
+    ``z_min_m``/``z_max_m``: height range above the floor; ``top_height_m``: the seat/top
+    plane's height where one was found.
+    """
+
+    object_id: int
+    class_name: str
+    class_probs: Mapping[str, float]
+    existence: float
+    position_map_m: tuple[float, float, float]
+    position_std_m: float
+    footprint_xy_m: NDArray[np.float64]
+    z_min_m: float
+    z_max_m: float
+    top_height_m: float | None
+    first_seen_s: float
+    last_seen_s: float
+    n_observations: int
+    confirmed: bool
+
+    @property
+    def height_m(self) -> float:
+        return self.z_max_m
+
+    @property
+    def footprint_center_xy_m(self) -> NDArray[np.float64]:
+        """Centre of the footprint's bounding box in its own orientation (a rectangle's centre)."""
+        return min_area_rectangle(self.footprint_xy_m).mean(axis=0)
+
+    def to_footprint(self, margin_m: float = 0.0) -> ObjectFootprint:
+        """The costmap's view of this object."""
+        return ObjectFootprint(
+            object_id=self.object_id, class_name=self.class_name,
+            polygon_xy_m=self.footprint_xy_m, z_min_m=self.z_min_m, z_max_m=self.z_max_m,
+            existence=self.existence, margin_m=margin_m,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict (plain floats and lists)."""
+        return {
+            "object_id": self.object_id,
+            "class_name": self.class_name,
+            "class_probs": {k: round(float(v), 6) for k, v in self.class_probs.items()},
+            "existence": round(self.existence, 6),
+            "position_map_m": [round(float(c), 4) for c in self.position_map_m],
+            "position_std_m": round(self.position_std_m, 4),
+            "footprint_xy_m": [[round(float(x), 4), round(float(y), 4)] for x, y in self.footprint_xy_m],
+            "z_min_m": round(self.z_min_m, 4),
+            "z_max_m": round(self.z_max_m, 4),
+            "top_height_m": None if self.top_height_m is None else round(self.top_height_m, 4),
+            "first_seen_s": self.first_seen_s,
+            "last_seen_s": self.last_seen_s,
+            "n_observations": self.n_observations,
+            "confirmed": self.confirmed,
+        }
+
+
+@dataclass
+class _State:
+    """Mutable per-object state inside the map."""
+
+    object_id: int
+    class_probs: NDArray[np.float64]  # (K,) in class order
+    logodds: float
+    position_m: NDArray[np.float64]  # (3,)
+    position_var_m2: float
+    hull_xy_m: NDArray[np.float64]  # (M, 2)
+    first_seen_s: float
+    last_seen_s: float
+    n_observations: int = 0
+    #: The hull holds an observation within ``footprint_max_range_m``.
+    hull_near: bool = False
+    z_max_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
+    z_min_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
+    top_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
+    #: Recent near observations' hulls, for the robust rectangle.
+    hull_hist: deque[NDArray[np.float64]] = field(default_factory=lambda: deque(maxlen=_HISTORY))
+
+
+class ObjectMap:
+    """Persistent objects from per-frame observations (see the module doc).
+
+    ``classes``: the configured classes (their order is the class-probability order, their
+    ``miss_decay`` the per-class existence decay). ``config``: the object-map fields of
+    :class:`~semmap.config.MapConfig`.
+    """
+
+    def __init__(self, classes: Sequence[ClassConfig], config: MapConfig | None = None) -> None:
+        if not classes:
+            raise MapError("the object map needs at least one class")
+        self.config = config if config is not None else MapConfig()
+        self.classes = list(classes)
+        self.class_names = [c.name for c in self.classes]
+        self._class_index = {n: i for i, n in enumerate(self.class_names)}
+        self._objects: dict[int, _State] = {}
+        self._track_to_object: dict[int, int] = {}
+        self._next_id = 1
+
+    # --- queries --------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self._objects)
+
+    def objects(self, confirmed_only: bool = False) -> list[MappedObject]:
+        """Snapshot of the objects, by id."""
+        out = [self._snapshot(s) for _, s in sorted(self._objects.items())]
+        return [o for o in out if o.confirmed] if confirmed_only else out
+
+    def footprints(self, confirmed_only: bool = True) -> list[ObjectFootprint]:
+        """Objects as costmap footprints, each with its class's margin."""
+        margins = {c.name: c.margin_m for c in self.classes}
+        return [o.to_footprint(margins.get(o.class_name, 0.0)) for o in self.objects(confirmed_only)]
+
+    def class_probabilities(self) -> dict[int, NDArray[np.float32]]:
+        """Object id -> (K,) class probabilities in ``class_names`` order (for the class layer)."""
+        return {oid: s.class_probs.astype(np.float32) for oid, s in self._objects.items()}
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dump of every object."""
+        return {"classes": self.class_names, "objects": [o.to_dict() for o in self.objects()]}
+
+    # --- update ---------------------------------------------------------------------------
+
+    def update(
+        self,
+        observations: Iterable[ObjectObservation],
+        stamp_s: float,
+        view: CameraView | None = None,
+    ) -> list[int]:
+        """Fuse one frame's observations; returns the object id of each observation in order.
+
+        ``view`` (the frame's depth and pose) enables negative evidence for objects that were
+        expected in the image but not observed; without it existence is only ever raised and
+        tentative objects time out. Observations of unknown classes raise :class:`MapError`.
+        """
+        obs = list(observations)
+        for o in obs:
+            if o.class_name not in self._class_index:
+                raise MapError(
+                    f"observation of track {o.track_id} has class {o.class_name!r}; "
+                    f"known classes: {self.class_names}"
+                )
+        used: set[int] = set()
+        assigned: dict[int, int] = {}
+        order = sorted(range(len(obs)), key=lambda i: -obs[i].score)
+        for i in order:
+            oid = self._associate(obs[i], used)
+            if oid is None:
+                oid = self._create(obs[i])
+            else:
+                self._fuse(self._objects[oid], obs[i])
+            used.add(oid)
+            assigned[i] = oid
+            self._track_to_object[obs[i].track_id] = oid
+        merged = self._merge_duplicates(used, {assigned[i] for i in range(len(obs))})
+        self._negative_evidence(used, view)
+        self._prune(stamp_s)
+        return [merged.get(assigned[i], assigned[i]) for i in range(len(obs))]
+
+    def _same_object(self, a: _State, b: _State, both_seen_now: bool) -> bool:
+        """Duplicate test: heavy overlap whatever the classes, or (same class, not two
+        detections of one frame) overlap / proximity as for re-association."""
+        cfg = self.config
+        reach = float(np.ptp(a.hull_xy_m, axis=0).max() + np.ptp(b.hull_xy_m, axis=0).max())
+        dist = float(np.linalg.norm(a.position_m[:2] - b.position_m[:2]))
+        if dist > reach:
+            return False
+        iou = convex_iou(a.hull_xy_m, b.hull_xy_m)
+        if iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
+            return True
+        same_class = int(np.argmax(a.class_probs)) == int(np.argmax(b.class_probs))
+        return same_class and not both_seen_now and (
+            iou >= cfg.reassociate_iou or dist <= cfg.reassociate_distance_m
+        )
+
+    def _merge_duplicates(self, touched: set[int], seen_now: set[int]) -> dict[int, int]:
+        """Merge objects updated this frame into older duplicates (the same thing detected
+        under two classes, or a track that started before re-association could catch it).
+        Returns removed id -> surviving id."""
+        merged: dict[int, int] = {}
+        for oid in sorted(touched):
+            if oid not in self._objects:
+                continue
+            for other in sorted(self._objects):
+                if other == oid or other not in self._objects or oid not in self._objects:
+                    continue
+                a, b = self._objects[other], self._objects[oid]
+                if self._same_object(a, b, other in seen_now and oid in seen_now):
+                    keep, drop = (a, b) if a.object_id < b.object_id else (b, a)
+                    self._absorb(keep, drop)
+                    merged[drop.object_id] = keep.object_id
+                    break
+        # Chains (a -> b -> c) resolve to the final survivor.
+        for k in list(merged):
+            while merged[k] in merged:
+                merged[k] = merged[merged[k]]
+        return merged
+
+    def _absorb(self, keep: _State, drop: _State) -> None:
+        """Fold ``drop`` into ``keep`` and remove it."""
+        p = keep.class_probs * drop.class_probs * len(self.class_names)  # uniform prior once
+        p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
+        keep.class_probs = p / p.sum()
+        keep.logodds = max(keep.logodds, drop.logodds)
+        va, vb = keep.position_var_m2, drop.position_var_m2
+        keep.position_m = (keep.position_m * vb + drop.position_m * va) / (va + vb)
+        keep.position_var_m2 = max(va * vb / (va + vb), 1e-4)
+        if keep.hull_near == drop.hull_near:
+            keep.hull_xy_m = convex_footprint(np.concatenate([keep.hull_xy_m, drop.hull_xy_m]))
+        elif drop.hull_near:
+            keep.hull_xy_m = drop.hull_xy_m
+        if drop.hull_near or not keep.hull_near:
+            keep.hull_hist.extend(drop.hull_hist)
+        keep.hull_near = keep.hull_near or drop.hull_near
+        keep.z_max_hist.extend(drop.z_max_hist)
+        keep.z_min_hist.extend(drop.z_min_hist)
+        keep.top_hist.extend(drop.top_hist)
+        keep.n_observations += drop.n_observations
+        keep.first_seen_s = min(keep.first_seen_s, drop.first_seen_s)
+        keep.last_seen_s = max(keep.last_seen_s, drop.last_seen_s)
+        for tid, o in self._track_to_object.items():
+            if o == drop.object_id:
+                self._track_to_object[tid] = keep.object_id
+        del self._objects[drop.object_id]
+        log.debug("object %d merged into %d", drop.object_id, keep.object_id)
+
+    def _associate(self, o: ObjectObservation, used: set[int]) -> int | None:
+        cfg = self.config
+        oid = self._track_to_object.get(o.track_id)
+        if oid is not None and oid in self._objects and oid not in used:
+            s = self._objects[oid]
+            if np.linalg.norm(s.position_m[:2] - o.centroid_xy_m) <= cfg.track_gate_m:
+                return oid
+            log.debug("track %d jumped %.2f m from object %d: new object", o.track_id,
+                      float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m)), oid)
+        k = self._class_index[o.class_name]
+        best: tuple[float, float, int] | None = None
+        for cand, s in self._objects.items():
+            if cand in used:
+                continue
+            iou = convex_iou(s.hull_xy_m, o.footprint_xy_m)
+            dist = float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m))
+            same_class = int(np.argmax(s.class_probs)) == k
+            ok = (same_class and (iou >= cfg.reassociate_iou or dist <= cfg.reassociate_distance_m)) or (
+                iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou)
+            )
+            if ok and (best is None or (iou, -dist) > (best[0], best[1])):
+                best = (iou, -dist, cand)
+        return None if best is None else best[2]
+
+    def _class_likelihood(self, class_name: str, score: float) -> NDArray[np.float64]:
+        k = len(self.class_names)
+        if k == 1:
+            return np.ones(1)
+        # A detection below chance would count *against* its own class; floor it at chance.
+        s = min(max(float(score), 1.0 / k + 1e-3), 0.999)
+        lik = np.full(k, (1.0 - s) / (k - 1))
+        lik[self._class_index[class_name]] = s
+        return lik
+
+    def _sigma2(self, o: ObjectObservation) -> float:
+        sigma = self.config.position_sigma_m + self.config.position_sigma_per_m * o.range_m
+        return sigma * sigma
+
+    def _create(self, o: ObjectObservation) -> int:
+        oid = self._next_id
+        self._next_id += 1
+        prior = np.full(len(self.class_names), 1.0 / len(self.class_names))
+        s = _State(
+            object_id=oid, class_probs=prior, logodds=_logit(self.config.existence_initial),
+            position_m=np.asarray(o.centroid_map_m, dtype=np.float64),
+            position_var_m2=self._sigma2(o), hull_xy_m=np.asarray(o.footprint_xy_m, np.float64),
+            first_seen_s=o.stamp_s, last_seen_s=o.stamp_s,
+        )
+        self._objects[oid] = s
+        self._fuse(s, o, first=True)
+        log.debug("new object %d (%s) at %s", oid, o.class_name, np.round(o.centroid_map_m, 2))
+        return oid
+
+    def _fuse(self, s: _State, o: ObjectObservation, first: bool = False) -> None:
+        cfg = self.config
+        p = s.class_probs * self._class_likelihood(o.class_name, o.score)
+        p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
+        s.class_probs = p / p.sum()
+        s.logodds = min(s.logodds + cfg.existence_hit_logodds, _logit(cfg.existence_max))
+        if not first:
+            r2 = self._sigma2(o)
+            x = np.asarray(o.centroid_map_m, dtype=np.float64)
+            w = s.position_var_m2 / (s.position_var_m2 + r2)
+            s.position_m = s.position_m + w * (x - s.position_m)
+            # Floor on the variance: the estimate keeps following a slowly drifting pose.
+            s.position_var_m2 = max(s.position_var_m2 * r2 / (s.position_var_m2 + r2), 1e-4)
+        near = o.range_m <= cfg.footprint_max_range_m
+        if first or (near and not s.hull_near):
+            s.hull_xy_m = np.asarray(o.footprint_xy_m, dtype=np.float64)
+        elif (near or not s.hull_near) and _consistent(s.hull_xy_m, o.footprint_xy_m):
+            s.hull_xy_m = convex_footprint(np.concatenate([s.hull_xy_m, o.footprint_xy_m]))
+        if near or not s.hull_near:
+            if near and not s.hull_near:
+                s.hull_hist.clear()
+            s.hull_hist.append(np.asarray(o.footprint_xy_m, dtype=np.float64))
+        s.hull_near = s.hull_near or near
+        s.z_max_hist.append(o.z_max_m)
+        s.z_min_hist.append(o.z_min_m)
+        if o.top_height_m is not None:
+            s.top_hist.append(o.top_height_m)
+        s.n_observations += 1
+        s.last_seen_s = max(s.last_seen_s, o.stamp_s)
+        s.first_seen_s = min(s.first_seen_s, o.stamp_s)
+
+    def _negative_evidence(self, matched: set[int], view: CameraView | None) -> None:
+        if view is None:
+            return
+        ids = [oid for oid in self._objects if oid not in matched]
+        if not ids:
+            return
+        cents = np.array([self._objects[oid].position_m for oid in ids])
+        visible = view.expects_visible(cents)
+        for oid, vis in zip(ids, visible, strict=True):
+            if vis:
+                s = self._objects[oid]
+                decay = self.classes[int(np.argmax(s.class_probs))].miss_decay
+                s.logodds -= decay
+
+    def _prune(self, stamp_s: float) -> None:
+        cfg = self.config
+        for oid in list(self._objects):
+            s = self._objects[oid]
+            p = _sigmoid(s.logodds)
+            stale = p < cfg.existence_confirm and stamp_s - s.last_seen_s > cfg.tentative_timeout_s
+            if p < cfg.existence_remove_below or stale:
+                log.debug("object %d removed (existence %.2f)", oid, p)
+                del self._objects[oid]
+        for tid in [t for t, oid in self._track_to_object.items() if oid not in self._objects]:
+            del self._track_to_object[tid]
+
+    def _snapshot(self, s: _State) -> MappedObject:
+        cfg = self.config
+        p = _sigmoid(s.logodds)
+        footprint = (
+            _robust_rectangle(s.hull_xy_m, list(s.hull_hist))
+            if cfg.footprint_shape == "rectangle" else s.hull_xy_m
+        )
+        z_max = float(np.quantile(np.asarray(s.z_max_hist), 0.8))
+        z_min = float(np.quantile(np.asarray(s.z_min_hist), 0.2))
+        top = float(np.median(np.asarray(s.top_hist))) if s.top_hist else None
+        k = int(np.argmax(s.class_probs))
+        return MappedObject(
+            object_id=s.object_id,
+            class_name=self.class_names[k],
+            class_probs={n: float(v) for n, v in zip(self.class_names, s.class_probs, strict=True)},
+            existence=p,
+            position_map_m=(float(s.position_m[0]), float(s.position_m[1]), float(s.position_m[2])),
+            position_std_m=math.sqrt(s.position_var_m2),
+            footprint_xy_m=footprint,
+            z_min_m=z_min,
+            z_max_m=max(z_max, z_min),
+            top_height_m=top,
+            first_seen_s=s.first_seen_s,
+            last_seen_s=s.last_seen_s,
+            n_observations=s.n_observations,
+            confirmed=p >= cfg.existence_confirm,
+        )

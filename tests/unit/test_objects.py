@@ -1,0 +1,134 @@
+"""The object map: association, Bayesian class fusion, existence and negative evidence."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from semmap.config import MapConfig, default_classes
+from semmap.frames import make_transform
+from semmap.geometry import ObjectObservation
+from semmap.objects import CameraView, ObjectMap
+from semmap.types import CameraIntrinsics
+
+K = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
+# Camera at the origin looking along map +x (optical z = map x, optical y = map -z).
+T_MAP_CAMERA = make_transform(np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
+                              np.array([0.0, 0.0, 0.5]))
+
+
+def obs(track: int, cls: str = "chair", xy=(3.0, 0.0), score: float = 0.8, stamp: float = 0.0,
+        size: float = 0.5) -> ObjectObservation:
+    x, y = xy
+    h = size / 2
+    fp = np.array([[x - h, y - h], [x + h, y - h], [x + h, y + h], [x - h, y + h]])
+    return ObjectObservation(track, cls, score, stamp, (x, y, 0.5), fp, 0.0, 0.9, 500, 100, 3.0)
+
+
+def test_one_track_is_one_object_confirmed_after_two_sightings() -> None:
+    m = ObjectMap(default_classes())
+    m.update([obs(1)], 0.0)
+    assert len(m) == 1 and not m.objects()[0].confirmed  # one sighting is not enough
+    m.update([obs(1, xy=(3.02, 0.01), stamp=0.1)], 0.1)
+    (o,) = m.objects()
+    assert o.confirmed and o.n_observations == 2
+    assert o.class_name == "chair"
+    assert o.first_seen_s == 0.0 and o.last_seen_s == 0.1
+    assert o.position_map_m[0] == pytest.approx(3.01, abs=0.011)
+
+
+def test_a_new_track_on_a_known_object_is_reassociated() -> None:
+    m = ObjectMap(default_classes())
+    for t in range(3):
+        m.update([obs(1, stamp=t)], float(t))
+    ids = m.update([obs(2, xy=(3.1, 0.05), stamp=3.0)], 3.0)  # track lost, new id
+    assert len(m) == 1 and ids == [m.objects()[0].object_id]
+    m.update([obs(3, xy=(6.0, 0.0), stamp=4.0)], 4.0)  # elsewhere: another object
+    assert len(m) == 2
+
+
+def test_two_objects_in_one_frame_stay_apart() -> None:
+    m = ObjectMap(default_classes())
+    ids = m.update([obs(1, xy=(3.0, 0.0)), obs(2, xy=(3.0, 0.6))], 0.0)
+    assert ids[0] != ids[1]
+
+
+def test_class_probabilities_fuse_detector_scores() -> None:
+    m = ObjectMap(default_classes())
+    for t, (cls, s) in enumerate([("chair", 0.8), ("sofa", 0.6), ("chair", 0.7), ("chair", 0.8)]):
+        m.update([obs(1, cls=cls, score=s, stamp=t)], float(t))
+    (o,) = m.objects()
+    assert o.class_name == "chair"
+    assert o.class_probs["chair"] > 0.9
+    assert sum(o.class_probs.values()) == pytest.approx(1.0)
+    assert o.class_probs["sofa"] > o.class_probs["desk"]
+
+
+def _view(depth_value: float) -> CameraView:
+    depth = np.full((K.height_px, K.width_px), depth_value, np.float32)
+    return CameraView(depth, K, T_MAP_CAMERA, (0.3, 6.0), tolerance_m=0.3)
+
+
+def test_false_positive_fades_when_it_should_be_visible() -> None:
+    m = ObjectMap(default_classes(), MapConfig(tentative_timeout_s=100.0))
+    for t in range(4):
+        m.update([obs(1, stamp=t)], float(t))
+    assert m.objects()[0].confirmed
+    t = 4.0
+    while len(m) and t < 60:
+        m.update([], t, view=_view(5.0))  # we see through where it should be
+        t += 1.0
+    assert len(m) == 0
+
+
+def test_occluded_or_out_of_view_objects_keep_their_existence() -> None:
+    m = ObjectMap(default_classes())
+    for t in range(4):
+        m.update([obs(1, stamp=t)], float(t))
+    e0 = m.objects()[0].existence
+    m.update([], 4.0, view=_view(1.0))  # something nearer hides it
+    assert m.objects()[0].existence == pytest.approx(e0)
+    behind = CameraView(np.full((240, 320), 5.0, np.float32), K,
+                        make_transform(-T_MAP_CAMERA[:3, :3], np.array([0.0, 0.0, 0.5])))
+    assert not behind.expects_visible(np.array([[3.0, 0.0, 0.5]]))[0]
+    assert _view(5.0).expects_visible(np.array([[3.0, 0.0, 0.5]]))[0]
+
+
+def test_unconfirmed_objects_time_out() -> None:
+    m = ObjectMap(default_classes(), MapConfig(tentative_timeout_s=2.0))
+    m.update([obs(99, cls="sofa")], 0.0)
+    m.update([], 1.0)
+    assert len(m) == 1
+    m.update([], 3.0)
+    assert len(m) == 0
+
+
+def test_duplicate_detections_of_two_classes_merge() -> None:
+    m = ObjectMap(default_classes())
+    for t in range(3):
+        m.update([obs(1, cls="desk", size=1.0, stamp=t)], float(t))
+    m.update([obs(1, cls="desk", size=1.0, stamp=3), obs(2, cls="coffee_table", size=0.95, stamp=3)], 3.0)
+    assert len(m) == 1
+
+
+def test_footprints_and_json() -> None:
+    m = ObjectMap(default_classes())
+    for t in range(3):
+        m.update([obs(1, stamp=t)], float(t))
+    (fp,) = m.footprints()
+    assert fp.margin_m == pytest.approx(0.20)
+    assert fp.z_max_m == pytest.approx(0.9) and fp.existence > 0.6
+    assert fp.polygon_xy_m.shape == (4, 2)
+    d = json.loads(json.dumps(m.to_dict()))
+    assert d["objects"][0]["class_name"] == "chair"
+    probs = m.class_probabilities()
+    assert probs[fp.object_id].shape == (len(default_classes()),)
+
+
+def test_unknown_class_is_a_clear_error() -> None:
+    from semmap.errors import MapError
+
+    with pytest.raises(MapError, match="'lamp'"):
+        ObjectMap(default_classes()).update([obs(1, cls="lamp")], 0.0)
