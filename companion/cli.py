@@ -22,6 +22,7 @@ log = logging.getLogger("companion")
 #: Subcommand modules, in the order ``--help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
     "companion.cmd_config",
+    "companion.cmd_demo",
 )
 
 
