@@ -1,0 +1,113 @@
+"""SemanticMap: integrating frames, save/load round trip, atomic writes."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import semmap.semantic_map as sm_mod
+from semmap.costmap import ObjectFootprint, VerticalBand
+from semmap.errors import MapError
+from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform
+from semmap.semantic_map import SemanticMap, SemanticMapSettings
+from semmap.types import CameraIntrinsics, Frame
+
+K = CameraIntrinsics(200.0, 200.0, 80.0, 60.0, 160, 120)
+CLASSES = ("chair", "coffee_table")
+
+
+def settings(**kw) -> SemanticMapSettings:  # type: ignore[no-untyped-def]
+    base = dict(
+        class_names=CLASSES, scan_band=VerticalBand(0.4, 0.8), origin_xy_m=(-1.0, -2.0),
+        size_xy_m=(3.0, 4.0), class_margins_m=(("chair", 0.2), ("coffee_table", 0.15)),
+    )
+    base.update(kw)
+    return SemanticMapSettings(**base)
+
+
+def wall_frame(x_m: float, stamp_s: float, index: int) -> Frame:
+    T = make_transform(R_BODY_CAMERA_FORWARD, np.array([x_m, 0.0, 0.6]))
+    depth = np.full((K.height_px, K.width_px), 3.0, np.float32)
+    rgb = np.zeros((K.height_px, K.width_px, 3), np.uint8)
+    return Frame(stamp_s, rgb, depth, K, T_map_camera=T, index=index)
+
+
+def built_map() -> SemanticMap:
+    m = SemanticMap(settings())
+    for i in range(5):
+        m.integrate_frame(wall_frame(0.1 * i, 0.1 * i, i))
+    table = ObjectFootprint(4, "coffee_table", np.array([[1.0, -0.5], [1.8, -0.5], [1.8, 0.0], [1.0, 0.0]]), 0.0, 0.45, 0.8)
+    m.set_objects([table], 0.4, {4: np.array([0.1, 0.9])})
+    return m
+
+
+def test_integrate_frame_maps_the_wall_and_grows() -> None:
+    m = built_map()
+    assert m.spec.extent_xy_m[2] >= 3.4  # grew east to hold the wall at x = 3.0 + 0.4
+    p = m.grid.probability_at_xy(np.array([[3.4, 0.0], [1.5, 0.5], [5.5, 0.0]]))
+    assert p[0] > 0.5 and p[1] < 0.5 and np.isnan(p[2])
+    assert len(m.path_xyz_m) == 5 and m.frames_integrated == 5
+    assert m.objects[0].margin_m == 0.15  # class margin filled in
+    assert m.stale_layers(0.5) == []
+    assert m.stale_layers(10.0) != []
+
+
+def test_integrate_frame_needs_a_pose() -> None:
+    m = SemanticMap(settings())
+    f = wall_frame(0.0, 0.0, 0)
+    bare = Frame(f.stamp_s, f.rgb, f.depth_m, K)
+    with pytest.raises(MapError, match="no camera pose"):
+        m.integrate_frame(bare)
+
+
+def test_save_load_round_trip(tmp_path: Path) -> None:
+    m = built_map()
+    band = VerticalBand(0.3, 0.5)
+    before = m.costmap(band)
+    path = m.save(tmp_path / "state" / "map.npz")
+    loaded = SemanticMap.load(path)
+    assert loaded.settings == m.settings
+    assert loaded.spec == m.spec
+    assert np.array_equal(loaded.grid.values, m.grid.values)
+    assert np.allclose(loaded.path_xyz_m, m.path_xyz_m)
+    assert [o.object_id for o in loaded.objects] == [4]
+    assert np.allclose(loaded.class_probabilities(4), [0.1, 0.9])
+    after = loaded.costmap(band)
+    assert np.array_equal(after.cost, before.cost)
+    assert after.stamp_s == pytest.approx(before.stamp_s)
+    assert loaded.frames_integrated == 5
+    # The loaded map keeps mapping.
+    loaded.integrate_frame(wall_frame(0.5, 0.5, 5))
+    assert loaded.frames_integrated == 6
+
+
+def test_atomic_write_leaves_no_partial_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    m = built_map()
+    path = m.save(tmp_path / "map.npz")
+    good = path.read_bytes()
+    m.integrate_frame(wall_frame(0.9, 1.0, 9))
+
+    def failing_replace(src: str, dst: str) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(sm_mod.os, "replace", failing_replace)
+    with pytest.raises(MapError, match="could not write"):
+        m.save(path)
+    assert path.read_bytes() == good  # previous map intact
+    assert sorted(os.listdir(tmp_path)) == ["map.npz"]  # no temp file left behind
+
+
+def test_load_reports_bad_files(tmp_path: Path) -> None:
+    with pytest.raises(MapError, match="no such map file"):
+        SemanticMap.load(tmp_path / "missing.npz")
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip")
+    with pytest.raises(MapError, match="not a readable map file"):
+        SemanticMap.load(junk)
+    partial = tmp_path / "partial.npz"
+    np.savez(partial, grid_values=np.zeros((2, 2), np.uint16))
+    with pytest.raises(MapError, match="missing entry 'path'"):
+        SemanticMap.load(partial)
