@@ -103,7 +103,13 @@ class OffboardFailsafe:
 
     @property
     def setpoint(self) -> PositionSetpoint | None:
+        """The planner's latest setpoint."""
         return self._setpoint
+
+    @property
+    def hold(self) -> PositionSetpoint | None:
+        """The latched hold setpoint while holding (or warming up with no plan), else None."""
+        return self._hold
 
     def start_engage(self, now_s: float, vehicle: VehicleState) -> None:
         """Start streaming ahead of an OFFBOARD request (also the way out of YIELDED/LINK_LOST)."""

@@ -25,8 +25,10 @@ from companion.mavlink.commands import (
     CommandUnsupportedError,
     VehicleCommands,
 )
+from companion.mavlink.failsafe import PositionSetpoint
 from companion.mavlink.link import MavlinkLink, SigningConfig, load_signing_key
 from companion.mavlink.mission_download import MissionItem, download_mission, waypoint_ned_m
+from companion.mavlink.offboard import SetpointStreamer
 from companion.mavlink.state import HomePosition, LandedState, VehicleStateTracker
 from companion.px4 import FlightMode, encode_heartbeat_base_mode
 
@@ -484,3 +486,49 @@ async def test_open_errors_are_link_errors() -> None:
     closed = MavlinkLink("udpout://127.0.0.1:9")
     with pytest.raises(LinkError, match="not open"):
         closed.send(closed.mav.heartbeat_encode(0, 0, 0, 0, 0))
+
+
+# --- setpoint streaming ------------------------------------------------------------------
+
+@pytest.mark.asyncio
+async def test_setpoint_streamer_sends_the_slot_at_a_fixed_rate(peer_and_link: tuple[Peer, MavlinkLink]) -> None:
+    peer, link = peer_and_link
+    slot: list[PositionSetpoint | None] = [None]
+    async with SetpointStreamer(link, 50.0, lambda: slot[0]) as streamer:
+        await asyncio.sleep(0.1)
+        assert streamer.stats.sent == 0 and streamer.stats.ticks >= 2  # nothing to send yet
+        slot[0] = PositionSetpoint((1.0, 2.0, -3.0), yaw_rad=0.5, velocity_ned_m_s=(0.1, 0.0, 0.0))
+        await _until(lambda: len(peer.of_type("SET_POSITION_TARGET_LOCAL_NED")) >= 5)
+        slot[0] = PositionSetpoint((4.0, 5.0, -6.0))
+        await _until(lambda: peer.of_type("SET_POSITION_TARGET_LOCAL_NED")[-1].x == 4.0)
+    msgs = peer.of_type("SET_POSITION_TARGET_LOCAL_NED")
+    first, last = msgs[0], msgs[-1]
+    assert first.coordinate_frame == mavlink.MAV_FRAME_LOCAL_NED
+    assert (first.target_system, first.target_component) == (1, 1)
+    assert (first.x, first.y, first.z, first.vx) == pytest.approx((1.0, 2.0, -3.0, 0.1))
+    assert first.yaw == pytest.approx(0.5)
+    accel_yawrate = (mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE
+                     | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE)
+    velocity = (mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
+                | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE)
+    assert first.type_mask == accel_yawrate
+    assert last.type_mask == accel_yawrate | velocity | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+    n = len(msgs)
+    await asyncio.sleep(0.1)
+    assert len(peer.of_type("SET_POSITION_TARGET_LOCAL_NED")) == n  # the task ended with the context
+
+
+@pytest.mark.asyncio
+async def test_a_failing_setpoint_source_does_not_kill_the_task(peer_and_link: tuple[Peer, MavlinkLink]) -> None:
+    peer, link = peer_and_link
+    calls = [0]
+
+    def flaky() -> PositionSetpoint:
+        calls[0] += 1
+        if calls[0] % 2:
+            raise RuntimeError("planner bug")
+        return PositionSetpoint((0.0, 0.0, -1.0))
+
+    async with SetpointStreamer(link, 50.0, flaky) as streamer:
+        await _until(lambda: streamer.stats.sent >= 3)
+    assert streamer.stats.ticks >= 6
