@@ -103,6 +103,15 @@ class _STrack:
                      frame_id - self.start_frame)
 
 
+def _track_boxes(tracks: Sequence[_STrack]) -> NDArray[np.float64]:
+    """(M, 4) xyxy boxes of the tracks' current states."""
+    if not tracks:
+        return np.zeros((0, 4))
+    xywh = np.array([t.mean[:4] for t in tracks])
+    half = xywh[:, 2:4] * 0.5
+    return np.concatenate([xywh[:, 0:2] - half, xywh[:, 0:2] + half], axis=1)
+
+
 def _xyxy_to_xywh(b: NDArray[np.float64]) -> NDArray[np.float64]:
     """(N, 4) xyxy -> (N, 4) centre x, centre y, width, height."""
     out = np.empty_like(b)
@@ -214,8 +223,7 @@ class BoTSORT:
     # --- costs -------------------------------------------------------------------------
 
     def _cost(self, tracks: Sequence[_STrack], dets: _Dets, use_appearance: bool) -> NDArray[np.float64]:
-        boxes = np.array([t.xyxy for t in tracks]).reshape(-1, 4)
-        iou_d = 1.0 - iou_matrix(boxes, dets.boxes)
+        iou_d = 1.0 - iou_matrix(_track_boxes(tracks), dets.boxes)
         far = iou_d > self.proximity_thresh
         cost = fuse_score(iou_d, dets.scores) if self.fuse_score else iou_d
         if use_appearance and dets.feats is not None and len(tracks) and len(dets):
@@ -287,7 +295,7 @@ class BoTSORT:
 
         # Stage 2: still-tracked leftovers vs low-score detections, plain IoU.
         r_tracked = [pool[i] for i in u_pool if pool[i].state == TrackState.TRACKED]
-        cost2 = _class_gate(r_tracked, low, 1.0 - iou_matrix(np.array([t.xyxy for t in r_tracked]).reshape(-1, 4), low.boxes))
+        cost2 = _class_gate(r_tracked, low, 1.0 - iou_matrix(_track_boxes(r_tracked), low.boxes))
         m2, u_r, _ = linear_assignment(cost2, SECOND_MATCH_THRESH)
         for ti, di in m2:
             updates.append((r_tracked[ti], low.boxes[di], float(low.scores[di]), None if low.feats is None else low.feats[di]))
@@ -382,7 +390,7 @@ class BoTSORT:
     ) -> tuple[list[_STrack], list[_STrack]]:
         if not tracked or not lost:
             return tracked, lost
-        d = 1.0 - iou_matrix(np.array([t.xyxy for t in tracked]), np.array([t.xyxy for t in lost]))
+        d = 1.0 - iou_matrix(_track_boxes(tracked), _track_boxes(lost))
         drop_a, drop_b = set(), set()
         for p, q in zip(*np.nonzero(d < DUPLICATE_IOU_DIST), strict=True):
             age_p = tracked[p].frame_id - tracked[p].start_frame

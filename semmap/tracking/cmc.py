@@ -40,15 +40,19 @@ class SparseFlowCMC:
     def __init__(
         self,
         downscale: int = 2,
-        max_features: int = 300,
+        max_features: int = 200,
         min_distance_px: float = 6.0,
         quality_level: float = 0.01,
         border_frac: float = 0.02,
         ransac_reproj_px: float = 1.5,
+        lk_window_px: int = 11,
+        lk_levels: int = 3,
     ) -> None:
-        """``downscale``: shrink factor for the work image. ``min_distance_px`` and
-        ``ransac_reproj_px`` are in downscaled pixels. ``border_frac``: image border excluded
-        from feature detection on each side.
+        """``downscale``: shrink factor for the work image. ``min_distance_px``,
+        ``ransac_reproj_px`` and the Lucas-Kanade window are in downscaled pixels.
+        ``border_frac``: image border excluded from feature detection on each side.
+        ``lk_levels``: pyramid levels above the base; with an 11 px window, 3 levels follow
+        motions of ~80 work pixels per frame.
         """
         if downscale < 1:
             raise ValueError(f"downscale must be >= 1 (got {downscale})")
@@ -58,6 +62,8 @@ class SparseFlowCMC:
         self.quality_level = float(quality_level)
         self.border_frac = float(border_frac)
         self.ransac_reproj_px = float(ransac_reproj_px)
+        self.lk_window_px = int(lk_window_px)
+        self.lk_levels = int(lk_levels)
         self._prev_gray: NDArray[np.uint8] | None = None
         self._prev_pts: NDArray[np.float32] | None = None
         #: Inlier count of the last estimate (0 when it fell back to identity).
@@ -119,7 +125,8 @@ class SparseFlowCMC:
         if prev_gray is not None and prev_pts is not None and len(prev_pts) >= MIN_INLIERS:
             lk: Any = cv2.calcOpticalFlowPyrLK  # stubs reject nextPts=None, the binding needs it
             nxt, status, _err = lk(
-                prev_gray, gray, prev_pts, None, winSize=(15, 15), maxLevel=3,
+                prev_gray, gray, prev_pts, None,
+                winSize=(self.lk_window_px, self.lk_window_px), maxLevel=self.lk_levels,
             )
             ok = status.reshape(-1).astype(bool)
             p0, p1 = prev_pts.reshape(-1, 2)[ok], nxt.reshape(-1, 2)[ok]

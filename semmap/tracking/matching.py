@@ -48,6 +48,8 @@ def linear_assignment(
     rows, cols = linear_sum_assignment(c)
     ok = c[rows, cols] <= thresh
     matches = np.stack([rows[ok], cols[ok]], axis=1).astype(np.int64)
-    um_rows = np.setdiff1d(np.arange(n), matches[:, 0])
-    um_cols = np.setdiff1d(np.arange(m), matches[:, 1])
-    return matches, um_rows, um_cols
+    free_rows = np.ones(n, bool)
+    free_rows[matches[:, 0]] = False
+    free_cols = np.ones(m, bool)
+    free_cols[matches[:, 1]] = False
+    return matches, np.flatnonzero(free_rows), np.flatnonzero(free_cols)
