@@ -29,6 +29,7 @@ import asyncio
 import contextlib
 import logging
 import random
+import socket
 import ssl
 import time
 from collections import deque
@@ -466,6 +467,8 @@ class MqttBridge:
             timeout=self.cfg.timeout_s,
             tls_context=self._tls,
             max_queued_incoming_messages=1000,
+            # Small messages (replies, telemetry) must not wait for Nagle's algorithm.
+            socket_options=((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),),
         )
 
     def _describe_failure(self, exc: BaseException) -> GroundLinkError:
