@@ -2,8 +2,7 @@
 
 ::
 
-    validator = CommandValidator.from_config(cfg.planner, cfg.mqtt)
-    async with MqttBridge(cfg.mqtt, validator) as bridge:
+    async with MqttBridge.from_config(cfg) as bridge:     # cfg: CompanionConfig
         bridge.publish_status("mapping", uptime_s=12.0, stage_timings_ms={"perception": 40.1})
         async for cmd in bridge.commands():      # GoalCommand | MissionCommand | VehicleCommand
             ...
@@ -45,7 +44,7 @@ from aiomqtt.exceptions import MqttConnectError
 from numpy.typing import NDArray
 from pydantic import BaseModel, ValidationError
 
-from companion.config import MqttConfig
+from companion.config import CompanionConfig, MqttConfig
 from companion.errors import GroundLinkError
 from companion.ground.schema import (
     Command,
@@ -176,6 +175,13 @@ class MqttBridge:
         self._client: aiomqtt.Client | None = None
         self._up_since_s: float | None = None
         self._rng = random.Random()
+
+    @classmethod
+    def from_config(
+        cls, cfg: CompanionConfig, *, logger: logging.Logger | None = None
+    ) -> "MqttBridge":
+        """The bridge for a whole configuration: ``mqtt`` settings, ``planner`` limits."""
+        return cls(cfg.mqtt, CommandValidator.from_config(cfg.planner, cfg.mqtt), logger=logger)
 
     # --- lifecycle ----------------------------------------------------------------------
 

@@ -41,7 +41,6 @@ _DECIMALS = 3
 # --- topics -----------------------------------------------------------------------------
 
 #: Command kinds, each received on ``<base>/cmd/<kind>``.
-CommandKind = Literal["goal", "mission", "vehicle"]
 COMMAND_KINDS: tuple[str, ...] = ("goal", "mission", "vehicle")
 
 

@@ -450,3 +450,14 @@ async def test_map_goes_out_at_a_low_rate_newest_first(broker: MosquittoBroker) 
         bridge.publish_map(costmap(3.0))
         await ground.wait_for("map", lambda m: m["map_stamp_s"] == 3.0)
         assert [m["map_stamp_s"] for m in ground.messages("map")] == [1.0, 3.0]
+
+
+async def test_from_config_takes_limits_from_the_planner() -> None:
+    from companion.config import CompanionConfig
+    from planner.config import PlannerConfig
+
+    cfg = CompanionConfig(planner=PlannerConfig(geofence_xy_m=(0, 0, 4, 4), max_altitude_m=2.0),
+                          mqtt=MqttConfig(vehicle_id="d9", command_burst=2))
+    bridge = MqttBridge.from_config(cfg)
+    assert bridge.topics.base == "companion/d9"
+    assert bridge.validator.fence_xy_m == (0, 0, 4, 4) and bridge.validator.max_altitude_m == 2.0
