@@ -21,6 +21,8 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.missions import MissionItemInt as MissionItem
+
 log = logging.getLogger(__name__)
 
 MISSION_TYPES = (
@@ -66,50 +68,19 @@ SUPPORTED_COMMANDS = frozenset({
 })
 
 
-@dataclass(frozen=True)
-class MissionItem:
-    """One stored mission item, field for field as in ``MISSION_ITEM_INT``.
-
-    ``x``/``y`` are degE7 latitude/longitude for global frames; ``z`` is metres (relative to
-    home for the *RELATIVE_ALT* frames, AMSL otherwise).
-    """
-
-    seq: int
-    frame: int
-    command: int
-    current: int
-    autocontinue: int
-    param1: float
-    param2: float
-    param3: float
-    param4: float
-    x: int
-    y: int
-    z: float
-    mission_type: int = 0
-
-    @classmethod
-    def from_msg(cls, msg: Any) -> MissionItem:
-        """From a ``MISSION_ITEM_INT`` or the legacy float ``MISSION_ITEM`` message."""
-        x, y = msg.x, msg.y
-        if msg.get_type() == "MISSION_ITEM":
-            scale = 1e7 if msg.frame in GLOBAL_FRAMES else 1e4
-            x, y = int(round(x * scale)), int(round(y * scale))
-        return cls(
-            seq=int(msg.seq), frame=int(msg.frame), command=int(msg.command),
-            current=int(msg.current), autocontinue=int(msg.autocontinue),
-            param1=float(msg.param1), param2=float(msg.param2), param3=float(msg.param3),
-            param4=float(msg.param4), x=int(x), y=int(y), z=float(msg.z),
-            mission_type=int(getattr(msg, "mission_type", 0)),
-        )
-
-    @property
-    def lat_deg(self) -> float:
-        return self.x * 1e-7
-
-    @property
-    def lon_deg(self) -> float:
-        return self.y * 1e-7
+def item_from_msg(msg: Any) -> MissionItem:
+    """A stored item from a ``MISSION_ITEM_INT`` or the legacy float ``MISSION_ITEM``."""
+    x, y = msg.x, msg.y
+    if msg.get_type() == "MISSION_ITEM":
+        scale = 1e7 if msg.frame in GLOBAL_FRAMES else 1e4
+        x, y = int(round(x * scale)), int(round(y * scale))
+    return MissionItem(
+        seq=int(msg.seq), frame=int(msg.frame), command=int(msg.command),
+        current=int(msg.current), autocontinue=int(msg.autocontinue),
+        param1=float(msg.param1), param2=float(msg.param2), param3=float(msg.param3),
+        param4=float(msg.param4), x=int(x), y=int(y), z=float(msg.z),
+        mission_type=int(getattr(msg, "mission_type", 0)),
+    )
 
 
 def validate_item(item: MissionItem) -> int:
@@ -142,7 +113,7 @@ class MissionServer:
     """Mission storage and protocol state for one vehicle.
 
     ``send(msg)`` transmits a pymavlink message; ``mav`` encodes them. ``reject_seq`` (a fault
-    hook) makes the upload of that item index fail with ``MAV_MISSION_DENIED``.
+    hook) names an item index whose upload fails with ``MAV_MISSION_DENIED``.
     """
 
     def __init__(
@@ -161,7 +132,8 @@ class MissionServer:
         self._last_completed: tuple[tuple[int, int], int, int] | None = None
         self.item_timeout_s = 0.4
         self.max_attempts = 6
-        self.reject_seq: int | None = None
+        #: Fault hook: returns the item index whose upload is to be rejected, or None.
+        self.reject_seq: Callable[[], int | None] | None = None
         self.uploads_completed = 0
 
     def items(self, mission_type: int = mavlink.MAV_MISSION_TYPE_MISSION) -> list[MissionItem]:
@@ -216,7 +188,7 @@ class MissionServer:
 
     def _on_item(self, msg: Any, now_s: float) -> None:
         partner = self._partner(msg)
-        item = MissionItem.from_msg(msg)
+        item = item_from_msg(msg)
         up = self._upload
         if up is None or up.partner != partner or up.mission_type != item.mission_type:
             done = self._last_completed
@@ -231,7 +203,8 @@ class MissionServer:
             self._request(up, expected)
             return
         result = validate_item(item)
-        if self.reject_seq is not None and item.seq == self.reject_seq:
+        reject = self.reject_seq() if self.reject_seq is not None else None
+        if reject is not None and item.seq == reject:
             result = int(mavlink.MAV_MISSION_DENIED)
         if result != mavlink.MAV_MISSION_ACCEPTED:
             log.warning("mission item %d (command %d, frame %d) rejected: %s", item.seq,

@@ -149,6 +149,7 @@ class MockAutopilot:
         self.landed_state = _LANDED
         self.missions = MissionServer(self._mav, self.send, self._on_mission_changed,
                                       self._on_set_current)
+        self.missions.reject_seq = lambda: self.faults.reject_mission_seq
         self.navigator = Navigator(self.vehicle, self.params, self.home, self.set_mode,
                                    self._on_item_reached, self._on_current_changed)
         self.navigator.enter(FlightMode.HOLD)
@@ -345,7 +346,6 @@ class MockAutopilot:
         self.navigator.tick(self.vehicle.stamp_s)
         self._check_offboard(now)
         self._update_landed(now)
-        self.missions.reject_seq = self.faults.reject_mission_seq
         self.missions.tick(now)
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)

@@ -92,6 +92,7 @@ class Navigator:
         self._jump_counts: dict[int, int] = {}
         self._speed_xy_m_s: float | None = None
         self.landed_by_navigator = False
+        self._last_goto_ned_m: tuple[float, float, float] | None = None
 
     # --- mission storage -----------------------------------------------------------------
 
@@ -291,7 +292,10 @@ class Navigator:
         if self._vehicle.on_ground:
             self._legs = [_Leg(_Phase.DONE, (n, e, d), None)]
         else:
-            self._legs = [_Leg(_Phase.WAIT, (n, e, d), self._vehicle.yaw_rad, until_s=math.inf)]
+            # PX4 loiters at the last waypoint, not where the acceptance radius was entered.
+            last = self._last_goto_ned_m
+            hold = last if last is not None and all(math.isfinite(v) for v in last) else (n, e, d)
+            self._legs = [_Leg(_Phase.WAIT, hold, self._vehicle.yaw_rad, until_s=math.inf)]
 
     # --- the tick ------------------------------------------------------------------------
 
@@ -346,6 +350,8 @@ class Navigator:
             arrived = self._vehicle.on_ground
         if arrived:
             self._legs.pop(0)
+            if leg.phase in (_Phase.GOTO, _Phase.WAIT):
+                self._last_goto_ned_m = leg.target_ned_m
             if not self._legs:
                 self._mode_leg_sequence_done(now_s, report_reached=not leg.reported)
         self._apply_leg()

@@ -1,0 +1,488 @@
+"""Mission files: QGroundControl ``.plan`` and our YAML waypoint list, as one typed plan.
+
+Two input formats, one :class:`MissionPlan`:
+
+* **QGroundControl ``.plan``** (JSON, ``fileType: Plan``). ``SimpleItem`` entries with the
+  commands NAV_WAYPOINT (16), NAV_LOITER_TIME (19), NAV_RETURN_TO_LAUNCH (20), NAV_LAND (21),
+  NAV_TAKEOFF (22) and DO_CHANGE_SPEED (178) in the frames GLOBAL (0, AMSL, converted with
+  ``plannedHomePosition``) or GLOBAL_RELATIVE_ALT (3). Survey/corridor/structure
+  ``ComplexItem`` entries and other commands are rejected with the item's index.
+* **YAML waypoint list**::
+
+      home: {lat_deg: 47.397742, lon_deg: 8.545594, alt_m: 488.0}  # optional, see below
+      speed_m_s: 1.0                                # default horizontal speed (optional)
+      waypoints:
+        - {action: takeoff, z_m: 1.5}
+        - {x_m: 2.0, y_m: 1.0, z_m: 1.5, hold_s: 2}  # map frame: x east, y north, z up
+        - {lat_deg: 47.39776, lon_deg: 8.54562, alt_m: 1.5, speed_m_s: 0.5}
+        - {action: land}                            # or {action: rtl}
+
+  A waypoint is either local (``x_m``/``y_m``/``z_m`` in the map frame, whose origin is the
+  vehicle's home = PX4's local NED origin) or global (``lat_deg``/``lon_deg`` and ``alt_m``
+  above home). Local waypoints are converted with the file's ``home`` if given, otherwise with
+  the home position the vehicle reports at upload time.
+
+Errors are :class:`~companion.errors.MissionError` naming the file and the item, e.g.
+``plans/a.plan: mission.items[3]: unsupported command 2000 (MAV_CMD_IMAGE_START_CAPTURE)``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.errors import MissionError
+from companion.geo import GeoOrigin
+from semmap.frames import enu_to_ned, ned_to_enu
+
+Action = Literal["waypoint", "takeoff", "land", "rtl"]
+
+CMD_WAYPOINT = mavlink.MAV_CMD_NAV_WAYPOINT
+CMD_LOITER_TIME = mavlink.MAV_CMD_NAV_LOITER_TIME
+CMD_RTL = mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH
+CMD_LAND = mavlink.MAV_CMD_NAV_LAND
+CMD_TAKEOFF = mavlink.MAV_CMD_NAV_TAKEOFF
+CMD_CHANGE_SPEED = mavlink.MAV_CMD_DO_CHANGE_SPEED
+FRAME_GLOBAL = mavlink.MAV_FRAME_GLOBAL
+FRAME_GLOBAL_REL = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT
+FRAME_GLOBAL_REL_INT = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+FRAME_GLOBAL_INT = mavlink.MAV_FRAME_GLOBAL_INT
+FRAME_MISSION = mavlink.MAV_FRAME_MISSION
+
+_ACTION_CMD = {"waypoint": CMD_WAYPOINT, "takeoff": CMD_TAKEOFF, "land": CMD_LAND,
+               "rtl": CMD_RTL}
+_NAN = math.nan
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """One mission step.
+
+    Position is global (``lat_deg``/``lon_deg`` WGS-84, ``rel_alt_m`` above home) or local
+    (``xyz_map_m``: map frame ENU metres, origin = home); :meth:`to_global` resolves local
+    ones. NaN lat/lon on ``takeoff``/``land`` means "where the vehicle is"; ``rtl`` has no
+    position. ``yaw_deg`` None lets the autopilot face the direction of travel.
+    """
+
+    action: Action = "waypoint"
+    lat_deg: float = _NAN
+    lon_deg: float = _NAN
+    rel_alt_m: float = _NAN
+    xyz_map_m: tuple[float, float, float] | None = None
+    speed_m_s: float | None = None
+    hold_s: float = 0.0
+    acceptance_radius_m: float | None = None
+    yaw_deg: float | None = None
+
+    @property
+    def is_local(self) -> bool:
+        return self.xyz_map_m is not None
+
+    def to_global(self, home: GeoOrigin) -> Waypoint:
+        """This waypoint with a local position converted to lat/lon around ``home``."""
+        if self.xyz_map_m is None:
+            return self
+        n, e, d = enu_to_ned(*self.xyz_map_m)
+        lat, lon, _alt = home.to_global(n, e, d)
+        return replace(self, lat_deg=lat, lon_deg=lon, rel_alt_m=-d, xyz_map_m=None)
+
+    def to_local(self, home: GeoOrigin) -> Waypoint:
+        """This waypoint with lat/lon converted to map-frame metres around ``home``."""
+        if self.xyz_map_m is not None or not math.isfinite(self.lat_deg):
+            return self
+        n, e, _d = home.to_ned(self.lat_deg, self.lon_deg, home.alt_m)
+        x, y, _ = ned_to_enu(n, e, 0.0)
+        return replace(self, xyz_map_m=(x, y, self.rel_alt_m), lat_deg=_NAN, lon_deg=_NAN)
+
+
+@dataclass(frozen=True)
+class MissionPlan:
+    """A parsed mission: waypoints in order, the home they refer to (if known), the source."""
+
+    waypoints: tuple[Waypoint, ...]
+    home: GeoOrigin | None = None
+    source: str = "<memory>"
+
+    def resolved(self, vehicle_home: GeoOrigin | None) -> MissionPlan:
+        """All waypoints global, using the plan's home or else ``vehicle_home``."""
+        home = self.home or vehicle_home
+        if any(w.is_local for w in self.waypoints):
+            if home is None:
+                raise MissionError(f"{self.source}: local (x_m/y_m) waypoints need a home "
+                                   "position: give 'home' in the file or connect to a vehicle")
+        wps = tuple(w.to_global(home) if home is not None else w for w in self.waypoints)
+        return MissionPlan(wps, home, self.source)
+
+
+@dataclass(frozen=True)
+class MissionItemInt:
+    """A MAVLink ``MISSION_ITEM_INT``, field for field (x/y degE7 for global frames)."""
+
+    seq: int
+    frame: int
+    command: int
+    current: int
+    autocontinue: int
+    param1: float
+    param2: float
+    param3: float
+    param4: float
+    x: int
+    y: int
+    z: float
+    mission_type: int = 0
+
+    @property
+    def lat_deg(self) -> float:
+        return self.x * 1e-7
+
+    @property
+    def lon_deg(self) -> float:
+        return self.y * 1e-7
+
+
+def command_name(command: int) -> str:
+    entry = mavlink.enums["MAV_CMD"].get(command)
+    return f"{command} ({entry.name})" if entry is not None else str(command)
+
+
+# --- MAVLink items <-> plan -------------------------------------------------------------------
+
+@dataclass
+class ItemMap:
+    """MAVLink items built from a plan and, per item, the waypoint index it came from."""
+
+    items: list[MissionItemInt] = field(default_factory=list)
+    waypoint_index: list[int] = field(default_factory=list)
+
+
+def plan_to_items(plan: MissionPlan) -> ItemMap:
+    """MAVLink mission items (frame GLOBAL_RELATIVE_ALT_INT) for a resolved (global) plan.
+
+    A DO_CHANGE_SPEED item precedes each waypoint whose speed differs from the one before.
+    """
+    out = ItemMap()
+    speed: float | None = None
+
+    def add(idx: int, frame: int, cmd: int, p1: float, p2: float, p3: float, p4: float,
+            lat: float, lon: float, alt: float) -> None:
+        seq = len(out.items)
+        x = int(round(lat * 1e7)) if math.isfinite(lat) else 0
+        y = int(round(lon * 1e7)) if math.isfinite(lon) else 0
+        out.items.append(MissionItemInt(seq, frame, cmd, int(seq == 0), 1, p1, p2, p3, p4,
+                                        x, y, alt))
+        out.waypoint_index.append(idx)
+
+    for i, w in enumerate(plan.waypoints):
+        if w.is_local:
+            raise MissionError(f"{plan.source}: waypoint {i} is local; resolve the plan first")
+        if w.speed_m_s is not None and w.speed_m_s != speed:
+            speed = w.speed_m_s
+            add(i, FRAME_MISSION, CMD_CHANGE_SPEED, 1.0, speed, -1.0, 0.0, _NAN, _NAN, _NAN)
+        yaw = w.yaw_deg if w.yaw_deg is not None else _NAN
+        if w.action == "rtl":
+            add(i, FRAME_MISSION, CMD_RTL, 0, 0, 0, 0, _NAN, _NAN, 0.0)
+        elif w.action == "takeoff":
+            add(i, FRAME_GLOBAL_REL_INT, CMD_TAKEOFF, 0, 0, 0, yaw, w.lat_deg, w.lon_deg,
+                w.rel_alt_m)
+        elif w.action == "land":
+            add(i, FRAME_GLOBAL_REL_INT, CMD_LAND, 0, 0, 0, yaw, w.lat_deg, w.lon_deg, 0.0)
+        else:
+            accept = w.acceptance_radius_m if w.acceptance_radius_m is not None else 0.0
+            add(i, FRAME_GLOBAL_REL_INT, CMD_WAYPOINT, w.hold_s, accept, 0.0, yaw, w.lat_deg,
+                w.lon_deg, w.rel_alt_m)
+    return out
+
+
+def _nan_to_none(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+def items_to_plan(items: list[MissionItemInt], home: GeoOrigin | None,
+                  source: str, label: str = "item {i}") -> MissionPlan:
+    """Inverse of :func:`plan_to_items` (for downloads and ``.plan`` files).
+
+    Raises :class:`MissionError` naming the item (``label`` formatted with its index ``i``)
+    for commands or frames a plan cannot hold.
+    """
+    wps: list[Waypoint] = []
+    speed: float | None = None
+    for i, it in enumerate(items):
+        where = f"{source}: {label.format(i=i)}"
+        if it.command == CMD_CHANGE_SPEED:
+            if it.param2 > 0:
+                speed = it.param2
+            continue
+        if it.command not in (CMD_WAYPOINT, CMD_LOITER_TIME, CMD_TAKEOFF, CMD_LAND, CMD_RTL):
+            raise MissionError(f"{where}: unsupported command {command_name(it.command)}")
+        if it.command == CMD_RTL:
+            wps.append(Waypoint(action="rtl", speed_m_s=speed))
+            continue
+        if it.frame in (FRAME_GLOBAL_REL, FRAME_GLOBAL_REL_INT):
+            rel = it.z
+        elif it.frame in (FRAME_GLOBAL, FRAME_GLOBAL_INT):
+            if home is None:
+                raise MissionError(f"{where}: AMSL altitude (frame {it.frame}) needs a home")
+            rel = it.z - home.alt_m
+        else:
+            raise MissionError(f"{where}: unsupported frame {it.frame} for command "
+                               f"{command_name(it.command)} (use 0 or 3)")
+        has_pos = it.x != 0 or it.y != 0
+        lat = it.lat_deg if has_pos else _NAN
+        lon = it.lon_deg if has_pos else _NAN
+        yaw = _nan_to_none(it.param4)
+        if it.command == CMD_TAKEOFF:
+            wps.append(Waypoint("takeoff", lat, lon, rel, speed_m_s=speed, yaw_deg=yaw))
+        elif it.command == CMD_LAND:
+            wps.append(Waypoint("land", lat, lon, 0.0, speed_m_s=speed, yaw_deg=yaw))
+        else:
+            if not has_pos:
+                raise MissionError(f"{where}: waypoint without latitude/longitude")
+            accept = it.param2 if it.command == CMD_WAYPOINT and it.param2 > 0 else None
+            wps.append(Waypoint("waypoint", lat, lon, rel, speed_m_s=speed,
+                                hold_s=max(0.0, it.param1), acceptance_radius_m=accept,
+                                yaw_deg=yaw))
+    return MissionPlan(tuple(wps), home, source)
+
+
+# --- QGroundControl .plan ---------------------------------------------------------------------
+
+def parse_plan_json(data: Any, source: str) -> MissionPlan:
+    """A :class:`MissionPlan` from a decoded QGroundControl ``.plan`` document."""
+    if not isinstance(data, dict) or data.get("fileType") != "Plan":
+        raise MissionError(f"{source}: not a QGroundControl plan (fileType must be 'Plan')")
+    mission = data.get("mission")
+    if not isinstance(mission, dict) or not isinstance(mission.get("items"), list):
+        raise MissionError(f"{source}: mission.items: missing or not a list")
+    home = None
+    php = mission.get("plannedHomePosition")
+    if php is not None:
+        try:
+            home = GeoOrigin(float(php[0]), float(php[1]), float(php[2]))
+        except (TypeError, ValueError, IndexError) as exc:
+            raise MissionError(f"{source}: mission.plannedHomePosition: expected "
+                               f"[lat, lon, alt_amsl] ({exc})") from exc
+    items: list[MissionItemInt] = []
+    for i, raw in enumerate(mission["items"]):
+        where = f"{source}: mission.items[{i}]"
+        if not isinstance(raw, dict):
+            raise MissionError(f"{where}: not an object")
+        if raw.get("type") != "SimpleItem":
+            kind = raw.get("complexItemType", raw.get("type"))
+            raise MissionError(f"{where}: {raw.get('type')} {kind!r} is not supported "
+                               "(only SimpleItem)")
+        try:
+            cmd = int(raw["command"])
+            frame = int(raw["frame"])
+            params = [(_NAN if p is None else float(p)) for p in raw["params"]]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MissionError(f"{where}: needs integer 'command', 'frame' and 7 numeric "
+                               f"'params' ({exc!r})") from exc
+        if len(params) != 7:
+            raise MissionError(f"{where}: params must have 7 entries (got {len(params)})")
+        lat, lon = params[4], params[5]
+        if math.isfinite(lat) and not -90 <= lat <= 90:
+            raise MissionError(f"{where}: latitude {lat} out of range")
+        if math.isfinite(lon) and not -180 <= lon <= 180:
+            raise MissionError(f"{where}: longitude {lon} out of range")
+        x = int(round(lat * 1e7)) if math.isfinite(lat) else 0
+        y = int(round(lon * 1e7)) if math.isfinite(lon) else 0
+        items.append(MissionItemInt(i, frame, cmd, 0, int(bool(raw.get("autoContinue", True))),
+                                    *params[:4], x, y, params[6]))
+    return items_to_plan(items, home, source, label="mission.items[{i}]")
+
+
+def plan_to_json(plan: MissionPlan) -> dict[str, Any]:
+    """A QGroundControl ``.plan`` document for a resolved plan."""
+    home = plan.home or GeoOrigin()
+    items_out = []
+    for i, it in enumerate(plan_to_items(plan).items):
+        frame = FRAME_GLOBAL_REL if it.frame == FRAME_GLOBAL_REL_INT else it.frame
+        has_pos = it.x != 0 or it.y != 0
+        params = [it.param1, it.param2, it.param3, it.param4,
+                  it.lat_deg if has_pos else 0.0, it.lon_deg if has_pos else 0.0, it.z]
+        items_out.append({
+            "type": "SimpleItem", "command": it.command, "frame": frame,
+            "params": [None if isinstance(p, float) and math.isnan(p) else p for p in params],
+            "autoContinue": True, "doJumpId": i + 1,
+        })
+    return {
+        "fileType": "Plan", "version": 1, "groundStation": "companion",
+        "mission": {
+            "version": 2, "firmwareType": mavlink.MAV_AUTOPILOT_PX4,
+            "vehicleType": mavlink.MAV_TYPE_QUADROTOR, "cruiseSpeed": 5, "hoverSpeed": 5,
+            "plannedHomePosition": [home.lat_deg, home.lon_deg, home.alt_m],
+            "items": items_out,
+        },
+        "geoFence": {"version": 2, "circles": [], "polygons": []},
+        "rallyPoints": {"version": 2, "points": []},
+    }
+
+
+# --- YAML waypoint list -----------------------------------------------------------------------
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class _YamlHome(_Strict):
+    lat_deg: float = Field(ge=-90, le=90)
+    lon_deg: float = Field(ge=-180, le=180)
+    alt_m: float
+
+
+class _YamlWaypoint(_Strict):
+    action: Action = "waypoint"
+    x_m: float | None = None
+    y_m: float | None = None
+    z_m: float | None = None
+    lat_deg: float | None = Field(default=None, ge=-90, le=90)
+    lon_deg: float | None = Field(default=None, ge=-180, le=180)
+    alt_m: float | None = None
+    speed_m_s: float | None = Field(default=None, gt=0)
+    hold_s: float = Field(default=0.0, ge=0)
+    acceptance_radius_m: float | None = Field(default=None, gt=0)
+    yaw_deg: float | None = None
+
+    @model_validator(mode="after")
+    def _position(self) -> _YamlWaypoint:
+        local = self.x_m is not None or self.y_m is not None
+        glob = self.lat_deg is not None or self.lon_deg is not None
+        if local and glob:
+            raise ValueError("give either x_m/y_m (map frame) or lat_deg/lon_deg, not both")
+        if local and (self.x_m is None or self.y_m is None):
+            raise ValueError("x_m and y_m go together")
+        if glob and (self.lat_deg is None or self.lon_deg is None):
+            raise ValueError("lat_deg and lon_deg go together")
+        if self.z_m is not None and self.alt_m is not None:
+            raise ValueError("give either z_m or alt_m, not both")
+        if self.action == "waypoint":
+            if not (local or glob):
+                raise ValueError("a waypoint needs x_m/y_m or lat_deg/lon_deg")
+            if self.z_m is None and self.alt_m is None:
+                raise ValueError("a waypoint needs an altitude (z_m or alt_m, metres above home)")
+        if self.action == "takeoff" and self.z_m is None and self.alt_m is None:
+            raise ValueError("takeoff needs an altitude (z_m or alt_m)")
+        if self.action == "rtl" and (local or glob):
+            raise ValueError("rtl takes no position")
+        return self
+
+
+class _YamlMission(_Strict):
+    home: _YamlHome | None = None
+    speed_m_s: float | None = Field(default=None, gt=0)
+    waypoints: list[_YamlWaypoint] = Field(min_length=1)
+
+
+def parse_yaml_mission(data: Any, source: str) -> MissionPlan:
+    """A :class:`MissionPlan` from a decoded YAML waypoint-list document."""
+    if not isinstance(data, dict):
+        raise MissionError(f"{source}: top level must be a mapping with 'waypoints'")
+    try:
+        doc = _YamlMission.model_validate(data)
+    except ValidationError as exc:
+        lines = []
+        for err in exc.errors():
+            loc = ".".join(f"[{p}]" if isinstance(p, int) else str(p) for p in err["loc"])
+            loc = loc.replace(".[", "[")
+            msg = err["msg"].removeprefix("Value error, ")
+            if err["type"] == "extra_forbidden":
+                msg = "unknown key"
+            lines.append(f"{source}: {loc or '(root)'}: {msg}")
+        raise MissionError("\n".join(lines)) from exc
+    home = GeoOrigin(doc.home.lat_deg, doc.home.lon_deg, doc.home.alt_m) if doc.home else None
+    wps = []
+    for w in doc.waypoints:
+        alt = w.z_m if w.z_m is not None else w.alt_m
+        alt = _NAN if alt is None else alt
+        if w.action == "land":
+            alt = 0.0
+        common: dict[str, Any] = {
+            "action": w.action, "speed_m_s": w.speed_m_s or doc.speed_m_s, "hold_s": w.hold_s,
+            "acceptance_radius_m": w.acceptance_radius_m, "yaw_deg": w.yaw_deg}
+        if w.x_m is not None and w.y_m is not None:
+            wps.append(Waypoint(xyz_map_m=(w.x_m, w.y_m, alt), **common))
+        elif w.lat_deg is not None and w.lon_deg is not None:
+            wps.append(Waypoint(lat_deg=w.lat_deg, lon_deg=w.lon_deg, rel_alt_m=alt, **common))
+        else:
+            wps.append(Waypoint(rel_alt_m=alt, **common))
+    return MissionPlan(tuple(wps), home, source)
+
+
+def plan_to_yaml_doc(plan: MissionPlan) -> dict[str, Any]:
+    """The YAML document (global waypoints) for a plan."""
+    out: list[dict[str, Any]] = []
+    for w in plan.waypoints:
+        d: dict[str, Any] = {"action": w.action}
+        if w.xyz_map_m is not None:
+            d.update(x_m=w.xyz_map_m[0], y_m=w.xyz_map_m[1], z_m=w.xyz_map_m[2])
+        elif math.isfinite(w.lat_deg):
+            d.update(lat_deg=round(w.lat_deg, 7), lon_deg=round(w.lon_deg, 7))
+        if w.action in ("waypoint", "takeoff") and w.xyz_map_m is None:
+            d["alt_m"] = round(w.rel_alt_m, 3)
+        if w.speed_m_s is not None:
+            d["speed_m_s"] = w.speed_m_s
+        if w.hold_s:
+            d["hold_s"] = w.hold_s
+        if w.acceptance_radius_m is not None:
+            d["acceptance_radius_m"] = w.acceptance_radius_m
+        if w.yaw_deg is not None:
+            d["yaw_deg"] = w.yaw_deg
+        out.append(d)
+    doc: dict[str, Any] = {}
+    if plan.home is not None:
+        doc["home"] = {"lat_deg": plan.home.lat_deg, "lon_deg": plan.home.lon_deg,
+                       "alt_m": plan.home.alt_m}
+    doc["waypoints"] = out
+    return doc
+
+
+# --- files ------------------------------------------------------------------------------------
+
+def load_mission(path: str | Path) -> MissionPlan:
+    """Read a ``.plan`` (JSON) or ``.yaml``/``.yml`` mission file. Raises MissionError."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise MissionError(f"{p}: cannot read mission file: {exc.strerror or exc}") from exc
+    if p.suffix.lower() == ".plan":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise MissionError(f"{p}: not valid JSON at line {exc.lineno}, column {exc.colno}: "
+                               f"{exc.msg}") from exc
+        return parse_plan_json(data, str(p))
+    if p.suffix.lower() in (".yaml", ".yml"):
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+            raise MissionError(f"{p}: not valid YAML{where}") from exc
+        return parse_yaml_mission(data, str(p))
+    raise MissionError(f"{p}: unknown mission file type {p.suffix!r} (use .plan, .yaml or .yml)")
+
+
+def save_mission(plan: MissionPlan, path: str | Path) -> Path:
+    """Write ``plan`` as ``.plan`` JSON or YAML, chosen by the file suffix."""
+    p = Path(path)
+    if p.suffix.lower() == ".plan":
+        text = json.dumps(plan_to_json(plan), indent=2) + "\n"
+    elif p.suffix.lower() in (".yaml", ".yml"):
+        text = yaml.safe_dump(plan_to_yaml_doc(plan), sort_keys=False)
+    else:
+        raise MissionError(f"{p}: unknown mission file type {p.suffix!r} (use .plan or .yaml)")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise MissionError(f"{p}: cannot write mission file: {exc.strerror or exc}") from exc
+    return p
