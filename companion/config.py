@@ -169,6 +169,10 @@ class SimConfig(StageConfig):
     autopilot_local_port: int = Field(default=14580, ge=1, le=65535)
     autopilot_offboard_port: int = Field(default=14540, ge=1, le=65535)
     autopilot_gcs_port: int = Field(default=14550, ge=1, le=65535)
+    #: Mock autopilot home (the local NED / map origin); default = PX4 SITL's home.
+    home_lat_deg: float = Field(default=47.397742, ge=-90.0, le=90.0)
+    home_lon_deg: float = Field(default=8.545594, ge=-180.0, le=180.0)
+    home_alt_m: float = 488.0
 
 
 class CompanionConfig(StageConfig):
