@@ -161,7 +161,7 @@ def fly(
     for i, (x, y, yaw) in enumerate(poses):
         T = pose_from_xyz_rpy(x, y, altitude_m, yaw_rad=yaw) @ T_body_camera
         frame = renderer.render(T, stamp_s=i / cfg.camera.rate_hz, index=i)
-        dets = oracle.detect(frame)
+        dets = oracle.detect_frame(frame)
         gt = {oid: box for oid, (box, _n) in oracle.ground_truth_boxes(frame).items()}
         for name, track in trackers.items():
             t0 = time.perf_counter()

@@ -34,7 +34,7 @@ from semmap.detection.decode import (
 from semmap.detection.letterbox import LetterboxTransform, letterbox
 from semmap.detection.nms import nms_class_aware
 from semmap.errors import PerceptionError
-from semmap.types import Detection
+from semmap.types import Detection, Frame
 
 log = logging.getLogger(__name__)
 
@@ -301,3 +301,7 @@ class OnnxDetector:
         """Detections in ``image_rgb`` ((H, W, 3) uint8 RGB), boxes in its pixels, best first."""
         tensor, transform = self.preprocess(image_rgb)
         return self.postprocess(self.infer(tensor), transform)
+
+    def detect_frame(self, frame: Frame) -> list[Detection]:
+        """Detections in ``frame.rgb`` (the :class:`semmap.detection.Detector` interface)."""
+        return self.detect(frame.rgb)

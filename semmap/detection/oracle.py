@@ -124,7 +124,7 @@ class OracleDetector:
         score = 0.35 + 0.6 * quality + self._rng.normal(0.0, 0.05)
         return float(np.clip(score, 0.05, 0.97))
 
-    def detect(self, frame: Frame) -> list[Detection]:
+    def detect_frame(self, frame: Frame) -> list[Detection]:
         """Detections for one simulated frame, boxes in image pixels, best score first."""
         h, w = frame.rgb.shape[:2]
         cls_mask = frame.masks.get("class")

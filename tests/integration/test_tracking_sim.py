@@ -76,7 +76,7 @@ def test_objects_keep_their_ids_through_60_deg_per_s_turns() -> None:
     switches, matched, visible, turn_shift_px = 0, 0, 0, []
     for i, (x, y, yaw) in enumerate(poses):
         frame = renderer.render(pose_from_xyz_rpy(x, y, ALT_M, yaw_rad=yaw) @ T_body_camera, index=i)
-        tracks = tracker.update(oracle.detect(frame), frame.rgb)
+        tracks = tracker.update(oracle.detect_frame(frame), frame.rgb)
         if 0 < i < 30:  # the first turn: pure yaw, the image shifts sideways
             turn_shift_px.append(tracker.last_warp[0, 2])
         gt = {oid: box for oid, (box, _) in oracle.ground_truth_boxes(frame).items()}

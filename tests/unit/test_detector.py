@@ -267,3 +267,18 @@ def test_dynamic_input_size_uses_the_configured_size(tmp_path: Path) -> None:
     # 512x512 image: scale 0.5, no padding.
     dets = det.detect(np.zeros((512, 512, 3), np.uint8))
     np.testing.assert_allclose(dets[0].xyxy_px, (192.0, 192.0, 320.0, 320.0), atol=1e-4)
+
+
+def test_detector_from_config_builds_either_kind(tmp_path: Path) -> None:
+    from semmap.detection import detector_from_config
+    from semmap.detection.oracle import OracleDetector
+    from semmap.types import CameraIntrinsics, Frame
+
+    path = constant_model(tmp_path / "m.onnx", yolov8_output([(150.0, 160.0, 100.0, 40.0)], [{0: 0.9}], 6), OURS)
+    onnx_det = detector_from_config(
+        DetectorConfig(kind="onnx", model_path=str(path), providers=["CPUExecutionProvider"]), OURS)
+    f = Frame(0.0, image(), np.zeros((480, 640), np.float32), CameraIntrinsics(383, 383, 320, 240, 640, 480))
+    assert [d.class_name for d in onnx_det.detect_frame(f)] == ["chair"]
+    assert isinstance(detector_from_config(DetectorConfig(kind="oracle"), OURS), OracleDetector)
+    with pytest.raises(PerceptionError, match="model_path is not set"):
+        detector_from_config(DetectorConfig(kind="onnx"), OURS)

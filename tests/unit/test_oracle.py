@@ -36,7 +36,7 @@ def exact(**kw) -> OracleDetector:
 
 def test_boxes_are_the_visible_pixels_bounding_boxes() -> None:
     f = frame({3: (0, (100, 200, 180, 330)), 7: (5, (300, 150, 500, 260))})
-    dets = {d.class_name: d for d in exact().detect(f)}
+    dets = {d.class_name: d for d in exact().detect_frame(f)}
     assert dets["chair"].xyxy_px == (100.0, 200.0, 180.0, 330.0)
     assert dets["desk"].xyxy_px == (300.0, 150.0, 500.0, 260.0)
 
@@ -49,8 +49,8 @@ def test_occlusion_shrinks_the_box_and_lowers_the_score() -> None:
     scores = {"small": [], "large": []}
     for seed in range(30):
         o = exact(seed=seed)
-        small = o.detect(frame({1: (0, (100, 100, 125, 125))}))  # 625 px
-        large = o.detect(frame({1: (0, (100, 100, 300, 300))}))  # 40 000 px
+        small = o.detect_frame(frame({1: (0, (100, 100, 125, 125))}))  # 625 px
+        large = o.detect_frame(frame({1: (0, (100, 100, 300, 300))}))  # 40 000 px
         scores["small"].append(small[0].score)
         scores["large"].append(large[0].score)
     assert np.mean(scores["small"]) < np.mean(scores["large"]) - 0.1
@@ -59,28 +59,28 @@ def test_occlusion_shrinks_the_box_and_lowers_the_score() -> None:
 
 
 def test_truncated_objects_score_lower() -> None:
-    inside = [exact(seed=s).detect(frame({1: (0, (200, 100, 400, 300))}))[0].score for s in range(20)]
-    cut = [exact(seed=s).detect(frame({1: (0, (0, 100, 200, 300))}))[0].score for s in range(20)]
+    inside = [exact(seed=s).detect_frame(frame({1: (0, (200, 100, 400, 300))}))[0].score for s in range(20)]
+    cut = [exact(seed=s).detect_frame(frame({1: (0, (0, 100, 200, 300))}))[0].score for s in range(20)]
     assert np.mean(cut) < np.mean(inside) - 0.1
 
 
 def test_small_objects_are_not_seen() -> None:
     f = frame({1: (0, (10, 10, 19, 19)), 2: (5, (200, 200, 300, 300))})  # 81 px < 100
-    assert [d.class_name for d in exact().detect(f)] == ["desk"]
+    assert [d.class_name for d in exact().detect_frame(f)] == ["desk"]
 
 
 def test_class_from_caller_mapping_when_no_class_mask() -> None:
     f = frame({5: (0, (100, 100, 200, 200))}, with_class=False)
-    assert [d.class_name for d in exact(object_classes={5: "sofa"}).detect(f)] == ["sofa"]
-    assert exact(object_classes={9: "sofa"}).detect(f) == []  # unknown object: not a class of ours
+    assert [d.class_name for d in exact(object_classes={5: "sofa"}).detect_frame(f)] == ["sofa"]
+    assert exact(object_classes={9: "sofa"}).detect_frame(f) == []  # unknown object: not a class of ours
     with pytest.raises(FrameError, match="class"):
-        exact().detect(f)
+        exact().detect_frame(f)
 
 
 def test_missing_instance_mask_is_a_frame_error() -> None:
     f = Frame(0.0, np.zeros((480, 640, 3), np.uint8), np.zeros((480, 640), np.float32), INTR)
     with pytest.raises(FrameError, match="instance"):
-        exact().detect(f)
+        exact().detect_frame(f)
 
 
 def test_noise_misses_and_false_positives_are_seeded_and_at_the_configured_rates() -> None:
@@ -90,7 +90,7 @@ def test_noise_misses_and_false_positives_are_seeded_and_at_the_configured_rates
     runs = []
     for _ in range(2):
         o = OracleDetector.from_config(cfg, CLASSES, seed=42)
-        runs.append([o.detect(f) for _ in range(300)])
+        runs.append([o.detect_frame(f) for _ in range(300)])
     assert runs[0] == runs[1]  # same seed, same detections
     dets = runs[0]
     n_true = sum(1 for ds in dets for d in ds if d.class_name in ("chair", "desk")
