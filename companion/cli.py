@@ -23,6 +23,8 @@ log = logging.getLogger("companion")
 COMMAND_MODULES: tuple[str, ...] = (
     "companion.cmd_config",
     "companion.cmd_demo",
+    "companion.cmd_sim",
+    "companion.cmd_mission",
 )
 
 

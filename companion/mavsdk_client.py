@@ -23,17 +23,19 @@ import logging
 import math
 from typing import Any
 
+from mavsdk import LogLevel, log_subscribe
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkConnectionError
 from mavsdk.asyncio.plugins.action import ActionAsync
 from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
 from mavsdk.asyncio.plugins.mission_raw import MissionRawAsync
 from mavsdk.asyncio.plugins.offboard import OffboardAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+from mavsdk.plugins.action import ActionError
 from mavsdk.plugins.mission_raw import MissionItem as RawItem
 from mavsdk.plugins.mission_raw import MissionPlan as RawPlan
 from mavsdk.plugins.mission_raw import MissionRawError, MissionRawResult
 
-from companion.errors import LinkError, MissionError
+from companion.errors import CommandError, LinkError, MissionError
 from companion.geo import GeoOrigin
 from companion.missions import (
     ItemMap,
@@ -60,6 +62,25 @@ _EXPLAIN = {
 }
 
 
+_mavsdk_log = logging.getLogger("mavsdk")
+_LOG_LEVELS = {LogLevel.DEBUG: logging.DEBUG, LogLevel.INFO: logging.INFO,
+               LogLevel.WARN: logging.WARNING, LogLevel.ERROR: logging.ERROR}
+_logs_routed = False
+
+
+def _on_mavsdk_log(level: LogLevel, message: str, file: str | None, line: int) -> bool:
+    _mavsdk_log.log(_LOG_LEVELS.get(level, logging.INFO), "%s", message)
+    return True  # handled: MAVSDK does not print it to stdout
+
+
+def route_mavsdk_logs() -> None:
+    """Send MAVSDK core's log lines to the ``mavsdk`` Python logger instead of stdout."""
+    global _logs_routed
+    if not _logs_routed:
+        log_subscribe(_on_mavsdk_log)
+        _logs_routed = True
+
+
 def _to_raw(it: MissionItemInt) -> RawItem:
     return RawItem(it.seq, it.frame, it.command, it.current, it.autocontinue, it.param1,
                    it.param2, it.param3, it.param4, it.x, it.y, it.z, it.mission_type)
@@ -70,6 +91,11 @@ def _from_raw(it: Any) -> MissionItemInt:
                           int(it.autocontinue), float(it.param1), float(it.param2),
                           float(it.param3), float(it.param4), int(it.x), int(it.y), float(it.z),
                           int(it.mission_type))
+
+
+def _home(h: Any) -> GeoOrigin:
+    # MAVSDK passes the altitude through a float32: round off the noise (to a millimetre).
+    return GeoOrigin(h.latitude_deg, h.longitude_deg, round(h.absolute_altitude_m, 3))
 
 
 def _result_text(result: Any) -> str:
@@ -96,6 +122,7 @@ class MavsdkClient:
         self._plugins: dict[str, Any] = {}
 
     async def __aenter__(self) -> MavsdkClient:
+        route_mavsdk_logs()
         config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
         self._sdk = Mavsdk(config)
         try:
@@ -151,6 +178,16 @@ class MavsdkClient:
     def mission_raw(self) -> MissionRawAsync:
         return self._plugin("mission_raw", MissionRawAsync)  # type: ignore[no-any-return]
 
+    # --- actions -------------------------------------------------------------------------
+
+    async def arm(self) -> None:
+        """Arm the vehicle. Raises :class:`CommandError` with MAVSDK's result name."""
+        try:
+            await self.action.arm()
+        except ActionError as exc:
+            name = getattr(exc.result, "name", str(exc.result))
+            raise CommandError(f"arming refused by the autopilot: {name}", name) from exc
+
     # --- queries -------------------------------------------------------------------------
 
     async def home(self, timeout_s: float = 5.0) -> GeoOrigin:
@@ -159,7 +196,7 @@ class MavsdkClient:
             h = await self.telemetry.home()  # the latest value, if one arrived already
             if math.isfinite(h.latitude_deg) and math.isfinite(h.longitude_deg) and \
                     (h.latitude_deg != 0.0 or h.longitude_deg != 0.0):
-                return GeoOrigin(h.latitude_deg, h.longitude_deg, h.absolute_altitude_m)
+                return _home(h)
         except Exception as exc:  # noqa: BLE001 - MAVSDK raises TelemetryError or returns NaN
             log.debug("no cached home position yet: %s", exc)
         gen = self.telemetry.subscribe_home()
@@ -167,7 +204,7 @@ class MavsdkClient:
             async with asyncio.timeout(timeout_s):
                 async for h in gen:
                     if math.isfinite(h.latitude_deg) and math.isfinite(h.longitude_deg):
-                        return GeoOrigin(h.latitude_deg, h.longitude_deg, h.absolute_altitude_m)
+                        return _home(h)
         except TimeoutError as exc:
             raise LinkError(f"no home position from the autopilot on {self.url} within "
                             f"{timeout_s:g} s") from exc
