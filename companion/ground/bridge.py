@@ -49,13 +49,13 @@ from companion.errors import GroundLinkError
 from companion.ground.schema import (
     Command,
     ObjectItem,
+    ObjectsMessage,
     Rejection,
     Topics,
     command_kind_of,
     encode,
     map_message,
     object_items,
-    objects_message,
     online_message,
     path_message,
     peek_request_id,
@@ -280,9 +280,8 @@ class MqttBridge:
             return False
         if items == self._last_objects:
             return False
-        if not self._put_state(
-            "objects", self.topics.objects, 1, True, objects_message, self.cfg.vehicle_id, objects
-        ):
+        msg = ObjectsMessage(vehicle_id=self.cfg.vehicle_id, stamp_s=time.time(), objects=items)
+        if not self._put_state("objects", self.topics.objects, 1, True, _as_is, msg):
             return False
         self._last_objects = items
         return True
