@@ -1,0 +1,210 @@
+"""Offboard setpoint timing: period and jitter of the 50 Hz setpoint task, idle and under load.
+
+``python bench/setpoints.py [--quick] [--rate-hz 50] [--seconds 20]``
+
+What is measured: our real :class:`~companion.mavlink.offboard.SetpointStreamer` on a real
+:class:`~companion.mavlink.link.MavlinkLink` (``udpout://`` to loopback) sends
+SET_POSITION_TARGET_LOCAL_NED at ``--rate-hz``. Two clocks are read, both
+``time.monotonic()`` (CLOCK_MONOTONIC, shared by all processes on Linux):
+
+* ``send``: in-process, right after each setpoint is handed to the socket;
+* ``recv``: in a separate receiver process, when ``recv()`` returns the datagram (so it
+  includes that process's own scheduling delay: an upper bound on what the autopilot sees).
+
+Period = difference of consecutive timestamps; jitter = ``|period - 1/rate|``. Cases:
+
+* ``idle``: no extra load;
+* ``loaded``: two busy-loop processes (one per core on a 2-core machine) at the same
+  priority as us, started before and stopped after the case. Each starts its own session
+  (``setsid``), i.e. they are independent programs, as other services or a perception
+  process are on the drone; on Linux with ``sched_autogroup`` that puts them in their own
+  scheduling group. ``--same-session`` keeps them in ours instead, which makes them
+  compete for our group's share like threads of our own process would (a harsher case:
+  expect p99 jitter of 10-20 ms on 2 cores);
+* ``loaded_relative_sleep`` (reference, same process): the same task written the naive way,
+  ``await asyncio.sleep(period)`` after each send, to show the drift that absolute
+  ``time.monotonic()`` deadlines avoid (its mean rate falls below the target).
+
+Target: ``loaded`` p99 jitter <= 5 ms at 50 Hz. The last line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import multiprocessing as mp
+import os
+import socket
+import sys
+import time
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from companion.mavlink.failsafe import PositionSetpoint  # noqa: E402
+from companion.mavlink.link import MavlinkLink  # noqa: E402
+from companion.mavlink.offboard import SetpointStreamer, encode_setpoint  # noqa: E402
+
+SET_POSITION_TARGET_LOCAL_NED_ID = 84
+TARGET_P99_JITTER_MS = 5.0
+
+
+def _busy_loop(own_session: bool) -> None:
+    """Burn one core until terminated (in a new session unless told otherwise)."""
+    if own_session:
+        os.setsid()
+    x = 0
+    while True:
+        x = (x * 1103515245 + 12345) & 0xFFFFFFFF
+
+
+def _receiver(port_out: Connection, stop_after_s: float, result_out: Connection) -> None:
+    """Bind a UDP socket, report its port, timestamp every setpoint datagram until idle."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    port_out.send(sock.getsockname()[1])
+    sock.settimeout(stop_after_s)
+    stamps: list[float] = []
+    try:
+        while True:
+            data = sock.recv(2048)
+            now = time.monotonic()
+            # MAVLink 2 header: magic 0xFD, msgid in bytes 7..9 (little endian).
+            if len(data) >= 10 and data[0] == 0xFD:
+                msgid = data[7] | (data[8] << 8) | (data[9] << 16)
+                if msgid == SET_POSITION_TARGET_LOCAL_NED_ID:
+                    stamps.append(now)
+    except TimeoutError:
+        pass
+    finally:
+        sock.close()
+    result_out.send(stamps)
+
+
+def _stats(stamps: list[float], rate_hz: float) -> dict[str, float]:
+    t = np.asarray(stamps, dtype=np.float64)
+    if len(t) < 3:
+        return {"n": float(len(t))}
+    period_ms = np.diff(t) * 1000.0
+    nominal_ms = 1000.0 / rate_hz
+    jitter_ms = np.abs(period_ms - nominal_ms)
+    return {
+        "n": float(len(t)),
+        "rate_hz": float((len(t) - 1) / (t[-1] - t[0])),
+        "period_ms_p50": float(np.percentile(period_ms, 50)),
+        "period_ms_p99": float(np.percentile(period_ms, 99)),
+        "period_ms_max": float(period_ms.max()),
+        "jitter_ms_p50": float(np.percentile(jitter_ms, 50)),
+        "jitter_ms_p99": float(np.percentile(jitter_ms, 99)),
+        "jitter_ms_max": float(jitter_ms.max()),
+    }
+
+
+async def _relative_sleep_streamer(link: MavlinkLink, rate_hz: float, seconds: float,
+                                   sp: PositionSetpoint, send_stamps: list[float]) -> None:
+    """The naive reference: sleep one period after each send (drifts by the loop's overhead)."""
+    period_s = 1.0 / rate_hz
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        link.send(encode_setpoint(link, sp, 1, 1))
+        send_stamps.append(time.monotonic())
+        await asyncio.sleep(period_s)
+
+
+async def _stream(port: int, rate_hz: float, seconds: float, relative: bool) -> list[float]:
+    sp = PositionSetpoint((1.0, 2.0, -1.5), yaw_rad=0.3, velocity_ned_m_s=(0.2, 0.0, 0.0))
+    send_stamps: list[float] = []
+    async with MavlinkLink(f"udpout://127.0.0.1:{port}", heartbeat_rate_hz=1.0) as link:
+        if relative:
+            await _relative_sleep_streamer(link, rate_hz, seconds, sp, send_stamps)
+        else:
+            streamer = SetpointStreamer(link, rate_hz, lambda: sp)
+            streamer.on_sent = send_stamps.append
+            async with streamer:
+                await asyncio.sleep(seconds)
+    return send_stamps
+
+
+def run_case(rate_hz: float, seconds: float, load_procs: int, relative: bool,
+             same_session: bool = False) -> dict[str, Any]:
+    """One case: receiver process, optional busy processes, our streamer in this process."""
+    ctx = mp.get_context("fork")
+    port_rx, port_tx = ctx.Pipe(duplex=False)
+    res_rx, res_tx = ctx.Pipe(duplex=False)
+    receiver = ctx.Process(target=_receiver, args=(port_tx, 1.0, res_tx), daemon=True)
+    receiver.start()
+    busy = [ctx.Process(target=_busy_loop, args=(not same_session,), daemon=True)
+            for _ in range(load_procs)]
+    try:
+        port = port_rx.recv()
+        for p in busy:
+            p.start()
+        time.sleep(0.5 if busy else 0.0)  # let the load settle onto the cores
+        send_stamps = asyncio.run(_stream(port, rate_hz, seconds, relative))
+    finally:
+        for p in busy:
+            p.terminate()
+        for p in busy:
+            p.join()
+    recv_stamps = res_rx.recv() if res_rx.poll(5.0) else []
+    receiver.join(timeout=5.0)
+    return {"send": _stats(send_stamps, rate_hz), "recv": _stats(recv_stamps, rate_hz)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="5 s per case instead of 20 s")
+    ap.add_argument("--rate-hz", type=float, default=50.0)
+    ap.add_argument("--seconds", type=float, default=None, help="seconds per case")
+    ap.add_argument("--load-procs", type=int, default=2, help="busy-loop processes for loaded cases")
+    ap.add_argument("--same-session", action="store_true",
+                    help="keep the busy processes in our session (scheduling group)")
+    args = ap.parse_args(argv)
+    seconds = args.seconds or (5.0 if args.quick else 20.0)
+    cases = {
+        "idle": (0, False),
+        "loaded": (args.load_procs, False),
+        "loaded_relative_sleep": (args.load_procs, True),
+    }
+    results: dict[str, Any] = {}
+    for name, (procs, relative) in cases.items():
+        results[name] = run_case(args.rate_hz, seconds, procs, relative, args.same_session)
+
+    cols = ["n", "rate_hz", "period_ms_p50", "period_ms_p99", "period_ms_max",
+            "jitter_ms_p50", "jitter_ms_p99", "jitter_ms_max"]
+    where = "our session" if args.same_session else "their own sessions"
+    print(f"setpoint task at {args.rate_hz:.0f} Hz, {seconds:.0f} s per case, "
+          f"{args.load_procs} busy processes ({where}) in loaded cases, {mp.cpu_count()} CPUs, "
+          f"load average before start {os.getloadavg()[0]:.1f}")
+    print(f"{'case':<24}{'clock':<6}" + "".join(f"{c:>15}" for c in cols))
+    for name, res in results.items():
+        for clock in ("send", "recv"):
+            row = res[clock]
+            print(f"{name:<24}{clock:<6}" + "".join(
+                f"{row.get(c, float('nan')):>15.2f}" for c in cols))
+    loaded_p99 = results["loaded"]["recv"].get("jitter_ms_p99", float("nan"))
+    ok = loaded_p99 <= TARGET_P99_JITTER_MS
+    print(f"target: loaded p99 jitter at the receiver <= {TARGET_P99_JITTER_MS:.0f} ms: "
+          f"{loaded_p99:.2f} ms -> {'met' if ok else 'NOT met'}")
+    out = {
+        "rate_hz": args.rate_hz,
+        "seconds_per_case": seconds,
+        "load_procs": args.load_procs,
+        "load_same_session": bool(args.same_session),
+        "loadavg_1min_at_end": os.getloadavg()[0],
+        "cpus": mp.cpu_count(),
+        "target_jitter_ms_p99": TARGET_P99_JITTER_MS,
+        "target_met": bool(ok),
+        **results,
+    }
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
