@@ -46,6 +46,7 @@ _GRAPH_OPT = {
 }
 
 BUILTIN_PREFIX = "builtin:"
+_INPUT_DTYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16}
 
 
 def select_providers(preferred: Sequence[str], available: Sequence[str] | None = None) -> list[str]:
@@ -150,10 +151,13 @@ class OnnxDetector:
                 f"detector model {path}: input {inputs[0].name!r} has shape {shape}; expected "
                 f"[1, 3, H, W]"
             )
-        if inputs[0].type != "tensor(float)":
+        if inputs[0].type not in _INPUT_DTYPES:
             raise PerceptionError(
-                f"detector model {path}: input type {inputs[0].type}; expected tensor(float)"
+                f"detector model {path}: input type {inputs[0].type}; expected tensor(float) "
+                f"or tensor(float16)"
             )
+        #: fp16 exports (Ultralytics ``half=True``) take a half-precision tensor.
+        self._input_dtype = _INPUT_DTYPES[inputs[0].type]
         h_s, w_s = _static_dim(shape[2]), _static_dim(shape[3])
         if h_s is not None and w_s is not None:
             self.input_hw_px: tuple[int, int] = (h_s, w_s)
@@ -252,7 +256,7 @@ class OnnxDetector:
     def _probe_output_shape(self) -> tuple[int, ...]:
         """Run one inference on a grey image: checks the graph runs and gives the real shape."""
         h, w = self.input_hw_px
-        probe = np.full((1, 3, h, w), 0.5, dtype=np.float32)
+        probe = np.full((1, 3, h, w), 0.5, dtype=self._input_dtype)
         try:
             out = self._session.run([self._output_name], {self._input_name: probe})[0]
         except Exception as exc:  # ONNX Runtime exceptions derive from Exception only
@@ -269,6 +273,8 @@ class OnnxDetector:
 
     def infer(self, tensor: NDArray[np.float32]) -> NDArray[np.float32]:
         """Run the network; returns its raw output (see :mod:`semmap.detection.decode`)."""
+        if tensor.dtype != self._input_dtype:
+            tensor = tensor.astype(self._input_dtype)
         try:
             out = self._session.run([self._output_name], {self._input_name: tensor})[0]
         except Exception as exc:  # ONNX Runtime exceptions derive from Exception only

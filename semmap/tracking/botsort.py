@@ -52,6 +52,9 @@ UNCONFIRMED_MATCH_THRESH = 0.7
 DUPLICATE_IOU_DIST = 0.15
 #: Exponential smoothing of a track's appearance embedding.
 FEATURE_ALPHA = 0.9
+#: Detections narrower or shorter than this (pixels) are ignored; predicted boxes never
+#: shrink below it.
+MIN_BOX_PX = 1.0
 
 
 class AppearanceEncoder(Protocol):
@@ -253,6 +256,13 @@ class BoTSORT:
         self.frame_id += 1
         fid = self.frame_id
         boxes = np.array([d.xyxy_px for d in detections], dtype=np.float64).reshape(-1, 4)
+        # A degenerate box would give the Kalman filter a zero (singular) noise model.
+        valid = np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] - boxes[:, 0] >= MIN_BOX_PX) & (
+            boxes[:, 3] - boxes[:, 1] >= MIN_BOX_PX)
+        if not valid.all():
+            log.debug("tracker: ignoring %d degenerate detection box(es)", int((~valid).sum()))
+            detections = [d for d, ok in zip(detections, valid, strict=True) if ok]
+            boxes = boxes[valid]
         scores = np.array([d.score for d in detections], dtype=np.float64)
         classes = [d.class_name for d in detections]
         feats = None
@@ -337,6 +347,9 @@ class BoTSORT:
         not_tracked = np.array([t.state != TrackState.TRACKED for t in tracks])
         means[not_tracked, 6:8] = 0.0
         means, covs = kalman.predict(means, covs)
+        # A shrinking box extrapolated too far would turn inside out; the noise model scales
+        # with w and h, so keep them positive.
+        np.maximum(means[:, 2:4], MIN_BOX_PX, out=means[:, 2:4])
         for t, m, c in zip(tracks, means, covs, strict=True):
             t.mean, t.cov = m, c
 

@@ -282,3 +282,20 @@ def test_detector_from_config_builds_either_kind(tmp_path: Path) -> None:
     assert isinstance(detector_from_config(DetectorConfig(kind="oracle"), OURS), OracleDetector)
     with pytest.raises(PerceptionError, match="model_path is not set"):
         detector_from_config(DetectorConfig(kind="onnx"), OURS)
+
+
+def test_fp16_model_gets_a_half_precision_input(tmp_path: Path) -> None:
+    x = helper.make_tensor_value_info("images", TensorProto.FLOAT16, [1, 3, INPUT, INPUT])
+    out = yolov8_output([(150.0, 160.0, 100.0, 40.0)], [{0: 0.9}], 6)
+    y = helper.make_tensor_value_info("output0", TensorProto.FLOAT, list(out.shape))
+    nodes = [helper.make_node("ReduceMean", ["images"], ["m16"], keepdims=0),
+             helper.make_node("Cast", ["m16"], ["m"], to=TensorProto.FLOAT),
+             helper.make_node("Mul", ["m", "zero"], ["z"]),
+             helper.make_node("Add", ["z", "const"], ["output0"])]
+    inits = [numpy_helper.from_array(np.array(0.0, np.float32), "zero"), numpy_helper.from_array(out, "const")]
+    model = helper.make_model(helper.make_graph(nodes, "fp16", [x], [y], inits),
+                              opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, str(tmp_path / "h.onnx"))
+    dets = OnnxDetector(tmp_path / "h.onnx", OURS, model_class_names=OURS).detect(image())
+    np.testing.assert_allclose(dets[0].xyxy_px, (200.0, 200.0, 400.0, 280.0), atol=1e-3)

@@ -280,3 +280,13 @@ def test_sort_reports_after_min_hits_and_keeps_the_id() -> None:
     out = [trk.update([det(200, 200)]) for _ in range(4)]
     # Born with no hits; three consecutive updates follow before it is reported.
     assert out[:3] == [[], [], []] and out[3][0].track_id == 2
+
+
+def test_degenerate_detections_are_ignored_not_fatal() -> None:
+    trk = tracker()
+    bad = [Detection((10.0, 10.0, 10.0, 50.0), 0.9, "chair"),
+           Detection((float("nan"), 0.0, 5.0, 5.0), 0.9, "chair")]
+    for k in range(5):
+        out = trk.update([det(100 + k, 100), *bad])
+    assert [t.track_id for t in out] == [1]
+
