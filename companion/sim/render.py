@@ -240,8 +240,13 @@ class RoomRenderer:
         self._textures = make_textures(self.seed)
         self._tex_flat = self._textures.reshape(-1)
         self._build_scene()
-        self._dirs_cam = self._pixel_directions(intrinsics)
-        self._rays = np.empty((self._dirs_cam.shape[0], 6), dtype=np.float32)
+        # Per-pixel camera-frame ray directions (x, y, 1) as contiguous columns: the per-frame
+        # work is elementwise (no BLAS, whose threads stall on a busy CPU).
+        dirs = self._pixel_directions(intrinsics)
+        self._xc = np.ascontiguousarray(dirs[:, 0])
+        self._yc = np.ascontiguousarray(dirs[:, 1])
+        self._inv_len = (1.0 / np.sqrt(self._xc**2 + self._yc**2 + 1.0)).astype(np.float32)
+        self._rays = np.empty((dirs.shape[0], 6), dtype=np.float32)
         self._objects = {o.object_id: o for o in room.objects}
 
     # --- scene -------------------------------------------------------------------------
@@ -283,7 +288,7 @@ class RoomRenderer:
         self._face_normal = np.zeros((nf + 1, 3), dtype=np.float32)
         self._face_sun = np.zeros(nf + 1, dtype=np.float32)
         self._face_tex = np.zeros((nf + 1, 2, 4), dtype=np.float32)
-        self._face_tex_base = np.zeros(nf + 1, dtype=np.int64)
+        self._face_tex_base = np.zeros(nf + 1, dtype=np.intp)
         self._boxes: list[Box] = []
         for i, (box, owner, cls, mat, col) in enumerate(entries):
             verts, tris = _box_mesh_arrays(box)
@@ -313,6 +318,8 @@ class RoomRenderer:
                     self._face_tex[f, row, 3] = (o - a @ centre) / TEXEL_M
                 self._face_tex_base[f] = mat * TEX_SIZE * TEX_SIZE
             self._boxes.append(box)
+        self._face_flat_light = (AMBIENT + SUN * self._face_sun).astype(np.float32)
+        self._color_cols = [np.ascontiguousarray(self._color[:, k]) for k in range(3)]
         self._n_prims = n
         self._scene = scene
         log.debug("raycasting scene: %d primitives (%d objects)", n, len(self.room.objects))
@@ -331,34 +338,30 @@ class RoomRenderer:
 
     # --- rendering ---------------------------------------------------------------------
 
-    def cast(self, T_map_camera: Transform) -> dict[str, NDArray[Any]]:
+    def cast(self, T_map_camera: Transform) -> dict[str, Any]:
         """Noise-free ray cast from a camera pose (4, 4), map frame, optical axes.
 
         Returns flat (H*W,) arrays, row-major over the image: ``"depth_m"`` float32 z-depth
         (inf on a miss), ``"prim"`` primitive index (``n_primitives`` on a miss), ``"face"``
-        face index ``6 * prim + k`` (``6 * n_primitives`` on a miss), plus ``"dir_map"``
-        (H*W, 3) float32 ray directions (z-depth 1 in the camera) and ``"origin_map"`` (3,).
+        face index ``6 * prim + k`` (``6 * n_primitives`` on a miss), and ``"T"`` the pose.
         """
         T = np.asarray(T_map_camera, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise SimulationError(f"T_map_camera must be a finite (4, 4) transform (got shape {T.shape})")
         R = T[:3, :3].astype(np.float32)
-        dirs = self._dirs_cam @ R.T  # (N, 3)
         rays = self._rays  # reused: a fresh 7 MB buffer per frame costs page faults
         rays[:, :3] = T[:3, 3]
-        rays[:, 3:] = dirs
+        for i in range(3):  # map-frame direction = R @ (x, y, 1)
+            rays[:, 3 + i] = R[i, 0] * self._xc + R[i, 1] * self._yc + R[i, 2]
         o3d = self._o3d
         ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self.n_threads)
         t_hit = ans["t_hit"].numpy()
         gids = ans["geometry_ids"].numpy().view(np.int32)  # INVALID_ID reads as -1
         tri = ans["primitive_ids"].numpy().view(np.int32)
         miss = gids < 0
-        prim = np.where(miss, self._n_prims, gids)
-        face = np.where(miss, 6 * self._n_prims, 6 * gids + (tri >> 1))
-        return {
-            "depth_m": t_hit, "prim": prim, "face": face, "dir_map": dirs,
-            "origin_map": T[:3, 3].astype(np.float32),
-        }
+        prim = np.where(miss, np.intp(self._n_prims), gids.astype(np.intp))
+        face = np.where(miss, np.intp(6 * self._n_prims), 6 * prim + (tri >> 1))
+        return {"depth_m": t_hit, "prim": prim, "face": face, "T": T}
 
     def render(
         self,
@@ -390,35 +393,60 @@ class RoomRenderer:
             T_map_camera=np.array(T_map_camera, dtype=np.float64), index=int(index), masks=masks,
         )
 
-    def _shade(self, c: dict[str, NDArray[Any]], rng: np.random.Generator) -> NDArray[np.uint8]:
+    def _shade(self, c: dict[str, Any], rng: np.random.Generator) -> NDArray[np.uint8]:
         """(H*W, 3) uint8 colours: base colour x Lambert shading x material texture."""
         face = c["face"]
-        d = c["dir_map"]
+        T = c["T"]
+        R = T[:3, :3]
         hit = face < 6 * self._n_prims
-        # |n.d| / |d|: the camera-side face is always the one hit (boxes are closed).
-        n_dot_d = np.abs(np.einsum("ij,ij->i", self._face_normal[face], d))
-        n_dot_d /= np.sqrt(np.einsum("ij,ij->i", d, d))
-        lum = AMBIENT + SUN * self._face_sun[face] + HEADLIGHT * n_dot_d
+        # Per-face tables for this pose, then one 1D gather each: normals in the camera frame
+        # give |n.d| / |d| = |n_cam . (x, y, 1)| / |(x, y, 1)| (the headlight term).
+        n_cam = (self._face_normal @ R).astype(np.float32)  # (F, 3) rows = R^T n
+        ndotd = n_cam[:, 0][face] * self._xc
+        ndotd += n_cam[:, 1][face] * self._yc
+        ndotd += n_cam[:, 2][face]
+        lum = np.abs(ndotd)
+        lum *= self._inv_len
+        lum *= np.float32(HEADLIGHT)
+        lum += self._face_flat_light[face]
         lum *= self._texture_lookup(c, hit)
         if self.rgb_noise_std > 0:
             lum += rng.standard_normal(lum.shape[0], dtype=np.float32) * np.float32(
                 self.rgb_noise_std / 128.0
             )
         lum[~hit] = 1.0
-        rgb = self._color[c["prim"]] * lum[:, None]
-        np.clip(rgb, 0.0, 255.0, out=rgb)
-        return rgb.astype(np.uint8)
+        prim = c["prim"]
+        rgb = np.empty((lum.shape[0], 3), dtype=np.uint8)
+        for k in range(3):
+            ch = self._color_cols[k][prim] * lum
+            np.clip(ch, 0.0, 255.0, out=ch)
+            rgb[:, k] = ch
+        return rgb
 
-    def _texture_lookup(self, c: dict[str, NDArray[Any]], hit: NDArray[np.bool_]) -> NDArray[np.float32]:
-        """(H*W,) texture factor at each hit, from its face's texel coordinates."""
+    def _texture_lookup(self, c: dict[str, Any], hit: NDArray[np.bool_]) -> NDArray[np.float32]:
+        """(H*W,) texture factor at each hit, from its face's texel coordinates.
+
+        A face maps a map-frame point p to texel coordinates ``a . p + b``; with the hit at
+        ``p = o + t R (x, y, 1)`` that is ``(a . o + b) + t (R^T a) . (x, y, 1)``, so per pose
+        only small per-face tables change and each pixel needs a few gathers and products.
+        """
         face = c["face"]
+        T = c["T"]
+        R, o = T[:3, :3], T[:3, 3]
         t = np.where(hit, c["depth_m"], np.float32(0.0))
-        p = c["origin_map"] + c["dir_map"] * t[:, None]  # (N, 3) hit points, map frame
-        A = self._face_tex[face]  # (N, 2, 4)
         mask = TEX_SIZE - 1
-        iu = np.floor(np.einsum("ij,ij->i", A[:, 0, :3], p) + A[:, 0, 3]).astype(np.int64) & mask
-        iv = np.floor(np.einsum("ij,ij->i", A[:, 1, :3], p) + A[:, 1, 3]).astype(np.int64) & mask
-        return self._tex_flat[self._face_tex_base[face] + iv * TEX_SIZE + iu]
+        idx = self._face_tex_base[face]
+        for row, stride in ((0, 1), (1, TEX_SIZE)):
+            A = self._face_tex[:, row, :3]  # (F, 3) texel axis per metre, map frame
+            const = (A @ o + self._face_tex[:, row, 3]).astype(np.float32)  # (F,)
+            a_cam = (A @ R).astype(np.float32)  # (F, 3) rows = R^T a
+            coord = a_cam[:, 0][face] * self._xc
+            coord += a_cam[:, 1][face] * self._yc
+            coord += a_cam[:, 2][face]
+            coord *= t
+            coord += const[face]
+            idx += (np.floor(coord).astype(np.intp) & mask) * stride
+        return self._tex_flat[idx]
 
     def _noisy_depth(self, z: NDArray[np.float32], rng: np.random.Generator) -> NDArray[np.float32]:
         """(H, W) float32 metres with the D455-like noise model; 0 where invalid."""
