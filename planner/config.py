@@ -27,6 +27,16 @@ class PlannerConfig(StageConfig):
     #: Unknown cells cost this (0..1) times a lethal cell; 1 forbids them.
     unknown_cost: float = Field(default=0.5, ge=0.0, le=1.0)
     snap_goal_to_free: bool = False
+    #: Cell size of the grid search that gives the first path (a multiple of the map's
+    #: resolution; coarser is faster, the search falls back to full resolution if the coarse
+    #: grid disconnects start and goal).
+    search_cell_m: float = Field(default=0.1, gt=0.0, le=1.0)
+    #: Proximity cost near obstacles decays by e over this distance beyond the vehicle radius.
+    clearance_decay_m: float = Field(default=0.2, gt=0.0, le=5.0)
+    #: Spend the rest of the time budget on the OMPL planner to improve the first path.
+    refine_with_ompl: bool = True
+    #: Corners are taken at a speed whose change of velocity vector is at most this.
+    corner_speed_jump_m_s: float = Field(default=0.3, gt=0.0, le=20.0)
     max_speed_m_s: float = Field(default=1.0, gt=0.0, le=20.0)
     max_accel_m_s2: float = Field(default=1.0, gt=0.0, le=20.0)
     max_yaw_rate_deg_s: float = Field(default=60.0, gt=0.0, le=720.0)

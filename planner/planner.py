@@ -1,0 +1,300 @@
+"""The planner: costmap in, checked path (or a reason there is none) out. Pure computation.
+
+One :class:`Planner` keeps the precomputed fields of the latest map version (configuration
+space, search graphs) and answers requests against them:
+
+1. input checks: start/goal inside the map (and geofence) and free for the vehicle's radius,
+   else ``*_OUTSIDE_MAP`` / ``*_BLOCKED``; with ``snap_goal`` a bad goal moves to the nearest
+   free point reachable from the start instead;
+2. first path: Dijkstra on the (coarse, then if needed full-resolution) grid graph; an
+   infinite distance is a proof of ``DISCONNECTED`` at the grid's resolution;
+3. any-angle post-processing of that path (cost-aware shortcuts, corner sliding);
+4. OMPL (the configured planner, with the length + map-cost objective) for the rest of the
+   time budget, sampling only the informed box of the best cost so far; its path replaces
+   the first one only if its objective is lower.
+
+Every returned path is checked densely (half-cell samples) against the clearance field.
+Map changes go through :meth:`Planner.set_map`, which updates only the window that changed;
+:meth:`Planner.path_still_valid` tells a caller when the remaining path must be replanned.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planner.config import PlannerConfig
+from planner.cspace import CSpace, CSpaceParams, band_costmap, build_cspace, update_cspace
+from planner.gridsearch import GridGraph, refine_vertices, shortcut
+from planner.ompl_backend import ompl_solve
+from planner.types import PlanResult, PlanStatus, path_length_m
+from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
+from semmap.errors import PlanningError
+
+log = logging.getLogger(__name__)
+
+
+def _xy(value: Sequence[float] | NDArray[np.floating], name: str) -> NDArray[np.float64]:
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    if arr.shape != (2,) or not np.all(np.isfinite(arr)):
+        raise PlanningError(f"{name} must be two finite numbers (x, y) in metres, got {value!r}")
+    return arr
+
+
+class Planner:
+    """Plans paths for a multicopter at the configured altitude on the latest costmap."""
+
+    def __init__(self, config: PlannerConfig) -> None:
+        self.config = config
+        self.params = CSpaceParams(
+            vehicle_radius_m=config.vehicle_radius_m,
+            unknown_cost=config.unknown_cost,
+            clearance_decay_m=config.clearance_decay_m,
+            geofence_xy_m=config.geofence_xy_m,
+        )
+        self._cs: CSpace | None = None
+        self._graphs: dict[int, GridGraph] = {}
+        self._version = 0
+        #: Seconds spent preparing the fields of the last map version.
+        self.last_prepare_s = 0.0
+
+    # --- the map --------------------------------------------------------------------
+
+    @property
+    def band(self) -> VerticalBand:
+        """The vehicle's vertical band at the configured flight altitude."""
+        c = self.config
+        return VerticalBand.for_altitude(c.flight_altitude_m, c.vehicle_height_m, c.vertical_margin_m)
+
+    @property
+    def cspace(self) -> CSpace:
+        if self._cs is None:
+            raise PlanningError("no map yet: call set_map() before planning")
+        return self._cs
+
+    @property
+    def map_version(self) -> int:
+        return self._version
+
+    def set_base_map(self, base: Costmap, objects: Sequence[ObjectFootprint],
+                     version: int | None = None, min_existence: float = 0.0) -> None:
+        """Use an occupancy costmap plus object footprints, applying the altitude rule."""
+        self.set_map(band_costmap(base, objects, self.band, min_existence), version)
+
+    def set_map(self, costmap: Costmap, version: int | None = None) -> tuple[int, int, int, int] | None:
+        """Adopt a new costmap version; returns the window (r0, r1, c0, c1) whose fields changed.
+
+        The first map (or one with a new grid geometry or band) is precomputed in full; later
+        versions only recompute the window that changed.
+        """
+        t0 = time.perf_counter()
+        self._version = self._version + 1 if version is None else int(version)
+        window: tuple[int, int, int, int] | None
+        if self._cs is None or self._cs.spec != costmap.spec or self._cs.band != costmap.band:
+            self._cs = build_cspace(costmap, self.params, self._version)
+            self._graphs = {}
+            window = (0, costmap.spec.rows, 0, costmap.spec.cols)
+        else:
+            self._cs, window = update_cspace(self._cs, costmap, self._version)
+            for g in self._graphs.values():
+                g.update(self._cs, window)
+        self._graph(self._coarse_factor())
+        self.last_prepare_s = time.perf_counter() - t0
+        return window
+
+    def _coarse_factor(self) -> int:
+        return max(1, int(round(self.config.search_cell_m / self.cspace.spec.resolution_m)))
+
+    def _graph(self, factor: int) -> GridGraph:
+        g = self._graphs.get(factor)
+        if g is None:
+            g = GridGraph(self.cspace, self.config.cost_weight, factor)
+            self._graphs[factor] = g
+        return g
+
+    # --- checks ---------------------------------------------------------------------
+
+    def path_still_valid(self, path_xy_m: NDArray[np.floating]) -> bool:
+        """True if the (K, 2) polyline is still free on the current map."""
+        return self.cspace.path_free(path_xy_m)
+
+    def _inside(self, xy: NDArray[np.float64]) -> bool:
+        if not bool(self.cspace.spec.contains_xy(xy.reshape(1, 2))[0]):
+            return False
+        fence = self.config.geofence_xy_m
+        return fence is None or (fence[0] <= xy[0] <= fence[2] and fence[1] <= xy[1] <= fence[3])
+
+    # --- planning -------------------------------------------------------------------
+
+    def plan(
+        self,
+        start_xy_m: Sequence[float] | NDArray[np.floating],
+        goal_xy_m: Sequence[float] | NDArray[np.floating],
+        time_limit_s: float | None = None,
+        snap_goal: bool | None = None,
+        refine: bool | None = None,
+    ) -> PlanResult:
+        """Plan from ``start_xy_m`` to ``goal_xy_m`` (map frame, metres) on the current map.
+
+        ``time_limit_s`` (default: config) bounds the whole request; the first path usually
+        takes a small part of it and OMPL improves on it in the rest. ``snap_goal`` (default:
+        config) moves a goal outside the map, blocked or unreachable to the nearest reachable
+        free point. ``refine`` (default: config) enables the OMPL stage. Never raises for
+        "no path": the result's status and reason say why.
+        """
+        t0 = time.perf_counter()
+        cfg = self.config
+        budget = cfg.time_limit_s if time_limit_s is None else float(time_limit_s)
+        snap = cfg.snap_goal_to_free if snap_goal is None else bool(snap_goal)
+        use_ompl = cfg.refine_with_ompl if refine is None else bool(refine)
+        start = _xy(start_xy_m, "start")
+        goal = _xy(goal_xy_m, "goal")
+        cs = self.cspace
+        version = self._version
+
+        def fail(status: PlanStatus, reason: str) -> PlanResult:
+            log.info("no path (%s): %s", status.value, reason)
+            return PlanResult.failure(status, reason, time.perf_counter() - t0, version)
+
+        if not self._inside(start):
+            return fail(PlanStatus.START_OUTSIDE_MAP,
+                        f"start ({start[0]:.2f}, {start[1]:.2f}) m is outside the map/geofence {self._extent_text()}")
+        if not bool(cs.is_free(start.reshape(1, 2))[0]):
+            clr = float(cs.clearance_at(start.reshape(1, 2))[0])
+            return fail(PlanStatus.START_BLOCKED,
+                        f"start ({start[0]:.2f}, {start[1]:.2f}) m is blocked: clearance {clr:.2f} m < "
+                        f"vehicle radius {cfg.vehicle_radius_m:.2f} m")
+        snapped = False
+        goal_problem: tuple[PlanStatus, str] | None = None
+        if not self._inside(goal):
+            goal_problem = (PlanStatus.GOAL_OUTSIDE_MAP,
+                            f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m is outside the map/geofence {self._extent_text()}")
+        elif not bool(cs.is_free(goal.reshape(1, 2))[0]):
+            clr = float(cs.clearance_at(goal.reshape(1, 2))[0])
+            goal_problem = (PlanStatus.GOAL_BLOCKED,
+                            f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m is blocked: clearance {clr:.2f} m < "
+                            f"vehicle radius {cfg.vehicle_radius_m:.2f} m")
+        if goal_problem is not None:
+            if not snap:
+                return fail(*goal_problem)
+            new_goal = self._snap(start, goal)
+            if new_goal is None:
+                return fail(goal_problem[0], goal_problem[1] + "; no reachable free point to snap to")
+            log.info("goal (%.2f, %.2f) snapped to (%.2f, %.2f)", goal[0], goal[1], new_goal[0], new_goal[1])
+            goal, snapped = new_goal, True
+
+        # First path: grid search, coarse then full resolution.
+        t_search = time.perf_counter()
+        path: NDArray[np.float64] | None = None
+        factors = sorted({self._coarse_factor(), 1}, reverse=True)
+        reachable = False
+        for f in factors:
+            outcome = self._graph(f).search(start, goal)
+            if outcome.path_xy_m is not None and cs.path_free(outcome.path_xy_m):
+                path = outcome.path_xy_m
+                break
+            reachable = reachable or outcome.reachable
+        if path is None:
+            if snap and not snapped:
+                new_goal = self._snap(start, goal)
+                if new_goal is not None and float(np.linalg.norm(new_goal - goal)) > 1e-9:
+                    res = self.plan(start, new_goal, max(0.0, budget - (time.perf_counter() - t0)),
+                                    snap_goal=False, refine=refine)
+                    if res.ok:
+                        return dataclasses.replace(
+                            res, snapped_goal=True, planning_time_s=time.perf_counter() - t0,
+                            reason="goal unreachable; snapped to the nearest reachable free point",
+                        )
+                    return res
+            return fail(PlanStatus.DISCONNECTED,
+                        f"no free path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, {goal[1]:.2f}) m "
+                        f"for a vehicle of radius {cfg.vehicle_radius_m:.2f} m at {cfg.flight_altitude_m:.2f} m "
+                        "altitude: they are in separate free regions")
+        t_first = time.perf_counter()
+
+        # Any-angle post-processing.
+        w = cfg.cost_weight
+        best = refine_vertices(cs, shortcut(cs, path, w), w)
+        if not cs.path_free(best):
+            best = path
+        best_cost = cs.path_cost(best, w)
+        source = "grid"
+        t_smooth = time.perf_counter()
+
+        ompl_improved = 0.0
+        remaining = budget - (t_smooth - t0)
+        if use_ompl and remaining > 0.01:
+            cand = ompl_solve(cs, start, goal, cfg.algorithm, remaining, w, cost_bound=best_cost)
+            if cand is not None:
+                cand = refine_vertices(cs, shortcut(cs, cand, w), w)
+                if cs.path_free(cand):
+                    c = cs.path_cost(cand, w)
+                    if c < best_cost - 1e-6:
+                        best, best_cost, source = cand, c, f"ompl:{cfg.algorithm}"
+                        ompl_improved = 1.0
+        t_end = time.perf_counter()
+        return PlanResult(
+            status=PlanStatus.OK,
+            reason="goal snapped to the nearest reachable free point" if snapped else "ok",
+            path_xy_m=best, length_m=path_length_m(best), cost=best_cost,
+            planning_time_s=t_end - t0, first_solution_time_s=t_first - t0,
+            goal_xy_m=(float(goal[0]), float(goal[1])), snapped_goal=snapped, source=source,
+            map_version=version,
+            stats={
+                "search_s": t_first - t_search, "smooth_s": t_smooth - t_first,
+                "ompl_s": t_end - t_smooth, "ompl_improved": ompl_improved,
+                "first_length_m": path_length_m(path),
+            },
+        )
+
+    def replan(
+        self,
+        current_xy_m: Sequence[float] | NDArray[np.floating],
+        goal_xy_m: Sequence[float] | NDArray[np.floating],
+        previous: PlanResult | None,
+        time_limit_s: float | None = None,
+    ) -> tuple[PlanResult, bool]:
+        """Keep ``previous`` while its remaining part is free and its goal unchanged, else plan.
+
+        Returns (result, replanned). The remaining part starts at the path point nearest to
+        ``current_xy_m``.
+        """
+        cur = _xy(current_xy_m, "current position")
+        goal = _xy(goal_xy_m, "goal")
+        if previous is not None and previous.ok and previous.goal_xy_m is not None:
+            same_goal = previous.snapped_goal or float(np.linalg.norm(np.array(previous.goal_xy_m) - goal)) < 1e-6
+            remaining = remaining_path(previous.path_xy_m, cur)
+            if same_goal and self.path_still_valid(remaining):
+                return previous, False
+        return self.plan(cur, goal, time_limit_s), True
+
+    def _snap(self, start: NDArray[np.float64], goal: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """Nearest free point reachable from ``start`` (full-resolution graph) to ``goal``."""
+        return self._graph(1).reachable_nearest(start, goal)
+
+    def _extent_text(self) -> str:
+        x0, y0, x1, y1 = self.cspace.spec.extent_xy_m
+        fence = self.config.geofence_xy_m
+        if fence is not None:
+            x0, y0, x1, y1 = max(x0, fence[0]), max(y0, fence[1]), min(x1, fence[2]), min(y1, fence[3])
+        return f"x [{x0:.2f}, {x1:.2f}] y [{y0:.2f}, {y1:.2f}] m"
+
+
+def remaining_path(path_xy_m: NDArray[np.floating], current_xy_m: NDArray[np.floating]) -> NDArray[np.float64]:
+    """The part of a (K, 2) polyline from the point nearest to ``current_xy_m`` onwards."""
+    p = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
+    c = np.asarray(current_xy_m, dtype=np.float64).reshape(2)
+    if len(p) < 2:
+        return p.copy()
+    a, b = p[:-1], p[1:]
+    ab = b - a
+    t = np.clip(np.einsum("ij,ij->i", c - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12), 0.0, 1.0)
+    proj = a + t[:, None] * ab
+    k = int(np.argmin(np.linalg.norm(proj - c, axis=1)))
+    return np.vstack([proj[k:k + 1], p[k + 1:]])
+

@@ -1,0 +1,158 @@
+"""Configuration space: the altitude rule, inflation, conservative clearance, window updates."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from planner.cspace import CSpaceParams, band_costmap, build_cspace, update_cspace
+from semmap.costmap import (
+    FREE_SPACE,
+    LETHAL_OBSTACLE,
+    NO_INFORMATION,
+    Costmap,
+    ObjectFootprint,
+    VerticalBand,
+)
+from semmap.grid import GridSpec
+
+SPEC = GridSpec(0.05, (0.0, 0.0), (80, 100))  # 5 m x 4 m
+
+
+def rect(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=np.float64)
+
+
+def empty_costmap(band: VerticalBand) -> Costmap:
+    return Costmap(SPEC, np.full(SPEC.shape_rc, FREE_SPACE, dtype=np.uint8), band)
+
+
+def coffee_table() -> ObjectFootprint:
+    return ObjectFootprint(1, "coffee_table", rect(2.0, 1.5, 3.0, 2.1), z_min_m=0.0, z_max_m=0.45)
+
+
+def desk() -> ObjectFootprint:
+    return ObjectFootprint(2, "desk", rect(2.0, 1.5, 3.4, 2.2), z_min_m=0.0, z_max_m=0.75)
+
+
+def test_coffee_table_does_not_block_at_1_5_m() -> None:
+    band = VerticalBand.for_altitude(1.5, 0.15, 0.1)
+    cm = band_costmap(empty_costmap(band), [coffee_table()], band)
+    assert not cm.lethal.any()
+
+
+def test_desk_blocks_its_whole_footprint_at_0_5_m() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    fp = desk()
+    cm = band_costmap(empty_costmap(band), [fp], band)
+    inside = fp.mask(SPEC)
+    assert cm.lethal[inside].all()
+    # The space between the legs (the centre of the footprint) is blocked too.
+    assert bool(cm.lethal[SPEC.cell_of(np.array([[2.7, 1.85]]))[0][0], SPEC.cell_of(np.array([[2.7, 1.85]]))[0][1]])
+
+
+def test_low_existence_objects_are_left_out() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    fp = ObjectFootprint(3, "desk", rect(2.0, 1.5, 3.4, 2.2), 0.0, 0.75, existence=0.2)
+    cm = band_costmap(empty_costmap(band), [fp], band, min_existence=0.5)
+    assert not cm.lethal.any()
+
+
+def test_free_respects_radius_conservatively() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cm = band_costmap(empty_costmap(band), [desk()], band)
+    cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.3))
+    # Points closer than the radius to the desk's edge (x = 2.0) are never free.
+    assert not cs.is_free(np.array([[1.75, 1.8]]))[0]
+    assert not cs.is_free(np.array([[1.71, 1.8]]))[0]
+    # Far away is free.
+    assert cs.is_free(np.array([[0.8, 1.8]]))[0]
+    # Outside the map is never free.
+    assert not cs.is_free(np.array([[-0.1, 1.0]]))[0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(0.0, 5.0), st.floats(0.0, 4.0))
+def test_clearance_is_a_lower_bound_on_true_distance(x: float, y: float) -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    x0, y0, x1, y1 = 2.0, 1.5, 3.4, 2.2
+    cm = band_costmap(empty_costmap(band), [ObjectFootprint(1, "desk", rect(x0, y0, x1, y1), 0.0, 0.75)], band)
+    cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.3))
+    clr = float(cs.clearance_at(np.array([[x, y]]))[0])
+    true = float(np.hypot(max(x0 - x, 0.0, x - x1), max(y0 - y, 0.0, y - y1)))
+    assert clr <= true + 1e-9
+
+
+def test_segment_through_obstacle_is_not_free() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cm = band_costmap(empty_costmap(band), [desk()], band)
+    cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25))
+    assert not cs.segment_free((0.5, 1.85), (4.5, 1.85))
+    assert cs.segment_free((0.5, 0.6), (4.5, 0.6))
+    assert not cs.segment_free((0.5, 0.6), (5.5, 0.6))  # leaves the map
+
+
+def test_object_margin_grows_blocked_area() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    plain = band_costmap(empty_costmap(band), [desk()], band)
+    fp = ObjectFootprint(2, "desk", rect(2.0, 1.5, 3.4, 2.2), 0.0, 0.75, margin_m=0.3)
+    with_margin = band_costmap(empty_costmap(band), [fp], band)
+    a = build_cspace(plain, CSpaceParams(vehicle_radius_m=0.2))
+    b = build_cspace(with_margin, CSpaceParams(vehicle_radius_m=0.2))
+    assert b.blocked.sum() > a.blocked.sum()
+    assert a.is_free(np.array([[1.5, 1.85]]))[0] and not b.is_free(np.array([[1.5, 1.85]]))[0]
+
+
+def test_unknown_space_forbidden_only_at_full_cost() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cost = np.full(SPEC.shape_rc, FREE_SPACE, dtype=np.uint8)
+    cost[:, 60:] = NO_INFORMATION
+    cm = Costmap(SPEC, cost, band)
+    allowed = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.2, unknown_cost=0.5))
+    forbidden = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.2, unknown_cost=1.0))
+    p = np.array([[4.0, 2.0]])
+    assert allowed.is_free(p)[0] and allowed.cost_at(p)[0] >= 0.5
+    assert not forbidden.is_free(p)[0]
+
+
+def test_geofence_blocks_outside() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cs = build_cspace(empty_costmap(band), CSpaceParams(vehicle_radius_m=0.2, geofence_xy_m=(0.0, 0.0, 3.0, 4.0)))
+    assert cs.is_free(np.array([[2.0, 2.0]]))[0]
+    assert not cs.is_free(np.array([[2.9, 2.0]]))[0]  # within the radius of the fence
+    assert not cs.is_free(np.array([[4.0, 2.0]]))[0]
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.floats(0.5, 4.0), st.floats(0.5, 3.0), st.floats(0.1, 0.8), st.floats(0.1, 0.8))
+def test_window_update_equals_full_rebuild(x: float, y: float, w: float, h: float) -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    params = CSpaceParams(vehicle_radius_m=0.25, clearance_decay_m=0.15)
+    before = band_costmap(empty_costmap(band), [desk()], band)
+    new_obj = ObjectFootprint(9, "chair", rect(x, y, x + w, y + h), 0.0, 0.9)
+    after = band_costmap(empty_costmap(band), [desk(), new_obj], band)
+    cs0 = build_cspace(before, params, version=1)
+    updated, window = update_cspace(cs0, after, version=2)
+    full = build_cspace(after, params, version=2)
+    assert window is not None
+    np.testing.assert_allclose(updated.clearance_m, full.clearance_m, atol=1e-5)
+    np.testing.assert_array_equal(updated.free, full.free)
+    np.testing.assert_allclose(updated.cost, full.cost, atol=1e-6)
+    assert updated.version == 2
+
+
+def test_update_without_change_keeps_fields() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cm = band_costmap(empty_costmap(band), [desk()], band)
+    cs0 = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25))
+    cs1, window = update_cspace(cs0, cm, version=5)
+    assert window is None and cs1.version == 5 and cs1.free is cs0.free
+
+
+def test_lethal_cells_are_never_free() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cost = np.zeros(SPEC.shape_rc, dtype=np.uint8)
+    cost[40, 50] = LETHAL_OBSTACLE
+    cs = build_cspace(Costmap(SPEC, cost, band), CSpaceParams(vehicle_radius_m=0.1))
+    assert not cs.free[40, 50] and cs.free[40, 70]
