@@ -106,7 +106,7 @@ def test_a_rejection_echoes_a_readable_request_id() -> None:
 
 
 @given(st.binary(max_size=300))
-@settings(max_examples=200)
+@settings(max_examples=200, deadline=None)
 def test_arbitrary_bytes_never_raise(payload: bytes) -> None:
     for kind in (*COMMAND_MODELS, "other"):
         assert isinstance(parse_command(kind, payload), (Rejection, *COMMAND_MODELS.values()))
@@ -123,7 +123,7 @@ json_values = st.recursive(
     st.sampled_from(["schema_version", "request_id", "x_m", "y_m", "altitude_m", "yaw_deg",
                      "action", "extra"]),
     json_values, max_size=7))
-@settings(max_examples=200)
+@settings(max_examples=200, deadline=None)
 def test_arbitrary_json_objects_never_raise(data: dict[str, object]) -> None:
     payload = json.dumps(data)
     for kind in COMMAND_MODELS:
@@ -203,7 +203,7 @@ def test_topics_live_under_prefix_and_vehicle() -> None:
 
 
 @given(arrays(np.uint8, st.tuples(st.integers(1, 40), st.integers(1, 40))))
-@settings(max_examples=50)
+@settings(max_examples=50, deadline=None)
 def test_cost_png_round_trips_exactly(cost: np.ndarray) -> None:
     png = encode_cost_png(cost)
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
