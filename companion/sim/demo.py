@@ -70,7 +70,8 @@ def build_world(cfg: CompanionConfig) -> SimWorld:
     clearance = cfg.planner.vehicle_radius_m + margin
     traj = doorway_transit(
         room, altitude, speed_m_s=0.5, yaw_sweep_rad=math.radians(35.0),
-        clearance_required_m=clearance, vehicle_height_m=cfg.planner.vehicle_height_m,
+        clearance_required_m=clearance, min_clearance_m=cfg.planner.vehicle_radius_m + 0.05,
+        vehicle_height_m=cfg.planner.vehicle_height_m, vertical_margin_m=cfg.planner.vertical_margin_m,
     )
     return SimWorld(room, renderer_from_config(room, cfg), traj, altitude)
 
@@ -112,7 +113,7 @@ def mask_overlay_picture(
     ``class #id`` at its mask's top-left."""
     rgb = frame.rgb.astype(np.float32)
     cls = frame.masks["class"].astype(np.int64)
-    inst = frame.masks["instance"]
+    inst = np.asarray(frame.masks["instance"], dtype=np.int32)
     lut = np.array(list(class_colors) + [(0, 0, 0)], dtype=np.float32)  # -1 -> last row
     tint = lut[np.where(cls >= 0, cls, len(class_colors))]
     has = (cls >= 0)[..., None]
@@ -153,7 +154,8 @@ def costmap_picture(
         for k, col in enumerate(class_colors):
             img[ci == k] = col
     img = img[::-1]  # row 0 is the southern edge; pictures put north up
-    return cv2.resize(img, (img.shape[1] * scale_px, img.shape[0] * scale_px), interpolation=cv2.INTER_NEAREST)
+    big = cv2.resize(img, (img.shape[1] * scale_px, img.shape[0] * scale_px), interpolation=cv2.INTER_NEAREST)
+    return np.asarray(big, dtype=np.uint8)
 
 
 def _to_px(costmap: Costmap, xy_m: NDArray[np.floating], scale_px: int) -> NDArray[np.int32]:
@@ -283,8 +285,8 @@ def run_demo(
         ],
         "flight": {
             "altitude_m": world.altitude_m, "duration_s": round(world.trajectory.duration_s, 2),
-            "min_clearance_m": round(check_clearance(room, world.trajectory, 0.0,
-                                                     cfg.planner.vehicle_height_m), 3),
+            "min_clearance_m": round(check_clearance(
+                room, world.trajectory, 0.0, cfg.planner.vehicle_height_m, cfg.planner.vertical_margin_m), 3),
         },
         "frames": {
             "rendered": len(frames),

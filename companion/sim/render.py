@@ -129,7 +129,7 @@ def _smooth_noise(rng: np.random.Generator, size: int, blur_px: float) -> NDArra
     if blur_px > 0:
         pad = int(3 * blur_px) + 1
         big = np.pad(n, pad, mode="wrap")
-        big = cv2.GaussianBlur(big, (0, 0), blur_px)
+        big = np.asarray(cv2.GaussianBlur(big, (0, 0), blur_px), dtype=np.float32)
         n = big[pad:-pad, pad:-pad]
     n -= n.mean()
     return n / max(float(n.std()), 1e-6)
@@ -479,9 +479,9 @@ class RoomRenderer:
     def visible_objects(self, frame: Frame, min_pixels: int = 1) -> list[VisibleObject]:
         """Objects present in the frame's instance mask with at least ``min_pixels`` pixels,
         largest first, with their ground-truth geometry (map frame)."""
-        inst = frame.masks.get("instance")
-        if inst is None:
+        if "instance" not in frame.masks:
             raise SimulationError("frame has no instance mask (not rendered by the simulator)")
+        inst = np.asarray(frame.masks["instance"], dtype=np.int32)
         ids, counts = np.unique(inst[inst > 0], return_counts=True)
         out: list[VisibleObject] = []
         for oid, cnt in zip(ids.tolist(), counts.tolist(), strict=True):

@@ -313,6 +313,7 @@ def _fly_waypoints(
     room: Room, waypoints_xy_m: Sequence[tuple[float, float]], altitude_m: float, speed_m_s: float,
     yaw_rate_max_rad_s: float, yaw_sweep_rad: float, sweep_period_s: float,
     clearance_required_m: float, min_clearance_m: float | None, vehicle_height_m: float,
+    vertical_margin_m: float | None,
 ) -> Trajectory:
     """Route and fly; if no route keeps ``clearance_required_m``, retry with 5 cm less down
     to ``min_clearance_m`` (None: no retry). The trajectory's clearance is checked exactly."""
@@ -320,7 +321,8 @@ def _fly_waypoints(
     floor_m = clearance_required_m if min_clearance_m is None else min(min_clearance_m, clearance_required_m)
     while True:
         try:
-            route = plan_route(room, waypoints_xy_m, altitude_m, clearance, vehicle_height_m)
+            route = plan_route(room, waypoints_xy_m, altitude_m, clearance, vehicle_height_m,
+                               vertical_margin_m=vertical_margin_m)
             break
         except SimulationError:
             if clearance - 0.05 < floor_m - 1e-9:
@@ -330,7 +332,7 @@ def _fly_waypoints(
         log.warning("no route keeps %.2f m clearance at %.2f m; flying with %.2f m",
                     clearance_required_m, altitude_m, clearance)
     traj = fly_route(route, altitude_m, speed_m_s, yaw_rate_max_rad_s, yaw_sweep_rad, sweep_period_s)
-    check_clearance(room, traj, clearance, vehicle_height_m)
+    check_clearance(room, traj, clearance, vehicle_height_m, vertical_margin_m)
     return traj
 
 
@@ -339,11 +341,14 @@ def doorway_transit(
     yaw_rate_max_rad_s: float = math.radians(60.0), yaw_sweep_rad: float = math.radians(35.0),
     sweep_period_s: float = 6.0, clearance_required_m: float = DEFAULT_CLEARANCE_M,
     min_clearance_m: float | None = 0.3, vehicle_height_m: float = VEHICLE_HEIGHT_M,
+    vertical_margin_m: float | None = 0.1,
 ) -> Trajectory:
     """From just inside the first doorway to just inside the second (or across the room
     when there is one doorway), sweeping the yaw to look around. Builders keep
     ``clearance_required_m`` where a route allows it, else as much as possible down to
-    ``min_clearance_m`` (None: exactly the required one or :class:`SimulationError`)."""
+    ``min_clearance_m`` (None: exactly the required one or :class:`SimulationError`), and
+    avoid whole footprints of objects within ``vertical_margin_m`` of the vehicle's band
+    (None: only the primitives in the band, i.e. flying under tables is allowed)."""
     if not room.doorways:
         raise SimulationError("the room has no doorway to start from")
     start = room.doorways[0].inside_point_m(0.6)
@@ -352,7 +357,8 @@ def doorway_transit(
     else:
         goal = (room.width_m - start[0], room.depth_m - start[1])
     return _fly_waypoints(room, [start, goal], altitude_m, speed_m_s, yaw_rate_max_rad_s, yaw_sweep_rad,
-                          sweep_period_s, clearance_required_m, min_clearance_m, vehicle_height_m)
+                          sweep_period_s, clearance_required_m, min_clearance_m, vehicle_height_m,
+                          vertical_margin_m)
 
 
 def lawnmower(
@@ -360,6 +366,7 @@ def lawnmower(
     yaw_rate_max_rad_s: float = math.radians(60.0), yaw_sweep_rad: float = 0.0,
     sweep_period_s: float = 6.0, clearance_required_m: float = DEFAULT_CLEARANCE_M,
     min_clearance_m: float | None = 0.3, vehicle_height_m: float = VEHICLE_HEIGHT_M,
+    vertical_margin_m: float | None = 0.1,
 ) -> Trajectory:
     """Back-and-forth lanes along the room's longer side, ``lane_spacing_m`` apart, routed
     around furniture in the vehicle's band."""
@@ -375,7 +382,8 @@ def lawnmower(
         for s in (a, b):
             wps.append((s, float(o)) if along_x else (float(o), s))
     return _fly_waypoints(room, wps, altitude_m, speed_m_s, yaw_rate_max_rad_s, yaw_sweep_rad,
-                          sweep_period_s, clearance_required_m, min_clearance_m, vehicle_height_m)
+                          sweep_period_s, clearance_required_m, min_clearance_m, vehicle_height_m,
+                          vertical_margin_m)
 
 
 def perimeter_loop(
@@ -383,10 +391,12 @@ def perimeter_loop(
     yaw_rate_max_rad_s: float = math.radians(60.0), yaw_sweep_rad: float = 0.0,
     sweep_period_s: float = 6.0, clearance_required_m: float = DEFAULT_CLEARANCE_M,
     min_clearance_m: float | None = 0.3, vehicle_height_m: float = VEHICLE_HEIGHT_M,
+    vertical_margin_m: float | None = 0.1,
 ) -> Trajectory:
     """One counter-clockwise lap ``inset_m`` inside the walls, back to the start."""
     w, d = room.width_m, room.depth_m
     corners = [(inset_m, inset_m), (w - inset_m, inset_m), (w - inset_m, d - inset_m),
                (inset_m, d - inset_m), (inset_m, inset_m)]
     return _fly_waypoints(room, corners, altitude_m, speed_m_s, yaw_rate_max_rad_s, yaw_sweep_rad,
-                          sweep_period_s, clearance_required_m, min_clearance_m, vehicle_height_m)
+                          sweep_period_s, clearance_required_m, min_clearance_m, vehicle_height_m,
+                          vertical_margin_m)
