@@ -2,9 +2,10 @@
 
 Every command is answered at once (inside the receive callback, so well under PX4's typical
 ack latency) with the result PX4 would give. Clients re-send a command when an ack is lost
-(MAVSDK increments ``confirmation``); a repeat of the same command with the same parameters
-from the same sender within :data:`DUPLICATE_WINDOW_S` is re-acknowledged with the earlier
-result and *not* executed again, so a re-sent "takeoff" cannot restart a takeoff.
+(MAVSDK increments ``confirmation``); a re-send (confirmation > 0, or any repeat of a
+COMMAND_INT) of the same command with the same parameters from the same sender within
+:data:`DUPLICATE_WINDOW_S` is re-acknowledged with the earlier result and *not* executed again,
+so a re-sent "takeoff" cannot restart a takeoff.
 """
 
 from __future__ import annotations
@@ -86,7 +87,10 @@ class CommandHandler:
             return  # for another component (camera, gimbal) of this system
         key = (src[0], src[1], cmd)
         prev = self._recent.get(key)
-        if prev is not None and now_s - prev[1] < DUPLICATE_WINDOW_S and \
+        # COMMAND_LONG marks re-sends with confirmation > 0; a fresh attempt (confirmation 0,
+        # e.g. arming again after a denial) is executed. COMMAND_INT has no such field.
+        resend = msg.get_type() == "COMMAND_INT" or int(msg.confirmation) > 0
+        if resend and prev is not None and now_s - prev[1] < DUPLICATE_WINDOW_S and \
                 _same(prev[0], params):
             self.history.append(CommandRecord(now_s, cmd, params, src, prev[2], True))
             self._ack(cmd, prev[2], src)
