@@ -11,8 +11,9 @@
   ``../shared/data/rgbd/tum_fr2_desk``.
 
 Intrinsics come from ``intrinsics.json`` in the folder (keys ``width``, ``height``, ``fx``,
-``fy``, ``cx``, ``cy`` and optionally ``depth_scale``, raw units per metre) or, when the
-folder has none, from the ``default_intrinsics`` argument.
+``fy``, ``cx``, ``cy`` and optionally ``depth_scale``, raw units per metre); else, for a TUM
+folder named after its camera (``rgbd_dataset_freiburg2_desk``), the benchmark's published
+calibration; else the ``default_intrinsics`` argument.
 
 Frame poses: ``Frame.T_map_camera`` is the recording's camera-to-world pose, so "map" here
 means *the recording's world frame*, not our ENU map. For the dining room that world is
@@ -42,6 +43,14 @@ log = logging.getLogger(__name__)
 
 TUM_DEPTH_SCALE = 5000.0
 MM_DEPTH_SCALE = 1000.0
+
+#: The TUM RGB-D benchmark's published colour calibrations (640x480), used for a TUM-layout
+#: folder without ``intrinsics.json`` whose name says which Kinect recorded it.
+TUM_INTRINSICS = {
+    "freiburg1": CameraIntrinsics(517.3, 516.5, 318.6, 255.3, 640, 480),
+    "freiburg2": CameraIntrinsics(520.9, 521.0, 325.1, 249.7, 640, 480),
+    "freiburg3": CameraIntrinsics(535.4, 539.2, 320.1, 247.6, 640, 480),
+}
 
 
 @dataclass(frozen=True)
@@ -283,9 +292,13 @@ class RecordedFrameSource(FrameSource):
                 "color/ + depth/, or N.png + N_depth.png)"
             )
         json_path = p / "intrinsics.json"
+        tum_camera = next((k for k in TUM_INTRINSICS if k in p.resolve().name), None)
         if json_path.is_file():
             intr, json_scale = read_intrinsics_json(json_path)
             scale = json_scale or scale
+        elif self.layout == "tum" and tum_camera is not None:
+            intr = TUM_INTRINSICS[tum_camera]
+            log.info("%s: no intrinsics.json; using the TUM %s calibration", p, tum_camera)
         elif self._default_intrinsics is not None:
             intr = self._default_intrinsics
         else:

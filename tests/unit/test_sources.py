@@ -130,6 +130,16 @@ def test_tum_layout_associates_and_interpolates_ground_truth(shared_data: Path, 
     assert np.array_equal(frames[0].depth_m, ref.depth_m)
 
 
+def test_tum_folder_named_after_its_camera_gets_the_published_calibration(
+    shared_data: Path, tmp_path: Path,
+) -> None:
+    folder = make_tum_folder(shared_data, tmp_path / "rgbd_dataset_freiburg2_desk")
+    (folder / "intrinsics.json").unlink()
+    src = RecordedFrameSource(folder, default_intrinsics=CameraIntrinsics(1, 1, 1, 1, 640, 480))
+    assert src.intrinsics == CameraIntrinsics(520.9, 521.0, 325.1, 249.7, 640, 480)
+    assert src.depth_scale == 5000.0
+
+
 def test_associate_is_one_to_one_and_respects_max_dt() -> None:
     a = np.array([0.0, 0.033, 0.066, 0.5])
     b = np.array([0.001, 0.030, 0.035, 0.07])
