@@ -6,7 +6,7 @@
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
-DEB_PACKAGES := mosquitto libusb-1.0-0 libgomp1 systemd
+DEB_PACKAGES := mosquitto libusb-1.0-0 libgomp1 systemd openssl
 DEMO_OUT ?= out/demo
 
 .PHONY: demo test check lint bench-quick deps-debian clean

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from pydantic import ValidationError
 
 from companion.cli import main
 from companion.config import CompanionConfig, config_from_dict, dump_config, load_config
@@ -109,7 +110,7 @@ def test_missing_file() -> None:
 
 def test_config_is_frozen() -> None:
     cfg = CompanionConfig()
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError, match="frozen"):
         cfg.map.resolution_m = 1.0  # type: ignore[misc]
 
 
