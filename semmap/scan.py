@@ -56,6 +56,23 @@ class BandScan:
         return int(len(self.valid))
 
 
+def fill_dropouts(
+    depth_m: NDArray[np.float32], valid: NDArray[np.bool_], rows: int,
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Fill invalid pixels that have valid depth within ``rows`` rows both above and below
+    (same column) with the nearer of the two nearest values: a dropout sandwiched in a
+    surface or at a thin edge. Pixels at the border of the valid region (beyond the sensor's
+    range, the image edge) stay invalid. ``depth_m``/``valid``: (h, w)."""
+    inf = np.where(valid, depth_m, np.float32(np.inf))
+    above = np.full_like(inf, np.inf)
+    below = np.full_like(inf, np.inf)
+    for k in range(1, rows + 1):
+        np.minimum(above[k:], inf[:-k], out=above[k:])
+        np.minimum(below[:-k], inf[k:], out=below[:-k])
+    fill = ~valid & np.isfinite(above) & np.isfinite(below)
+    return np.where(fill, np.minimum(above, below), depth_m), valid | fill
+
+
 def extract_band_scan(
     depth_m: NDArray[np.floating],
     intrinsics: CameraIntrinsics,
@@ -67,14 +84,19 @@ def extract_band_scan(
     min_hit_points: int = 2,
     range_tolerance_m: float = 0.05,
     range_tolerance_per_m2: float = 0.01,
+    fill_px: int = 4,
     stamp_s: float = 0.0,
 ) -> BandScan:
     """Extract the band scan of one depth image.
 
     ``depth_m``: (H, W) metres along the optical axis. ``T_map_camera``: (4, 4) optical camera
     to map (z up, floor at z = 0); ``band`` in map-frame metres above the floor.
-    ``stride_px`` subsamples rows and columns. ``min_hit_points``: a column's obstacle is its
-    ``min_hit_points``-th nearest in-band point, so a single flying pixel is not a wall.
+    ``stride_px`` subsamples rows and columns. Invalid pixels with valid depth within
+    ``fill_px`` rows above and below take the nearer: sensors drop pixels at depth edges, and
+    a dropped table edge must not let the rays under the table clear its footprint.
+    ``min_hit_points``: a column's nearest in-band point is an obstacle only with this many
+    points (itself included) within the range tolerance among the column's next point and the
+    two neighbouring columns' nearest, so a single flying pixel is not a wall.
     The obstacle is placed at the median range of the column's nearest cluster, the points
     within ``2 * tol`` of it with ``tol = range_tolerance_m + range_tolerance_per_m2 * r**2``
     (about three sigma of a D455-like depth noise): the nearest point alone is biased.
@@ -92,6 +114,10 @@ def extract_band_scan(
         raise FrameError(f"T_map_camera must be a finite (4, 4) transform, got shape {T.shape}")
     s = max(1, int(stride_px))
     sub = d[::s, ::s].astype(np.float32, copy=False)  # (h, w)
+    valid = valid_depth_mask(sub, min_depth_m, max_depth_m)
+    dep = np.where(valid, sub, np.float32(0.0))
+    if fill_px > 0:
+        dep, valid = fill_dropouts(dep, valid, max(1, int(round(fill_px / s))))
     us = np.arange(0, W, s, dtype=np.float32)
     vs = np.arange(0, H, s, dtype=np.float32)
     xn = (us - np.float32(intrinsics.cx_px)) / np.float32(intrinsics.fx_px)  # (w,)
@@ -99,8 +125,6 @@ def extract_band_scan(
     R = T[:3, :3].astype(np.float32)
     tx, ty, tz = (float(v) for v in T[:3, 3])
 
-    valid = valid_depth_mask(sub, min_depth_m, max_depth_m)  # (h, w)
-    dep = np.where(valid, sub, np.float32(0.0))
     # Map-frame offset of each pixel's point from the sensor: depth * R @ [xn, yn, 1].
     ox = dep * (R[0, 0] * xn[None, :] + R[0, 1] * yn[:, None] + R[0, 2])
     oy = dep * (R[1, 0] * xn[None, :] + R[1, 1] * yn[:, None] + R[1, 2])
@@ -120,33 +144,46 @@ def extract_band_scan(
     crosses = valid & (s_hi > s_lo)
     in_band = valid & (z >= z0) & (z <= z1)
 
-    h = sub.shape[0]
-    cols = np.arange(sub.shape[1])
-    k = min(max(1, int(min_hit_points)), h) - 1
+    h = dep.shape[0]
+    cols = np.arange(dep.shape[1])
     hit_rng = np.where(in_band, rng, np.float32(np.inf))
-    hit_row = np.argmin(hit_rng, axis=0)  # (w,) the nearest in-band pixel of each column
     r_sorted = np.sort(hit_rng, axis=0)  # (h, w)
-    r_near = r_sorted[k]  # (w,) k-th nearest: one flying pixel is not an obstacle
+    # A column's nearest in-band point counts if enough points back it up within the range
+    # tolerance: the column's next point or the neighbouring columns' nearest. A thin table
+    # edge spans columns; a flying pixel is alone.
+    r1 = r_sorted[0]
+    r2 = r_sorted[1] if h > 1 else np.full_like(r1, np.inf)
+    with np.errstate(invalid="ignore"):
+        tol1 = np.float32(range_tolerance_m) + np.float32(range_tolerance_per_m2) * r1**2
+        left = np.concatenate([[np.inf], r1[:-1]]).astype(np.float32)
+        right = np.concatenate([r1[1:], [np.inf]]).astype(np.float32)
+        support = sum((np.abs(o - r1) <= tol1).astype(np.int32) for o in (r2, left, right))
+    confirmed = support >= max(0, int(min_hit_points) - 1)
+    k_idx = np.where(confirmed, 0, 1).astype(np.intp)
+    r_near = np.where(confirmed, r1, r2)
     is_hit = np.isfinite(r_near)
+    hit_row = np.argmin(np.abs(hit_rng - np.where(is_hit, r_near, 0)[None, :]), axis=0)
     # The nearest minimum of noisy ranges is biased towards the sensor (by ~2 sigma for a
     # wall seen by 50 pixels), so the obstacle is placed at the median of the nearest
     # cluster, [r_near, r_near + 2 * tol]; free space still ends at r_near.
     r_near_f = np.where(is_hit, r_near, np.float32(0.0))
     tol = np.float32(range_tolerance_m) + np.float32(range_tolerance_per_m2) * r_near_f**2
     n_cluster = np.sum(r_sorted <= (r_near_f + 2.0 * tol)[None, :], axis=0)
-    med_idx = np.clip((k + n_cluster - 1) // 2, k, h - 1)
+    med_idx = np.clip((k_idx + n_cluster - 1) // 2, k_idx, h - 1)
     r_hit = np.where(is_hit, r_sorted[med_idx, cols], np.float32(0.0))
 
-    # Far end of the free part: the obstacle, else the farthest band exit of the column's rays.
+    # Far end of the free part: the nearest in-band point (confirmed or not: an unconfirmed
+    # point still blocks), else the farthest band exit of the column's rays.
+    blocked = np.isfinite(r1)
+    first_row = np.argmin(hit_rng, axis=0)
     far_rng = np.where(crosses, s_hi * rng, np.float32(-1.0))
     exit_row = np.argmax(far_rng, axis=0)
-    far_row = np.where(is_hit, hit_row, exit_row)
+    far_row = np.where(blocked, first_row, exit_row)
     # The pixel at the cluster's median range (its own bearing: columns of a tilted camera
     # are not vertical planes).
     med_row = np.argmin(np.abs(hit_rng - r_hit[None, :]), axis=0)
-    r_pix = rng[far_row, cols]
     with np.errstate(divide="ignore", invalid="ignore"):
-        far_s = np.where(is_hit, r_near_f / r_pix, s_hi[far_row, cols])
+        far_s = np.where(blocked, 1.0, s_hi[far_row, cols])
     far_s = np.nan_to_num(far_s, nan=0.0, posinf=0.0)
     near_rng = np.where(crosses, s_lo * rng, np.float32(np.inf))
     near_row = np.argmin(near_rng, axis=0)
@@ -154,7 +191,7 @@ def extract_band_scan(
     if sensor_in_band:
         near_s = np.zeros_like(near_s)
 
-    ray_valid = np.any(crosses, axis=0) | is_hit
+    ray_valid = np.any(crosses, axis=0) | blocked
     origin = np.array([tx, ty])
     dxy_far = np.stack([ox[far_row, cols], oy[far_row, cols]], axis=1).astype(np.float64)
     far = origin + dxy_far * far_s[:, None]
