@@ -21,6 +21,7 @@ pytest.importorskip("open3d")
 
 CLASSES = [c.name for c in CompanionConfig().classes]
 INTR = CameraIntrinsics(383.0, 383.0, 320.0, 240.0, 640, 480)
+HALF = CameraIntrinsics(191.5, 191.5, 160.0, 120.0, 320, 240)
 SMALL = CameraIntrinsics(120.0, 120.0, 80.0, 60.0, 160, 120)
 EXACT = DepthNoise(noise_coeff=0.0, edge_dropout=0.0, min_m=0.0, max_m=100.0, quantum_m=0.0)
 
@@ -55,13 +56,13 @@ def box_distance_m(box: Box, pts: np.ndarray) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def wall_renderer() -> RoomRenderer:
-    return RoomRenderer(empty_room(), CLASSES, INTR, noise=DepthNoise(noise_coeff=0.003), seed=3)
+    return RoomRenderer(empty_room(), CLASSES, HALF, noise=DepthNoise(noise_coeff=0.003), seed=3)
 
 
 @pytest.fixture(scope="module")
 def furnished() -> tuple[Room, RoomRenderer]:
     room = generate_room(0, n_objects=8)
-    return room, RoomRenderer(room, CLASSES, INTR, noise=EXACT, seed=0)
+    return room, RoomRenderer(room, CLASSES, HALF, noise=EXACT, seed=0)
 
 
 def central_window(img: np.ndarray, frac: float = 0.25) -> np.ndarray:
