@@ -4,9 +4,10 @@
 pieces are one module each: :mod:`.vehicle` (kinematic model), :mod:`.navigator` (auto
 modes), :mod:`.commands` (command protocol), :mod:`.mission_server` (mission protocol),
 :mod:`.params` (parameters), :mod:`.offboard` (setpoint interpretation), :mod:`.telemetry`
-(streamed messages). PX4 mode numbers live in :mod:`companion.px4`.
+(streamed messages), :mod:`.transport` (UDP and link faults). PX4 mode numbers live in :mod:`companion.px4`.
 """
 
-from companion.sim.autopilot.mock import Faults, MockAutopilot, VisionSample
+from companion.sim.autopilot.mock import MockAutopilot, VisionSample
+from companion.sim.autopilot.transport import Faults
 
 __all__ = ["Faults", "MockAutopilot", "VisionSample"]

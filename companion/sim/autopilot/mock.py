@@ -2,8 +2,7 @@
 
 One UDP socket bound to ``local_port`` (PX4: 14580) sends every message to the configured
 remote ports (PX4: 14540 for the onboard/API link, 14550 for a ground station) and to any
-address that has sent it a packet, which is how PX4 learns a partner. Incoming datagrams are
-parsed per sender so one peer's garbage cannot corrupt another's stream.
+address that has sent it a packet, which is how PX4 learns a partner (see :mod:`.transport`).
 
 Behaviour follows PX4 v1.14/1.15 where clients can observe it: heartbeats with PX4 custom
 modes, the command protocol (acks within one physics tick, duplicates re-acked without
@@ -21,11 +20,10 @@ import asyncio
 import contextlib
 import logging
 import math
-import random
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -38,34 +36,13 @@ from companion.sim.autopilot.commands import CommandHandler
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
+from companion.sim.autopilot.transport import Faults, UdpEndpoint
 from companion.sim.autopilot.vehicle import KinematicMulticopter, VehicleLimits, VehicleState
 from semmap.frames import Transform
 
 log = logging.getLogger(__name__)
 
 _LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
-
-
-@dataclass
-class Faults:
-    """Fault injection, changeable at any time while the mock runs."""
-
-    #: Cut the link both ways (nothing sent, everything received is discarded).
-    drop_link: bool = False
-    drop_outgoing: bool = False
-    drop_incoming: bool = False
-    #: Extra one-way latency added to everything the mock sends (seconds).
-    delay_s: float = 0.0
-    #: Commands (MAV_CMD ids) answered with MAV_RESULT_DENIED.
-    reject_commands: set[int] = field(default_factory=set)
-    #: Commands (MAV_CMD ids) never answered (the client times out).
-    ignore_commands: set[int] = field(default_factory=set)
-    #: Probability per outgoing byte of being replaced by a random byte.
-    corrupt_bytes_rate: float = 0.0
-    #: Upload of this mission item index is rejected with MAV_MISSION_DENIED.
-    reject_mission_seq: int | None = None
-    #: Pre-arm checks fail (SYS_STATUS health bit cleared, arming denied).
-    prearm_fail: bool = False
 
 
 @dataclass(frozen=True)
@@ -84,18 +61,6 @@ class FailsafeEvent:
     stamp_s: float
     reason: str
     action: FlightMode
-
-
-class _Protocol(asyncio.DatagramProtocol):
-    def __init__(self, owner: MockAutopilot) -> None:
-        self._owner = owner
-
-    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
-        self._owner._on_datagram(data, (str(addr[0]), int(addr[1])))
-
-    def error_received(self, exc: Exception) -> None:
-        # ICMP port unreachable when nobody listens on a remote port yet: normal for UDP.
-        log.debug("mock autopilot socket error: %s", exc)
 
 
 class MockAutopilot:
@@ -126,18 +91,15 @@ class MockAutopilot:
             raise SimulationError(f"unknown telemetry streams {sorted(unknown)} "
                                   f"(known: {sorted(telemetry.STREAMS)})")
         self.host = host
-        self._requested_port = local_port
-        self._remotes: list[tuple[str, int]] = [(remote_host, int(p)) for p in remote_ports]
-        self._learned: dict[tuple[str, int], float] = {}
         self.home = home or GeoOrigin()
         self.system_id = system_id
         self.params = ParamStore({"MAV_SYS_ID": system_id, **(params or {})})
         self.faults = Faults()
-        self._rng = random.Random(seed)
         self._dt_s = 1.0 / physics_rate_hz
         self._mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=1)
-        self._mav.robust_parsing = True
-        self._transport: asyncio.DatagramTransport | None = None
+        self._link = UdpEndpoint(self._mav, host, local_port,
+                                 [(remote_host, int(p)) for p in remote_ports], self.faults,
+                                 self._on_message, seed)
         self._task: asyncio.Task[None] | None = None
         self._t0 = time.monotonic()
         self.vehicle = KinematicMulticopter(self._limits_from_params())
@@ -162,7 +124,6 @@ class MockAutopilot:
         self.failsafes: list[FailsafeEvent] = []
         self.messages_received: Counter[str] = Counter()
         self.last_received: dict[str, Any] = {}
-        self.bad_packets = 0
         self.peer_heartbeats: dict[tuple[int, int], float] = {}
         self.reached_items: list[int] = []
         # telemetry schedule: name -> [interval_s or 0, next_due_s]
@@ -184,19 +145,11 @@ class MockAutopilot:
 
     async def start(self) -> None:
         """Bind the socket and start the physics/telemetry loop."""
-        loop = asyncio.get_running_loop()
-        try:
-            transport, _ = await loop.create_datagram_endpoint(
-                lambda: _Protocol(self), local_addr=(self.host, self._requested_port))
-        except OSError as exc:
-            raise SimulationError(
-                f"mock autopilot cannot bind UDP {self.host}:{self._requested_port}: {exc}"
-            ) from exc
-        self._transport = transport  # type: ignore[assignment]
+        await self._link.open()
         self._t0 = time.monotonic()
         self._task = asyncio.create_task(self._run(), name="mock-autopilot")
         log.info("mock autopilot (system %d) on udp %s:%d -> %s", self.system_id, self.host,
-                 self.local_port, ", ".join(f"{h}:{p}" for h, p in self._remotes))
+                 self.local_port, ", ".join(f"{h}:{p}" for h, p in self._link.remotes))
 
     async def stop(self) -> None:
         """Stop the loop and close the socket (idempotent)."""
@@ -205,9 +158,7 @@ class MockAutopilot:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        if self._transport is not None:
-            self._transport.close()
-            self._transport = None
+        self._link.close()
 
     async def serve_forever(self) -> None:
         """Run until cancelled (the CLI's main loop)."""
@@ -219,14 +170,12 @@ class MockAutopilot:
     @property
     def local_port(self) -> int:
         """The bound UDP port (useful with ``local_port=0``)."""
-        if self._transport is None:
-            return self._requested_port
-        return int(self._transport.get_extra_info("sockname")[1])
+        return self._link.local_port
 
     def add_remote(self, host: str, port: int) -> None:
         """Also stream to ``host:port`` from now on."""
-        if (host, port) not in self._remotes:
-            self._remotes.append((host, port))
+        if (host, port) not in self._link.remotes:
+            self._link.remotes.append((host, port))
 
     # --- state for tests and the simulator -----------------------------------------------
 
@@ -274,9 +223,7 @@ class MockAutopilot:
 
     def inject_garbage(self, n_bytes: int = 64) -> None:
         """Send ``n_bytes`` random bytes (including a MAVLink 2 start byte) to every peer."""
-        data = bytes([0xFD]) + bytes(self._rng.getrandbits(8) for _ in range(max(0, n_bytes - 1)))
-        for addr in self._targets():
-            self._sendto(data, addr)
+        self._link.send_raw(bytes([0xFD]) + self._link.random_bytes(n_bytes - 1))
 
     # --- mode and arming (used by the command handler and the navigator) ----------------
 
@@ -350,9 +297,6 @@ class MockAutopilot:
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
         self._stream(now)
-        for addr, seen in list(self._learned.items()):
-            if now - seen > 10.0:
-                del self._learned[addr]
 
     def _check_offboard(self, now: float) -> None:
         if self._mode is not FlightMode.OFFBOARD:
@@ -435,7 +379,7 @@ class MockAutopilot:
             self.send(telemetry.STREAMS[name][1](self._mav, snap))
 
     def _send_now(self, name: str) -> None:
-        if self._transport is not None:
+        if self._link.is_open:
             self.send(telemetry.STREAMS[name][1](self._mav, self.snapshot()))
 
     def set_stream_interval(self, msg_id: int, interval_us: float) -> bool:
@@ -461,67 +405,19 @@ class MockAutopilot:
         self.send(enc(self._mav, self.snapshot()))
         return True
 
-    # --- sending -------------------------------------------------------------------------
-
-    def _targets(self) -> list[tuple[str, int]]:
-        return self._remotes + [a for a in self._learned if a not in self._remotes]
+    # --- link ----------------------------------------------------------------------------
 
     def send(self, msg: Any) -> None:
         """Encode ``msg`` (a pymavlink message) and send it to every peer."""
-        if self._transport is None:
-            return
-        buf = msg.pack(self._mav)
-        self._mav.seq = (self._mav.seq + 1) % 256
-        for addr in self._targets():
-            self._sendto(buf, addr)
+        self._link.send(msg)
 
-    def _sendto(self, data: bytes, addr: tuple[str, int]) -> None:
-        f = self.faults
-        if f.drop_link or f.drop_outgoing or self._transport is None:
-            return
-        if f.corrupt_bytes_rate > 0:
-            b = bytearray(data)
-            for i in range(len(b)):
-                if self._rng.random() < f.corrupt_bytes_rate:
-                    b[i] = self._rng.getrandbits(8)
-            data = bytes(b)
-        if f.delay_s > 0:
-            asyncio.get_running_loop().call_later(f.delay_s, self._sendto_now, data, addr)
-        else:
-            self._sendto_now(data, addr)
+    @property
+    def bad_packets(self) -> int:
+        """Datagrams or packets dropped as unparseable or unhandleable."""
+        return self._link.bad_packets
 
-    def _sendto_now(self, data: bytes, addr: tuple[str, int]) -> None:
-        if self._transport is not None:
-            try:
-                self._transport.sendto(data, addr)
-            except OSError as exc:
-                log.debug("send to %s:%d failed: %s", addr[0], addr[1], exc)
-
-    # --- receiving -----------------------------------------------------------------------
-
-    def _on_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
-        if self.faults.drop_link or self.faults.drop_incoming:
-            return
-        # A UDP datagram carries whole MAVLink packets: parse each one on its own so a
-        # truncated or corrupt packet cannot swallow the start of the next datagram.
-        parser = mavlink.MAVLink(None)
-        parser.robust_parsing = True
-        try:
-            msgs = parser.parse_buffer(data) or []
-        except Exception as exc:  # pymavlink raises plain MAVError/struct errors on junk
-            self.bad_packets += 1
-            log.debug("unparseable datagram from %s:%d: %s", addr[0], addr[1], exc)
-            return
-        for msg in msgs:
-            if msg.get_type() == "BAD_DATA":
-                self.bad_packets += 1
-                continue
-            self._learned[addr] = self.now_s()
-            try:
-                self._handle(msg)
-            except Exception:  # a bad field must not take the autopilot down
-                self.bad_packets += 1
-                log.exception("error handling %s from %s:%d", msg.get_type(), *addr)
+    def _on_message(self, msg: Any) -> None:
+        self._handle(msg)
 
     def _for_us(self, msg: Any) -> bool:
         ts = getattr(msg, "target_system", 0)
