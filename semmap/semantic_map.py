@@ -6,9 +6,10 @@ the object map's current objects (:meth:`set_objects`), records the vehicle path
 :meth:`costmap` for a vehicle band and saves / loads itself atomically so a restart loses
 nothing. It does no other I/O.
 
-The object map proper (association, existence filtering) lives in :mod:`semmap.objects`;
-this facade only needs each object as a :class:`~semmap.costmap.ObjectFootprint` plus,
-optionally, its class probabilities.
+The object map proper (association, existence filtering) lives in :mod:`semmap.objects`.
+A map built with an :class:`~semmap.objects.ObjectMap` feeds it each frame's observations
+(``integrate_frame(..., observations=...)``) and takes its confirmed footprints; without one,
+callers hand over :class:`~semmap.costmap.ObjectFootprint` s directly (``objects=``).
 """
 
 from __future__ import annotations
@@ -29,8 +30,10 @@ from numpy.typing import NDArray
 
 from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import MapError
+from semmap.geometry import ObjectObservation
 from semmap.grid import GridSpec
 from semmap.layers import LayeredCostmap
+from semmap.objects import CameraView, ObjectMap
 from semmap.occupancy import Bounds, ProbabilityGrid, ProbabilityTables
 from semmap.scan import BandScan, extract_band_scan
 from semmap.types import Frame
@@ -39,6 +42,8 @@ log = logging.getLogger(__name__)
 
 #: Bumped when the saved file's layout changes incompatibly.
 FILE_FORMAT_VERSION = 1
+#: Added to the ids of loaded objects kept beside a fresh object map (no id clashes).
+RESTORED_ID_OFFSET = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -125,9 +130,14 @@ class FrameIntegration:
 class SemanticMap:
     """Grid + objects + layers + path, see the module docstring."""
 
-    def __init__(self, settings: SemanticMapSettings) -> None:
+    def __init__(self, settings: SemanticMapSettings, object_map: ObjectMap | None = None) -> None:
         s = settings
         self.settings = s
+        self.object_map = object_map
+        if object_map is not None and list(object_map.class_names) != list(s.class_names):
+            raise MapError(
+                f"object map classes {object_map.class_names} differ from the map's {list(s.class_names)}"
+            )
         spec = GridSpec.covering(
             s.origin_xy_m[0], s.origin_xy_m[1], s.origin_xy_m[0] + s.size_xy_m[0],
             s.origin_xy_m[1] + s.size_xy_m[1], s.resolution_m,
@@ -142,6 +152,9 @@ class SemanticMap:
         self._objects: tuple[ObjectFootprint, ...] = ()
         self._class_probs: dict[int, NDArray[np.float32]] = {}
         self._path: list[tuple[float, float, float, float]] = []
+        #: Objects loaded from a file that the object map could not take over (ids offset).
+        self._restored: list[ObjectFootprint] = []
+        self._restored_probs: dict[int, NDArray[np.float32]] = {}
         self.frames_integrated = 0
 
     # --- updating ---------------------------------------------------------------------
@@ -151,17 +164,32 @@ class SemanticMap:
         objects: Sequence[ObjectFootprint] | None = None,
         class_probs: Mapping[int, NDArray[np.floating]] | None = None,
         T_map_body: NDArray[np.float64] | None = None,
+        observations: Sequence[ObjectObservation] | None = None,
     ) -> FrameIntegration:
-        """Add one frame: band scan into the grid, path point, and (if given) the objects.
+        """Add one frame: band scan into the grid, path point, and the objects.
 
         ``T_map_camera`` (4, 4) defaults to ``frame.T_map_camera``; the vehicle path records
-        ``T_map_body``'s position when given, else the camera's. ``objects`` replaces the
-        object set (the object map's view after this frame); None keeps the current one.
+        ``T_map_body``'s position when given, else the camera's. ``observations`` (this
+        frame's object geometry, map frame) go to the object map, whose confirmed objects
+        then replace the object set; or ``objects`` replaces it directly; with neither the
+        object set is kept.
         """
         T = T_map_camera if T_map_camera is not None else frame.T_map_camera
         if T is None:
             raise MapError(f"frame {frame.index}: no camera pose (T_map_camera) to map it with")
         s = self.settings
+        if observations is not None:
+            if self.object_map is None:
+                raise MapError("observations given but this semantic map has no object map")
+            if objects is not None:
+                raise MapError("give observations (for the object map) or objects, not both")
+            view = CameraView(frame.depth_m, frame.intrinsics, np.asarray(T, np.float64),
+                              (s.depth_min_m, s.depth_max_m))
+            self.object_map.update(observations, frame.stamp_s, view)
+            objects = self.object_map.footprints(confirmed_only=True)
+            class_probs = dict(self.object_map.class_probabilities())
+            if self._restored:
+                objects, class_probs = self._with_restored(objects, class_probs)
         scan = extract_band_scan(
             frame.depth_m, frame.intrinsics, np.asarray(T, np.float64), s.scan_band,
             min_depth_m=s.depth_min_m, max_depth_m=s.depth_max_m, stride_px=s.scan_stride_px,
@@ -201,6 +229,24 @@ class SemanticMap:
         self._objects = fps
         self._class_probs = {fp.object_id: probs[fp.object_id] for fp in fps if fp.object_id in probs}
         return bounds
+
+    def _with_restored(
+        self, objects: Sequence[ObjectFootprint], class_probs: dict[int, NDArray[np.floating]],
+    ) -> tuple[list[ObjectFootprint], dict[int, NDArray[np.floating]]]:
+        """Objects loaded from a file whose object map could not restore its state stay until
+        the object map has an object overlapping them (bounding boxes)."""
+        out = list(objects)
+
+        def overlaps(a: ObjectFootprint, b: ObjectFootprint) -> bool:
+            pa, pb = np.asarray(a.polygon_xy_m), np.asarray(b.polygon_xy_m)
+            return bool(np.all(pa.min(axis=0) <= pb.max(axis=0)) and np.all(pb.min(axis=0) <= pa.max(axis=0)))
+
+        self._restored = [r for r in self._restored if not any(overlaps(r, o) for o in out)]
+        for r in self._restored:
+            out.append(r)
+            if r.object_id in self._restored_probs:
+                class_probs[r.object_id] = self._restored_probs[r.object_id]
+        return out, class_probs
 
     def _record_path(self, stamp_s: float, xyz_m: NDArray[np.float64]) -> None:
         if self._path:
@@ -270,6 +316,7 @@ class SemanticMap:
             "objects": [_footprint_to_dict(fp, self._class_probs.get(fp.object_id)) for fp in self._objects],
             "stamps_s": {layer.name: _finite_or_none(layer.stamp_s) for layer in self.layers.layers},
             "frames_integrated": self.frames_integrated,
+            "object_map": None if self.object_map is None else self.object_map.to_dict(),
         }
         path_arr = np.asarray(self._path, np.float64).reshape(-1, 4)
         buf = io.BytesIO()
@@ -282,9 +329,14 @@ class SemanticMap:
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "SemanticMap":
+    def load(cls, path: str | Path, object_map: ObjectMap | None = None) -> "SemanticMap":
         """Read a map written by :meth:`save`. Raises :class:`MapError` naming the file and
-        the missing or bad entry."""
+        the missing or bad entry.
+
+        ``object_map``: the object map to keep feeding; its saved state is handed to its
+        ``load_state(dict)`` when it has one, else it starts empty and each restored object
+        (id + ``RESTORED_ID_OFFSET``) stays until the object map has one overlapping it.
+        """
         path = Path(path)
         try:
             with np.load(path, allow_pickle=False) as z:
@@ -304,7 +356,15 @@ class SemanticMap:
             settings = SemanticMapSettings.from_dict(meta["settings"])
             g = meta["grid"]
             spec = GridSpec(float(g["resolution_m"]), tuple(g["origin_xy_m"]), tuple(g["shape_rc"]))
-            out = cls(settings)
+            out = cls(settings, object_map)
+            saved_objects = meta.get("object_map")
+            load_state = getattr(object_map, "load_state", None)
+            if object_map is not None and saved_objects and callable(load_state):
+                load_state(saved_objects)
+            restore_objects = object_map is not None and bool(saved_objects) and not callable(load_state)
+            if restore_objects:
+                log.warning("%s: the object map cannot restore its state; it starts empty and the "
+                            "saved objects stay until it sees them again", path)
             out.grid.spec = spec
             out.grid.set_values(arrays["grid_values"])
             out.layers._sync_spec()
@@ -313,6 +373,10 @@ class SemanticMap:
             probs = {int(d["object_id"]): np.asarray(d["class_probs"], np.float32)
                      for d in meta["objects"] if d.get("class_probs") is not None}
             obj_stamp = stamps.get("objects")
+            if restore_objects:
+                objects = [replace(o, object_id=o.object_id + RESTORED_ID_OFFSET) for o in objects]
+                probs = {k + RESTORED_ID_OFFSET: v for k, v in probs.items()}
+                out._restored, out._restored_probs = list(objects), dict(probs)
             out.set_objects(objects, float("-inf") if obj_stamp is None else obj_stamp, probs)
             for layer in out.layers.layers:
                 st = stamps.get(layer.name)

@@ -9,9 +9,12 @@ import numpy as np
 import pytest
 
 import semmap.semantic_map as sm_mod
-from semmap.costmap import ObjectFootprint, VerticalBand
+from semmap.config import default_classes
+from semmap.costmap import LETHAL_OBSTACLE, ObjectFootprint, VerticalBand
 from semmap.errors import MapError
 from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform
+from semmap.geometry import ObjectObservation
+from semmap.objects import ObjectMap
 from semmap.semantic_map import SemanticMap, SemanticMapSettings
 from semmap.types import CameraIntrinsics, Frame
 
@@ -111,3 +114,43 @@ def test_load_reports_bad_files(tmp_path: Path) -> None:
     np.savez(partial, grid_values=np.zeros((2, 2), np.uint16))
     with pytest.raises(MapError, match="missing entry 'path'"):
         SemanticMap.load(partial)
+
+
+def table_observation(track_id: int, stamp_s: float) -> ObjectObservation:
+    poly = np.array([[1.0, -0.5], [1.8, -0.5], [1.8, 0.0], [1.0, 0.0]])
+    return ObjectObservation(
+        track_id=track_id, class_name="coffee_table", score=0.9, stamp_s=stamp_s,
+        centroid_map_m=(1.4, -0.25, 0.3), footprint_xy_m=poly, z_min_m=0.0, z_max_m=0.45,
+        n_points=800, n_voxels=200, range_m=1.5,
+    )
+
+
+def test_object_map_feeds_the_layers_and_survives_a_restart(tmp_path: Path) -> None:
+    classes = [c for c in default_classes() if c.name in CLASSES]
+    m = SemanticMap(settings(), ObjectMap(classes))
+    for i in range(4):
+        m.integrate_frame(wall_frame(0.0, 0.1 * i, i), observations=[table_observation(7, 0.1 * i)])
+    assert [o.class_name for o in m.objects] == ["coffee_table"]
+    assert m.objects[0].margin_m == pytest.approx(0.2)  # the object map's class margin
+    low = m.costmap(VerticalBand(0.3, 0.5))
+    assert low.cost_at_xy(np.array([[1.4, -0.25]]))[0] == LETHAL_OBSTACLE
+    high = m.costmap(VerticalBand(1.4, 1.6))
+    assert high.cost_at_xy(np.array([[1.4, -0.25]]))[0] != LETHAL_OBSTACLE
+    with pytest.raises(MapError, match="not both"):
+        m.integrate_frame(wall_frame(0.0, 1.0, 9), objects=[], observations=[])
+
+    path = m.save(tmp_path / "map.npz")
+    fresh = ObjectMap(classes)
+    loaded = SemanticMap.load(path, object_map=fresh)
+    # The fresh object map knows nothing yet: the saved table is kept until it is seen again.
+    loaded.integrate_frame(wall_frame(0.0, 1.0, 10), observations=[])
+    assert [o.class_name for o in loaded.objects] == ["coffee_table"]
+    assert loaded.costmap(VerticalBand(0.3, 0.5)).cost_at_xy(np.array([[1.4, -0.25]]))[0] == LETHAL_OBSTACLE
+    for i in range(4):
+        loaded.integrate_frame(wall_frame(0.0, 1.1 + 0.1 * i, 11 + i), observations=[table_observation(3, 1.1 + 0.1 * i)])
+    assert len(loaded.objects) == 1 and loaded.objects[0].object_id < 1_000_000
+
+
+def test_object_map_classes_must_match() -> None:
+    with pytest.raises(MapError, match="classes"):
+        SemanticMap(settings(), ObjectMap(default_classes()))
