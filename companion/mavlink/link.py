@@ -30,13 +30,16 @@ from collections.abc import AsyncIterator, Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError, LinkError
 from companion.mavlink.transport import Transport, make_transport
 from companion.mavlink.urls import parse_url
+
+if TYPE_CHECKING:
+    from companion.config import LinkConfig
 
 log = logging.getLogger(__name__)
 
@@ -227,7 +230,7 @@ class MavlinkLink:
             self._setup_signing(signing)
 
     @classmethod
-    def from_config(cls, cfg: Any) -> "MavlinkLink":
+    def from_config(cls, cfg: LinkConfig) -> "MavlinkLink":
         """Build from a :class:`companion.config.LinkConfig` (reads the signing key file)."""
         signing = None
         if cfg.signing_key_path:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import enum
 import logging
-import math
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -298,8 +297,3 @@ _HANDLERS: dict[str, Callable[[VehicleStateTracker, mavlink.MAVLink_message], No
     "HOME_POSITION": VehicleStateTracker._on_home,
     "GLOBAL_POSITION_INT": VehicleStateTracker._on_global_position,
 }
-
-
-def distance_m(a: Vec3, b: Vec3) -> float:
-    """Euclidean distance between two NED points (metres)."""
-    return math.dist(a, b)

@@ -8,6 +8,7 @@ pilot taking over, stale pose, rejected and unanswered commands, garbage on the 
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import os
 from collections.abc import AsyncIterator, Callable
@@ -18,6 +19,7 @@ import pytest
 import pytest_asyncio
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.config import LinkConfig
 from companion.mavlink.commands import (
     CommandDeniedError,
     CommandSender,
@@ -34,6 +36,7 @@ from companion.mavlink.obstacle_distance import (
 )
 from companion.mavlink.offboard import OffboardController
 from companion.mavlink.state import LandedState, VehicleState, VehicleStateTracker
+from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.sim.autopilot import MockAutopilot
 from semmap.costmap import LETHAL_OBSTACLE, Costmap, VerticalBand
@@ -346,3 +349,30 @@ async def test_obstacle_distance_feed_reaches_the_autopilot(flight: Flight) -> N
     msg = flight.ap.last_received["OBSTACLE_DISTANCE"]
     assert list(msg.distances) == list(compute_obstacle_distances(costmap, (0.0, 0.0), 0.0).distances_cm)
     assert msg.frame == mavlink.MAV_FRAME_BODY_FRD and msg.distances[0] == pytest.approx(150, abs=5)
+
+
+@pytest.mark.asyncio
+async def test_vehicle_stack_from_config(caplog: pytest.LogCaptureFixture) -> None:
+    cfg = LinkConfig(url="udpin://127.0.0.1:0", heartbeat_timeout_s=HB_TIMEOUT_S, setpoint_rate_hz=20.0,
+                     obstacle_distance_rate_hz=10.0)
+    spec = GridSpec(0.1, (-10.0, -10.0), (200, 200))  # clear beyond the 8 m range
+    costmap = Costmap(spec, np.zeros(spec.shape_rc, dtype=np.uint8), VerticalBand(0.5, 2.0))
+    caplog.set_level(logging.INFO, logger="companion.mavlink.vehicle")
+    async with Vehicle(cfg, obstacle_source=lambda: ObstacleDistanceInput(costmap, (0.0, 0.0), 0.0)) as vehicle:
+        port = vehicle.link.transport.local_address[1]  # type: ignore[attr-defined]
+        async with MockAutopilot(local_port=0, remote_ports=[port]) as ap:
+            s = await vehicle.wait_connected(10.0)
+            assert s.flight_mode is FlightMode.HOLD and vehicle.connected
+            assert await vehicle.download_mission() == ()
+            await ap.wait_until(lambda: ap.messages_received["OBSTACLE_DISTANCE"] >= 3, 5.0, "feed")
+            assert list(ap.last_received["OBSTACLE_DISTANCE"].distances) == [801] * 72  # free room
+            await vehicle.commands.arm()
+            await vehicle.offboard.engage()  # nothing planned: holds where it stands
+            assert ap.mode is FlightMode.OFFBOARD
+            await vehicle.offboard.release(FlightMode.HOLD)
+            await vehicle.commands.disarm()
+            ap.faults.drop_link = True
+            await vehicle.state.wait_for(lambda s: not s.heartbeat_fresh(HB_TIMEOUT_S), 5.0, "loss")
+            await ap.wait_until(lambda: "autopilot heartbeat lost" in caplog.text, 3.0, "watchdog log")
+            assert not vehicle.connected
+    assert not vehicle.link.is_open

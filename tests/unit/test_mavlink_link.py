@@ -532,3 +532,17 @@ async def test_a_failing_setpoint_source_does_not_kill_the_task(peer_and_link: t
     async with SetpointStreamer(link, 50.0, flaky) as streamer:
         await _until(lambda: streamer.stats.sent >= 3)
     assert streamer.stats.ticks >= 6
+
+
+@pytest.mark.asyncio
+async def test_errors_in_the_body_propagate_unwrapped() -> None:
+    """Our context managers own task groups; a caller's exception must not become an ExceptionGroup."""
+    with pytest.raises(KeyError):
+        async with MavlinkLink("udpin://127.0.0.1:0", heartbeat_rate_hz=50.0) as link:
+            await asyncio.sleep(0.05)
+            raise KeyError("body")
+    assert not link.is_open
+    async with MavlinkLink("udpin://127.0.0.1:0") as link:
+        with pytest.raises(KeyError):
+            async with SetpointStreamer(link, 50.0, lambda: None):
+                raise KeyError("body")
