@@ -103,7 +103,9 @@ class RawClient:
 @pytest_asyncio.fixture
 async def link():
     client = RawClient()
-    async with MockAutopilot(local_port=0, remote_ports=[client.port]) as ap:
+    # Brisk takeoff/landing keeps the suite short; the behaviour under test is unchanged.
+    params = {"MPC_TKO_SPEED": 3.0, "MPC_LAND_SPEED": 1.5}
+    async with MockAutopilot(local_port=0, remote_ports=[client.port], params=params) as ap:
         client.ap_addr = ("127.0.0.1", ap.local_port)
         yield ap, client
     client.close()

@@ -157,3 +157,12 @@ def test_param_store() -> None:
     assert p.name_at(p.index_of("NAV_ACC_RAD")) == "NAV_ACC_RAD" and p.name_at(999) is None
     with pytest.raises(KeyError, match="NOPE"):
         p.set("NOPE", 1)
+
+
+def test_climb_rate_limit_applies_to_takeoff_targets() -> None:
+    v = KinematicMulticopter(VehicleLimits(max_speed_up_m_s=3.0))
+    v.motors_on = True
+    v.set_target(Target(position_ned_m=(0.0, 0.0, -5.0), speed_up_m_s=1.0))
+    trace = _fly(v, 2.0)
+    assert min(vel[2] for _, vel in trace) >= -1.0 - 1e-9
+    assert v.position_ned_m[2] < -1.5  # it does climb

@@ -314,13 +314,16 @@ class Navigator:
         if leg.phase is _Phase.DONE:
             self._vehicle.hold_here()
             return
+        # PX4 climbs at MPC_TKO_SPEED while taking off (takeoff mode, mission takeoff).
+        climb = self._params.get("MPC_TKO_SPEED") if leg.phase is _Phase.CLIMB and (
+            self.mode is FlightMode.TAKEOFF or self.mode is FlightMode.MISSION) else None
         yaw = leg.yaw_rad
         if yaw is None and leg.phase is _Phase.GOTO:
             n, e, _ = self._pos()
             dn, de = leg.target_ned_m[0] - n, leg.target_ned_m[1] - e
             yaw = math.atan2(de, dn) if math.hypot(dn, de) > 1.0 else None
         self._vehicle.set_target(Target(position_ned_m=leg.target_ned_m, yaw_rad=yaw,
-                                        speed_xy_m_s=speed))
+                                        speed_xy_m_s=speed, speed_up_m_s=climb))
 
     def tick(self, now_s: float) -> None:
         """Advance the active auto mode (call once per physics step, after the vehicle moved)."""

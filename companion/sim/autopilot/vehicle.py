@@ -52,7 +52,7 @@ class Target:
     Any of the fields may be None: position only = go there and stop; velocity only = fly at
     that velocity; both = track the position with the velocity as feed-forward. Yaw is held when
     both ``yaw_rad`` and ``yaw_rate_rad_s`` are None. ``speed_xy_m_s`` further limits the
-    horizontal speed (mission cruise speed); None = the vehicle limit.
+    horizontal speed (mission cruise speed) and ``speed_up_m_s`` the climb rate.
     """
 
     position_ned_m: tuple[float, float, float] | None = None  # NaN = axis not controlled
@@ -60,6 +60,8 @@ class Target:
     yaw_rad: float | None = None
     yaw_rate_rad_s: float | None = None
     speed_xy_m_s: float | None = None
+    #: Further limit on the climb rate (takeoff speed, MPC_TKO_SPEED); None = the vehicle limit.
+    speed_up_m_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -208,6 +210,9 @@ class KinematicMulticopter:
         v_xy_max = lim.max_speed_xy_m_s
         if tgt.speed_xy_m_s is not None and tgt.speed_xy_m_s > 0.0:
             v_xy_max = min(v_xy_max, tgt.speed_xy_m_s)
+        v_up_max = lim.max_speed_up_m_s
+        if tgt.speed_up_m_s is not None and tgt.speed_up_m_s > 0.0:
+            v_up_max = min(v_up_max, tgt.speed_up_m_s)
         v = np.zeros(3)
         if tgt.velocity_ned_m_s is not None:
             v = np.nan_to_num(np.array(tgt.velocity_ned_m_s, dtype=np.float64))
@@ -220,11 +225,11 @@ class KinematicMulticopter:
                 v[:2] = v[:2] + err[:2] / d_xy * s
             d_z = abs(float(err[2]))
             if math.isfinite(d_z) and d_z > 1e-6:
-                vz_max = lim.max_speed_down_m_s if err[2] > 0 else lim.max_speed_up_m_s
+                vz_max = lim.max_speed_down_m_s if err[2] > 0 else v_up_max
                 s = _approach_speed(d_z, vz_max, lim.max_accel_z_m_s2, lim.position_gain_1_s)
                 v[2] = v[2] + math.copysign(s, float(err[2]))
         v[:2] = _limit_norm(v[:2], v_xy_max)
-        v[2] = float(np.clip(v[2], -lim.max_speed_up_m_s, lim.max_speed_down_m_s))
+        v[2] = float(np.clip(v[2], -v_up_max, lim.max_speed_down_m_s))
         return v
 
     def _step_yaw(self, tgt: Target, dt_s: float) -> None:
