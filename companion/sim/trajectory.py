@@ -196,6 +196,7 @@ def plan_route(
     room: Room, waypoints_xy_m: Sequence[tuple[float, float]], altitude_m: float,
     clearance_required_m: float = DEFAULT_CLEARANCE_M, vehicle_height_m: float = VEHICLE_HEIGHT_M,
     resolution_m: float = 0.05, vertical_margin_m: float | None = 0.1,
+    largest_component_only: bool = False,
 ) -> NDArray[np.float64]:
     """(K, 2) polyline visiting the waypoints in order, every point at least
     ``clearance_required_m`` (horizontally) from primitives in the vehicle's band and from
@@ -203,6 +204,8 @@ def plan_route(
 
     Waypoints that are not clear are moved to the nearest clear cell; legs are grid shortest
     paths shortened by line of sight. Raises :class:`SimulationError` if a leg has no route.
+    ``largest_component_only`` restricts the route to the largest connected clear region (for
+    coverage flights: waypoints in pockets furniture closes off move to its edge instead).
     """
     spec, dist = clearance_grid(room, altitude_m, vehicle_height_m, resolution_m, vertical_margin_m)
     # Cell centres can be half a diagonal closer to an obstacle than the grid distance says.
@@ -210,6 +213,11 @@ def plan_route(
     free = dist >= need
     if not np.any(free):
         raise SimulationError(f"no place in the room keeps {clearance_required_m:.2f} m clearance")
+    if largest_component_only:
+        labels, n = ndimage.label(free, structure=np.ones((3, 3), dtype=bool))
+        if n > 1:
+            sizes = np.bincount(labels.ravel())[1:]
+            free = labels == (1 + int(np.argmax(sizes)))
     free_cells = np.argwhere(free)
 
     def snap(xy: tuple[float, float]) -> tuple[int, int]:
@@ -313,7 +321,7 @@ def _fly_waypoints(
     room: Room, waypoints_xy_m: Sequence[tuple[float, float]], altitude_m: float, speed_m_s: float,
     yaw_rate_max_rad_s: float, yaw_sweep_rad: float, sweep_period_s: float,
     clearance_required_m: float, min_clearance_m: float | None, vehicle_height_m: float,
-    vertical_margin_m: float | None,
+    vertical_margin_m: float | None, largest_component_only: bool = False,
 ) -> Trajectory:
     """Route and fly; if no route keeps ``clearance_required_m``, retry with 5 cm less down
     to ``min_clearance_m`` (None: no retry). The trajectory's clearance is checked exactly."""
@@ -322,7 +330,8 @@ def _fly_waypoints(
     while True:
         try:
             route = plan_route(room, waypoints_xy_m, altitude_m, clearance, vehicle_height_m,
-                               vertical_margin_m=vertical_margin_m)
+                               vertical_margin_m=vertical_margin_m,
+                               largest_component_only=largest_component_only)
             break
         except SimulationError:
             if clearance - 0.05 < floor_m - 1e-9:
@@ -369,7 +378,8 @@ def lawnmower(
     vertical_margin_m: float | None = 0.1,
 ) -> Trajectory:
     """Back-and-forth lanes along the room's longer side, ``lane_spacing_m`` apart, routed
-    around furniture in the vehicle's band."""
+    around furniture in the vehicle's band (within the largest region the vehicle can reach:
+    corners closed off by furniture are skipped)."""
     inset = clearance_required_m + 0.1
     along_x = room.width_m >= room.depth_m
     span = room.depth_m if along_x else room.width_m
@@ -383,7 +393,7 @@ def lawnmower(
             wps.append((s, float(o)) if along_x else (float(o), s))
     return _fly_waypoints(room, wps, altitude_m, speed_m_s, yaw_rate_max_rad_s, yaw_sweep_rad,
                           sweep_period_s, clearance_required_m, min_clearance_m, vehicle_height_m,
-                          vertical_margin_m)
+                          vertical_margin_m, largest_component_only=True)
 
 
 def perimeter_loop(
@@ -393,10 +403,11 @@ def perimeter_loop(
     min_clearance_m: float | None = 0.3, vehicle_height_m: float = VEHICLE_HEIGHT_M,
     vertical_margin_m: float | None = 0.1,
 ) -> Trajectory:
-    """One counter-clockwise lap ``inset_m`` inside the walls, back to the start."""
+    """One counter-clockwise lap ``inset_m`` inside the walls, back to the start (within the
+    largest region the vehicle can reach)."""
     w, d = room.width_m, room.depth_m
     corners = [(inset_m, inset_m), (w - inset_m, inset_m), (w - inset_m, d - inset_m),
                (inset_m, d - inset_m), (inset_m, inset_m)]
     return _fly_waypoints(room, corners, altitude_m, speed_m_s, yaw_rate_max_rad_s, yaw_sweep_rad,
                           sweep_period_s, clearance_required_m, min_clearance_m, vehicle_height_m,
-                          vertical_margin_m)
+                          vertical_margin_m, largest_component_only=True)

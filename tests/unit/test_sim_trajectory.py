@@ -91,6 +91,16 @@ def test_lawnmower_and_loop_cover_the_room_clear_of_furniture() -> None:
     assert np.all(np.abs(pos[:, 2] - 1.0) < 1e-9)
 
 
+@pytest.mark.parametrize("seed", [8, 27])
+def test_coverage_flights_skip_corners_closed_off_by_furniture(seed: int) -> None:
+    # In these rooms furniture at 1 m closes off a corner: the flights stay in the main region.
+    room = generate_room(seed)
+    for build in (lawnmower, perimeter_loop):
+        traj = build(room, 1.0)
+        assert check_clearance(room, traj, 0.3) >= 0.3
+        assert traj.duration_s > 20.0
+
+
 def test_route_avoids_whole_footprints_of_blocking_furniture() -> None:
     room = generate_room(0, n_objects=10, class_names=["desk", "conference_table", "coffee_table"])
     altitude = 0.66  # band 0.485-0.835 m: meets table tops (>= 0.72), clears coffee tables (<= 0.48)
