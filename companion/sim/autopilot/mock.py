@@ -397,6 +397,11 @@ class MockAutopilot:
                 return True
         return False
 
+    def stream_rate_hz(self, name: str) -> float:
+        """Current rate of telemetry stream ``name`` (e.g. ``"ATTITUDE"``); 0 = off."""
+        interval = self._streams[name][0]
+        return 1.0 / interval if interval > 0 else 0.0
+
     def send_message_by_id(self, msg_id: int) -> bool:
         """Send one message now (MAV_CMD_REQUEST_MESSAGE); False if it is not available."""
         enc = telemetry.ON_REQUEST.get(msg_id)
