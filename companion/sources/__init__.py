@@ -1,4 +1,6 @@
-"""Camera sources behind one interface: simulated, recorded folders, live RealSense."""
+"""Camera sources behind one interface: simulated, recorded folders, live RealSense; and
+:class:`FrameStream`, any of them as an asyncio stream that drops old frames for a slow
+consumer."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ from companion.sources.base import FrameSource
 from companion.sources.realsense import RealSenseFrameSource
 from companion.sources.recorded import RecordedFrameSource, load_tum_pair
 from companion.sources.sim import PoseProvider, SimFrameSource, room_from_config
+from companion.sources.stream import FrameStream
 from semmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -15,7 +18,7 @@ if TYPE_CHECKING:
     from companion.sim.world import Room
 
 __all__ = [
-    "FrameSource", "PoseProvider", "RealSenseFrameSource", "RecordedFrameSource",
+    "FrameSource", "FrameStream", "PoseProvider", "RealSenseFrameSource", "RecordedFrameSource",
     "SimFrameSource", "load_tum_pair", "make_frame_source", "room_from_config",
 ]
 

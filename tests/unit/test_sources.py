@@ -23,6 +23,7 @@ from companion.sources import (
     make_frame_source,
 )
 from companion.sources.recorded import associate
+from companion.sources.stream import FrameStream
 from semmap.errors import ConfigError, DataError, FrameError
 from semmap.frames import invert, pose_from_xyz_rpy, transform_points
 from semmap.pointcloud import backproject
@@ -412,3 +413,86 @@ def test_realsense_start_failure_is_a_frame_error() -> None:
     src = RealSenseFrameSource(serial="999", rs_module=FAKE_RS, pipeline=FakePipeline([], fail_start=True))
     with pytest.raises(FrameError, match="RealSense 999: cannot start.*No device connected"):
         src.open()
+
+
+# --- the asyncio stream -------------------------------------------------------------------
+
+class ListSource(FrameSource):
+    """Frames from a list; optionally fails at one index; records open/close."""
+
+    def __init__(self, n: int, fail_at: int | None = None) -> None:
+        import threading
+
+        self.n, self.fail_at = n, fail_at
+        self.i = 0
+        self.opened = self.closed = False
+        self.exhausted = threading.Event()
+        self._intr = CameraIntrinsics(10.0, 10.0, 2.0, 2.0, 4, 4)
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        return self._intr
+
+    def open(self) -> None:
+        self.opened = True
+
+    def close(self) -> None:
+        self.closed = True
+
+    def read(self) -> Frame | None:
+        if self.i == self.fail_at:
+            self.exhausted.set()
+            raise FrameError("camera unplugged")
+        if self.i >= self.n:
+            self.exhausted.set()
+            return None
+        self.i += 1
+        return Frame(float(self.i), np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32),
+                     self._intr, index=self.i - 1)
+
+
+@pytest.mark.asyncio
+async def test_stream_delivers_every_frame_to_a_prompt_consumer() -> None:
+    import asyncio
+
+    src = ListSource(5)
+    async with FrameStream(src, queue_size=8) as stream:
+        got = [f.index async for f in stream]
+        await asyncio.sleep(0)
+    assert got == [0, 1, 2, 3, 4]
+    assert src.opened and src.closed and stream.dropped_frames == 0
+
+
+@pytest.mark.asyncio
+async def test_stream_drops_the_oldest_frames_for_a_slow_consumer() -> None:
+    import asyncio
+
+    src = ListSource(20)
+    async with FrameStream(src, queue_size=2) as stream:
+        await asyncio.to_thread(src.exhausted.wait, 10.0)
+        await asyncio.sleep(0.05)  # let the loop run the hand-overs the thread scheduled
+        got = [f.index async for f in stream]
+    assert got == [18, 19]  # the newest frames, in order
+    assert stream.dropped_frames == 18 and stream.frames_delivered == 2
+
+
+@pytest.mark.asyncio
+async def test_stream_raises_the_source_error_after_the_frames_before_it() -> None:
+    src = ListSource(10, fail_at=3)
+    got = []
+    with pytest.raises(FrameError, match="camera unplugged"):
+        async with FrameStream(src, queue_size=10) as stream:
+            async for f in stream:
+                got.append(f.index)
+    assert got == [0, 1, 2] and src.closed
+
+
+@pytest.mark.asyncio
+async def test_stream_paces_a_simulated_source_and_stops_on_exit() -> None:
+    src = ListSource(10**6)
+    async with FrameStream(src, rate_hz=200.0) as stream:
+        first = [await stream.__anext__() for _ in range(3)]
+    indices = [f.index for f in first]
+    assert indices == sorted(set(indices))  # newest-first hand-over never reorders
+    assert src.closed
+    assert src.i < 10**6  # the reader stopped with the stream
