@@ -65,25 +65,37 @@ class OracleNoise:
     lost_after_frames: int = 8
 
 
-def flight_poses(room: Room, n_frames: int, rng: np.random.Generator) -> list[np.ndarray]:
-    """Camera poses ``T_map_camera`` on a loop inset from the walls, looking at the centre."""
-    altitude = float(rng.uniform(1.0, 1.5))
-    pitch = math.radians(float(rng.uniform(15.0, 25.0)))
-    inset = 0.7
-    x0, x1, y0, y1 = inset, room.width_m - inset, inset, room.depth_m - inset
+def _loop(room: Room, inset_m: float, n: int) -> list[np.ndarray]:
+    """``n`` points (2,) evenly spaced along a rectangle inset from the walls."""
+    x0, x1, y0, y1 = inset_m, room.width_m - inset_m, inset_m, room.depth_m - inset_m
     corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]])
     seg = np.linalg.norm(np.diff(corners, axis=0), axis=1)
-    s = np.linspace(0.0, seg.sum(), n_frames, endpoint=False)
+    ends = np.cumsum(seg)
+    out = []
+    for si in np.linspace(0.0, ends[-1], n, endpoint=False):
+        k = int(np.searchsorted(ends, si, side="right"))
+        t = (si - (ends[k - 1] if k > 0 else 0.0)) / seg[k]
+        out.append(corners[k] + t * (corners[k + 1] - corners[k]))
+    return out
+
+
+def flight_poses(room: Room, n_frames: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """Camera poses ``T_map_camera`` of a survey flight: a loop near the walls looking at the
+    room's centre, then an inner loop looking out at the walls, so objects in the middle and
+    along the walls are both seen from several sides."""
+    altitude = float(rng.uniform(1.0, 1.5))
+    pitch = math.radians(float(rng.uniform(15.0, 25.0)))
     T_body_camera = ExtrinsicsConfig(xyz_m=(0.1, 0.0, 0.0), rpy_deg=(0.0, math.degrees(pitch), 0.0)).T_body_camera()
     centre = np.array([room.width_m / 2, room.depth_m / 2])
+    inner = min(1.8, 0.5 * min(room.width_m, room.depth_m) - 0.6)
+    n_out = n_frames // 2
+    legs = [(xy, 1.0) for xy in _loop(room, 0.7, n_out)]
+    legs += [(xy, -1.0) for xy in _loop(room, inner, n_frames - n_out)]
     poses = []
-    for si in s:
-        k = int(np.searchsorted(np.cumsum(seg), si, side="right"))
-        t = (si - (np.cumsum(seg)[k - 1] if k > 0 else 0.0)) / seg[k]
-        xy = corners[k] + t * (corners[k + 1] - corners[k])
+    for xy, sign in legs:
         if clearance_m(room, np.array([[xy[0], xy[1], altitude]]), 0.3)[0] < 0.3:
             continue  # the vehicle would be inside furniture here
-        yaw = math.atan2(centre[1] - xy[1], centre[0] - xy[0])
+        yaw = math.atan2(sign * (centre[1] - xy[1]), sign * (centre[0] - xy[0]))
         T_map_body = pose_from_xyz_rpy(xy[0], xy[1], altitude, 0.0, 0.0, yaw)
         poses.append(T_map_body @ T_body_camera)  # full SE(3) composition
     return poses
@@ -158,12 +170,27 @@ def raster_iou(a_xy_m: np.ndarray, b_xy_m: np.ndarray, resolution_m: float = 0.0
     return float(np.logical_and(a, b).sum() / union) if union else 0.0
 
 
+def well_seen(inst: np.ndarray, min_px: int = 1500, margin_px: int = 3) -> list[int]:
+    """Object ids seen whole in an instance mask (H, W): at least ``min_px`` pixels and not cut
+    by the image border. The accuracy figures score objects seen whole in a few frames."""
+    H, W = inst.shape
+    out = []
+    ids, counts = np.unique(inst[inst > 0], return_counts=True)
+    for oid, cnt in zip(ids.tolist(), counts.tolist(), strict=True):
+        if cnt < min_px:
+            continue
+        vv, uu = np.nonzero(inst == oid)
+        if uu.min() >= margin_px and vv.min() >= margin_px and uu.max() < W - margin_px and vv.max() < H - margin_px:
+            out.append(oid)
+    return out
+
+
 def map_room(
     seed: int, n_frames: int, noise: OracleNoise | None = None,
     geometry: GeometryConfig | None = None, map_cfg: MapConfig | None = None,
 ) -> tuple[Room, ObjectMap, dict[int, int], list[float]]:
     """Fly one seeded room and build its object map. Returns the room, the map, how many
-    frames each ground-truth object was well visible in, and per-frame geometry times (ms)."""
+    frames each ground-truth object was seen whole in, and per-frame geometry times (ms)."""
     rng = np.random.default_rng(seed)
     room = generate_room(seed, width_m=float(rng.uniform(6.0, 8.0)), depth_m=float(rng.uniform(5.0, 6.5)))
     classes = default_classes()
@@ -178,11 +205,8 @@ def map_room(
     for i, T in enumerate(flight_poses(room, n_frames, rng)):
         stamp = i / 15.0
         frame = renderer.render(T, stamp_s=stamp, index=i)
-        inst = np.asarray(frame.masks["instance"])
-        ids, counts = np.unique(inst[inst > 0], return_counts=True)
-        for oid, cnt in zip(ids.tolist(), counts.tolist(), strict=True):
-            if cnt >= 2000:
-                seen[oid] = seen.get(oid, 0) + 1
+        for oid in well_seen(np.asarray(frame.masks["instance"])):
+            seen[oid] = seen.get(oid, 0) + 1
         tracks = oracle.tracks(frame)
         t0 = time.perf_counter()
         obs = []

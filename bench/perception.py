@@ -205,11 +205,14 @@ def bench_cmc(quick: bool) -> dict[str, object]:
     return res
 
 
+from _geometry import bench_geometry  # noqa: E402
+
 #: Independent sections; other stages add theirs here (name -> function(quick) -> figures).
 SECTIONS: dict[str, Callable[[bool], dict[str, object]]] = {
     "detector": bench_detector,
     "tracker": bench_tracker,
     "cmc": bench_cmc,
+    "geometry": bench_geometry,  # object geometry vs Open3D: bench/_geometry.py
 }
 
 

@@ -208,8 +208,9 @@ class GeometryConfig(StageConfig):
     #: Clusters with at least this fraction of the largest cluster's pixels compete; the
     #: nearest wins (the object stands in front of what its box also shows).
     cluster_min_pixel_frac: float = Field(default=0.3, gt=0.0, le=1.0)
-    #: ... and must span at least this fraction of the box area (an occluder spans less).
-    cluster_min_box_cover: float = Field(default=0.5, gt=0.0, le=1.0)
+    #: ... and must span at least this fraction of the box area that the best-spanning
+    #: candidate spans (an occluder in front spans less).
+    cluster_min_box_cover: float = Field(default=0.75, gt=0.0, le=1.0)
     #: Pixels taken from one box at most: larger boxes are sampled with a coarser pixel stride.
     max_box_points: int = Field(default=4000, ge=100)
     #: Horizontal-plane RANSAC inliers (voxels) needed to report a top plane.
@@ -261,9 +262,12 @@ class MapConfig(StageConfig):
     position_sigma_per_m: float = Field(default=0.02, ge=0.0)
     #: Fused footprint: minimum-area oriented rectangle of the observed hull, or the hull.
     footprint_shape: Literal["rectangle", "hull"] = "rectangle"
-    #: Observations farther than this add to the footprint only while no nearer one exists
-    #: (far depth is noisy and would grow the footprint).
+    #: Observations farther than this weigh less in the footprint and its height (far depth
+    #: is noisy).
     footprint_max_range_m: float = Field(default=4.0, gt=0.0)
+    #: Footprint evidence cells (2 cm) count when their weight (views that saw the object
+    #: there) reaches this fraction of the 90th-percentile cell's.
+    footprint_evidence_frac: float = Field(default=0.65, gt=0.0, le=1.0)
     #: Negative evidence: the measured depth at an object's centroid pixel must be at least
     #: expected - tolerance (not occluded) for a missed detection to count against it.
     visibility_tolerance_m: float = Field(default=0.3, gt=0.0)

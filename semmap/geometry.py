@@ -21,11 +21,11 @@ The pipeline per track (one I/O-free step, :func:`observe_object`):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import ConvexHull, QhullError
 
 from semmap.clustering import euclidean_clusters, voxel_downsample
 from semmap.config import ClassConfig, GeometryConfig
@@ -33,6 +33,9 @@ from semmap.frames import Transform
 from semmap.pointcloud import backproject
 from semmap.ransac import Plane, fit_plane
 from semmap.types import CameraIntrinsics, Track
+
+#: A box this close to the image border may be cut by it (detector boxes jitter by a few px).
+_EDGE_MARGIN_PX = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,6 +48,7 @@ class ObjectObservation:
     above the floor at the object's centroid. ``n_points`` counts the pixels of the object,
     ``n_voxels`` its downsampled points. ``range_m``: camera-to-centroid distance.
     ``at_image_edge``: the box touches the image border, so the view may be partial.
+    ``points_xy_m``: the object's downsampled points projected on the map plane.
     """
 
     track_id: int
@@ -61,6 +65,9 @@ class ObjectObservation:
     top_plane: Plane | None = None
     top_height_m: float | None = None
     at_image_edge: bool = False
+    #: (K, 2) map-plane projection of the object's downsampled points (the footprint's
+    #: evidence); empty when only the polygon is known.
+    points_xy_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
 
     @property
     def centroid_xy_m(self) -> NDArray[np.float64]:
@@ -94,14 +101,26 @@ def convex_footprint(xy_m: NDArray[np.floating], min_width_m: float = 0.0) -> ND
     """
     xy = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
     if len(xy) >= 3:
-        try:
-            hull = ConvexHull(xy)
-            poly = xy[hull.vertices]  # counter-clockwise for 2D hulls
-            if hull.volume >= (min_width_m * 0.5) ** 2:
-                return poly
-        except QhullError:
-            pass
+        # OpenCV's monotone chain is an order of magnitude faster than Qhull on small sets;
+        # with clockwise=False it returns counter-clockwise vertices for y-up coordinates.
+        origin = xy.min(axis=0)
+        hull = cv2.convexHull((xy - origin).astype(np.float32), clockwise=False, returnPoints=False)
+        poly = xy[np.asarray(hull).reshape(-1)]
+        if len(poly) >= 3 and polygon_area_m2(poly) >= (min_width_m * 0.5) ** 2 and polygon_area_m2(poly) > 0:
+            return poly
     return _thin_rectangle(xy, min_width_m)
+
+
+def simplify_polygon(polygon_xy_m: NDArray[np.float64], tolerance_m: float) -> NDArray[np.float64]:
+    """Douglas-Peucker simplification of a closed polygon (M, 2) to within ``tolerance_m``
+    (fewer vertices make every later overlap test cheaper). Keeps at least a triangle."""
+    if len(polygon_xy_m) <= 4:
+        return polygon_xy_m
+    origin = polygon_xy_m.min(axis=0)
+    idx = cv2.approxPolyDP((polygon_xy_m - origin).astype(np.float32).reshape(-1, 1, 2),
+                           float(tolerance_m), True)
+    out = np.asarray(idx, dtype=np.float64).reshape(-1, 2) + origin
+    return out if len(out) >= 3 and polygon_area_m2(out) > 0 else polygon_xy_m
 
 
 def _thin_rectangle(xy: NDArray[np.float64], min_width_m: float) -> NDArray[np.float64]:
@@ -163,9 +182,10 @@ def _pick_cluster(
     """The object's cluster (``labels`` (N,) ordered by size, ``uv`` (N, 2) pixels).
 
     Candidates hold at least ``min_frac`` of the largest cluster's pixels. A tight box is
-    spanned by its object, so candidates whose pixel extent covers less than ``min_cover`` of
-    the box area are dropped (an occluder in front covers part of it); of the rest, the one
-    nearest the camera wins (the wall behind also spans the box, but farther away).
+    spanned by its object, so candidates whose pixel extent covers less of the box than
+    ``min_cover`` times the best coverage are dropped (an occluder in front spans part of the
+    box); of the rest, the one nearest the camera wins (the wall behind also spans the box,
+    but farther away).
     """
     counts = np.bincount(labels)
     candidates = np.nonzero(counts >= min_frac * counts.max())[0]
@@ -173,15 +193,27 @@ def _pick_cluster(
         return int(candidates[0])
     u0, v0, u1, v1 = window
     area = float(max(1, (u1 - u0) * (v1 - v0)))
-    best, best_range = 0, math.inf
-    for c in candidates:
-        sel = labels == c
-        cu, cv = uv[sel, 0], uv[sel, 1]
-        cover = (int(cu.max()) - int(cu.min()) + 1) * (int(cv.max()) - int(cv.min()) + 1) / area
-        med = float(np.median(range_m[sel]))
-        if cover >= min_cover and med < best_range:
-            best, best_range = int(c), med
-    return best
+    # Per-cluster pixel extents in one pass: sort by label, reduce each run.
+    order = np.argsort(labels, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[candidates]
+    su, sv = uv[order, 0], uv[order, 1]
+    ext_u = np.maximum.reduceat(su, starts) - np.minimum.reduceat(su, starts) + 1
+    ext_v = np.maximum.reduceat(sv, starts) - np.minimum.reduceat(sv, starts) + 1
+    if len(candidates) > 0:
+        # reduceat runs each slice to the next start; the last candidate's run must stop at
+        # its own end, so recompute the candidates whose run is not followed by theirs.
+        ends = starts + counts[candidates]
+        for i in range(len(candidates)):
+            nxt = starts[i + 1] if i + 1 < len(candidates) else len(order)
+            if nxt != ends[i]:
+                seg = slice(starts[i], ends[i])
+                ext_u[i] = su[seg].max() - su[seg].min() + 1
+                ext_v[i] = sv[seg].max() - sv[seg].min() + 1
+    cover = ext_u * ext_v / area
+    sr = range_m[order]
+    med = np.array([float(np.median(sr[a : a + counts[c]])) for a, c in zip(starts, candidates, strict=True)])
+    med[cover < min_cover * cover.max()] = np.inf
+    return int(candidates[int(np.argmin(med))])
 
 
 def _ccw(poly: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -195,29 +227,36 @@ def convex_intersection(
 ) -> NDArray[np.float64]:
     """Intersection (K, 2) of two convex polygons (M, 2), (L, 2) by Sutherland-Hodgman
     clipping; empty (0, 2) when they do not overlap."""
-    subject = _ccw(np.asarray(a_xy_m, dtype=np.float64).reshape(-1, 2))
-    clip = _ccw(np.asarray(b_xy_m, dtype=np.float64).reshape(-1, 2))
-    if len(subject) < 3 or len(clip) < 3:
+    a = np.asarray(a_xy_m, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(b_xy_m, dtype=np.float64).reshape(-1, 2)
+    if len(a) < 3 or len(b) < 3:
         return np.zeros((0, 2))
-    out = subject
+    if (a.max(axis=0) < b.min(axis=0)).any() or (b.max(axis=0) < a.min(axis=0)).any():
+        return np.zeros((0, 2))
+    # Plain floats: polygons have a handful of vertices, where numpy's per-call cost dominates.
+    out = [tuple(p) for p in _ccw(a).tolist()]
+    clip = [tuple(p) for p in _ccw(b).tolist()]
     for i in range(len(clip)):
-        if len(out) == 0:
+        if not out:
             break
-        p, q = clip[i], clip[(i + 1) % len(clip)]
-        e = q - p
-        # Left of the directed edge (inside for a counter-clockwise clip polygon) is >= 0.
-        side = e[0] * (out[:, 1] - p[1]) - e[1] * (out[:, 0] - p[0])
-        nxt = np.roll(out, -1, axis=0)
-        side_n = np.roll(side, -1)
-        pts: list[NDArray[np.float64]] = []
-        for j in range(len(out)):
-            if side[j] >= 0:
-                pts.append(out[j])
-            if (side[j] >= 0) != (side_n[j] >= 0):
-                t = side[j] / (side[j] - side_n[j])
-                pts.append(out[j] + t * (nxt[j] - out[j]))
-        out = np.array(pts) if pts else np.zeros((0, 2))
-    return out
+        px, py = clip[i]
+        qx, qy = clip[(i + 1) % len(clip)]
+        ex, ey = qx - px, qy - py
+        src = out
+        out = []
+        n = len(src)
+        for j in range(n):
+            x0, y0 = src[j]
+            x1, y1 = src[(j + 1) % n]
+            # Left of the directed edge (inside a counter-clockwise clip polygon) is >= 0.
+            s0 = ex * (y0 - py) - ey * (x0 - px)
+            s1 = ex * (y1 - py) - ey * (x1 - px)
+            if s0 >= 0:
+                out.append((x0, y0))
+            if (s0 >= 0) != (s1 >= 0):
+                t = s0 / (s0 - s1)
+                out.append((x0 + t * (x1 - x0), y0 + t * (y1 - y0)))
+    return np.array(out, dtype=np.float64).reshape(-1, 2)
 
 
 def convex_iou(a_xy_m: NDArray[np.floating], b_xy_m: NDArray[np.floating]) -> float:
@@ -310,10 +349,12 @@ def observe_object(
 
     # Projection onto the map plane: all object points, the top among them, so the space
     # between legs lies inside the hull.
-    footprint = convex_footprint(obj_vox[:, :2], min_width_m=params.voxel_size_m)
+    footprint = simplify_polygon(convex_footprint(obj_vox[:, :2], min_width_m=params.voxel_size_m),
+                                 params.voxel_size_m / 2)
     cam_pos = T_map_camera[:3, 3]
     bu0, bv0, bu1, bv1 = track.xyxy_px
-    touches = bu0 <= 1 or bv0 <= 1 or bu1 >= W - 1 or bv1 >= H - 1
+    m = _EDGE_MARGIN_PX
+    touches = bu0 <= m or bv0 <= m or bu1 >= W - m or bv1 >= H - m
     return ObjectObservation(
         track_id=track.track_id,
         class_name=track.class_name,
@@ -321,6 +362,7 @@ def observe_object(
         stamp_s=float(stamp_s),
         centroid_map_m=(float(centroid[0]), float(centroid[1]), float(centroid[2])),
         footprint_xy_m=footprint,
+        points_xy_m=obj_vox[:, :2].copy(),
         z_min_m=z_min,
         z_max_m=z_max,
         n_points=int(on_obj.sum()),

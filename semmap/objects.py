@@ -45,6 +45,7 @@ from semmap.geometry import (
     convex_iou,
     min_area_rectangle,
     polygon_area_m2,
+    simplify_polygon,
 )
 from semmap.pointcloud import valid_depth_mask
 from semmap.types import CameraIntrinsics
@@ -57,6 +58,22 @@ _HISTORY = 30
 _MIN_CLASS_PROB = 1e-4
 #: Any-class merge: a new track over an object of another class merges at this IoU.
 _CROSS_CLASS_IOU = 0.6
+#: Cell size of the per-object footprint evidence, metres.
+_CELL_M = 0.02
+_KEY_SHIFT = np.int64(1 << 31)
+#: Weight of a view farther than ``footprint_max_range_m`` (noisier depth).
+_FAR_WEIGHT = 0.3
+
+
+def _cell_keys(xy_m: NDArray[np.float64]) -> NDArray[np.int64]:
+    ij = np.floor(xy_m / _CELL_M).astype(np.int64) + _KEY_SHIFT // 2
+    return ij[:, 0] * _KEY_SHIFT + ij[:, 1]
+
+
+def _cell_centres(keys: NDArray[np.int64]) -> NDArray[np.float64]:
+    i = keys // _KEY_SHIFT - _KEY_SHIFT // 2
+    j = keys % _KEY_SHIFT - _KEY_SHIFT // 2
+    return (np.stack([i, j], axis=1).astype(np.float64) + 0.5) * _CELL_M
 
 
 def _logit(p: float) -> float:
@@ -73,33 +90,6 @@ def _consistent(a_xy_m: NDArray[np.float64], b_xy_m: NDArray[np.float64]) -> boo
     inter = polygon_area_m2(convex_intersection(a_xy_m, b_xy_m))
     smaller = min(polygon_area_m2(a_xy_m), polygon_area_m2(b_xy_m))
     return smaller > 0 and inter >= 0.2 * smaller
-
-
-def _robust_rectangle(
-    hull_xy_m: NDArray[np.float64], views: list[NDArray[np.float64]]
-) -> NDArray[np.float64]:
-    """Oriented rectangle (4, 2) of an object from its observed hulls.
-
-    The orientation is the minimum-area rectangle's of the union ``hull_xy_m``; each side is
-    placed at the 75th percentile of where the individual views put it, so depth noise (which
-    a union of hulls turns into ever-growing extents) and the odd stray view do not inflate
-    it, while partial views (which fall short on their hidden side) are outvoted by views
-    from the other side.
-    """
-    rect = min_area_rectangle(hull_xy_m)
-    if len(views) < 3:
-        return rect
-    ax = rect[1] - rect[0]
-    ay = rect[3] - rect[0]
-    nx, ny = np.linalg.norm(ax), np.linalg.norm(ay)
-    if nx < 1e-9 or ny < 1e-9:
-        return rect
-    ax, ay = ax / nx, ay / ny
-    ext = np.array([[(v @ ax).min(), (v @ ax).max(), (v @ ay).min(), (v @ ay).max()] for v in views])
-    a0, b0 = np.quantile(ext[:, 0], 0.25), np.quantile(ext[:, 2], 0.25)
-    a1, b1 = np.quantile(ext[:, 1], 0.75), np.quantile(ext[:, 3], 0.75)
-    corners = np.array([[a0, b0], [a1, b0], [a1, b1], [a0, b1]])
-    return corners[:, :1] * ax + corners[:, 1:] * ay
 
 
 @dataclass(frozen=True)
@@ -223,13 +213,16 @@ class _State:
     first_seen_s: float
     last_seen_s: float
     n_observations: int = 0
-    #: The hull holds an observation within ``footprint_max_range_m``.
-    hull_near: bool = False
+    #: Quality of the views the shape comes from: 2 x (not cut by the image border) +
+    #: (within footprint_max_range_m); -1 before the first.
+    shape_tier: int = -1
     z_max_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
     z_min_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
     top_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
-    #: Recent near observations' hulls, for the robust rectangle.
-    hull_hist: deque[NDArray[np.float64]] = field(default_factory=lambda: deque(maxlen=_HISTORY))
+    #: Footprint evidence: sorted keys of map-plane cells (_CELL_M) and their weights.
+    cell_keys: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    cell_w: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    footprint_cache: NDArray[np.float64] | None = None
 
 
 class ObjectMap:
@@ -360,15 +353,18 @@ class ObjectMap:
         va, vb = keep.position_var_m2, drop.position_var_m2
         keep.position_m = (keep.position_m * vb + drop.position_m * va) / (va + vb)
         keep.position_var_m2 = max(va * vb / (va + vb), 1e-4)
-        if keep.hull_near == drop.hull_near:
-            keep.hull_xy_m = convex_footprint(np.concatenate([keep.hull_xy_m, drop.hull_xy_m]))
-        elif drop.hull_near:
+        if drop.shape_tier > keep.shape_tier:
+            keep.shape_tier = drop.shape_tier
             keep.hull_xy_m = drop.hull_xy_m
-        if drop.hull_near or not keep.hull_near:
-            keep.hull_hist.extend(drop.hull_hist)
-        keep.hull_near = keep.hull_near or drop.hull_near
-        keep.z_max_hist.extend(drop.z_max_hist)
-        keep.z_min_hist.extend(drop.z_min_hist)
+            keep.z_max_hist, keep.z_min_hist = drop.z_max_hist, drop.z_min_hist
+        elif drop.shape_tier == keep.shape_tier:
+            keep.hull_xy_m = convex_footprint(np.concatenate([keep.hull_xy_m, drop.hull_xy_m]))
+            keep.z_max_hist.extend(drop.z_max_hist)
+            keep.z_min_hist.extend(drop.z_min_hist)
+        keep.cell_keys, inv = np.unique(np.concatenate([keep.cell_keys, drop.cell_keys]), return_inverse=True)
+        keep.cell_w = np.bincount(inv.reshape(-1), weights=np.concatenate([keep.cell_w, drop.cell_w]),
+                                  minlength=len(keep.cell_keys))
+        keep.footprint_cache = None
         keep.top_hist.extend(drop.top_hist)
         keep.n_observations += drop.n_observations
         keep.first_seen_s = min(keep.first_seen_s, drop.first_seen_s)
@@ -438,6 +434,16 @@ class ObjectMap:
         p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
         s.class_probs = p / p.sum()
         s.logodds = min(s.logodds + cfg.existence_hit_logodds, _logit(cfg.existence_max))
+        s.n_observations += 1
+        s.last_seen_s = max(s.last_seen_s, o.stamp_s)
+        s.first_seen_s = min(s.first_seen_s, o.stamp_s)
+        fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
+        if not first and not _consistent(s.hull_xy_m, fp):
+            # The track's box showed something else this time (an occluder in front): it
+            # still says the object is there, but not where or how big.
+            log.debug("object %d: observation of track %d off its footprint, geometry ignored",
+                      s.object_id, o.track_id)
+            return
         if not first:
             r2 = self._sigma2(o)
             x = np.asarray(o.centroid_map_m, dtype=np.float64)
@@ -445,23 +451,56 @@ class ObjectMap:
             s.position_m = s.position_m + w * (x - s.position_m)
             # Floor on the variance: the estimate keeps following a slowly drifting pose.
             s.position_var_m2 = max(s.position_var_m2 * r2 / (s.position_var_m2 + r2), 1e-4)
+        # Shape and height come from the best class of views seen so far: whole ones before
+        # ones cut by the image border, then near ones before far ones (depth noise grows
+        # with range). A better view resets what worse ones said.
+        tier = 2 * int(not o.at_image_edge) + int(o.range_m <= cfg.footprint_max_range_m)
+        if tier > s.shape_tier:
+            s.shape_tier = tier
+            s.hull_xy_m = fp
+            s.z_max_hist.clear()
+            s.z_min_hist.clear()
+        elif tier == s.shape_tier:
+            s.hull_xy_m = simplify_polygon(convex_footprint(np.concatenate([s.hull_xy_m, fp])), 0.01)
+        if tier == s.shape_tier:
+            s.z_max_hist.append(o.z_max_m)
+            s.z_min_hist.append(o.z_min_m)
+        # Every view adds evidence where it saw the object (partial views are incomplete,
+        # not wrong); each cell counts once per view.
+        pts = o.points_xy_m if len(o.points_xy_m) else fp
         near = o.range_m <= cfg.footprint_max_range_m
-        if first or (near and not s.hull_near):
-            s.hull_xy_m = np.asarray(o.footprint_xy_m, dtype=np.float64)
-        elif (near or not s.hull_near) and _consistent(s.hull_xy_m, o.footprint_xy_m):
-            s.hull_xy_m = convex_footprint(np.concatenate([s.hull_xy_m, o.footprint_xy_m]))
-        if near or not s.hull_near:
-            if near and not s.hull_near:
-                s.hull_hist.clear()
-            s.hull_hist.append(np.asarray(o.footprint_xy_m, dtype=np.float64))
-        s.hull_near = s.hull_near or near
-        s.z_max_hist.append(o.z_max_m)
-        s.z_min_hist.append(o.z_min_m)
+        self._add_evidence(s, np.unique(_cell_keys(pts)), 1.0 if near else _FAR_WEIGHT)
         if o.top_height_m is not None:
             s.top_hist.append(o.top_height_m)
-        s.n_observations += 1
-        s.last_seen_s = max(s.last_seen_s, o.stamp_s)
-        s.first_seen_s = min(s.first_seen_s, o.stamp_s)
+
+    @staticmethod
+    def _add_evidence(s: _State, keys: NDArray[np.int64], weight: float) -> None:
+        allk = np.concatenate([s.cell_keys, keys])
+        allw = np.concatenate([s.cell_w, np.full(len(keys), weight)])
+        uk, inv = np.unique(allk, return_inverse=True)
+        s.cell_keys = uk
+        s.cell_w = np.bincount(inv.reshape(-1), weights=allw, minlength=len(uk))
+        s.footprint_cache = None
+
+    def _evidence_footprint(self, s: _State) -> NDArray[np.float64]:
+        """Footprint from the evidence cells holding at least ``footprint_evidence_frac`` of
+        the well-seen cells' weight (so stray noise cells do not grow it)."""
+        if s.footprint_cache is not None:
+            return s.footprint_cache
+        cfg = self.config
+        if len(s.cell_w) == 0:
+            poly = s.hull_xy_m
+        else:
+            keep = s.cell_w >= cfg.footprint_evidence_frac * float(np.quantile(s.cell_w, 0.9))
+            c = _cell_centres(s.cell_keys[keep])
+            h = _CELL_M / 2
+            hull = convex_footprint(c)  # of centres; each cell's half-width is added back
+            corners = np.concatenate([hull + [-h, -h], hull + [h, -h], hull + [h, h], hull + [-h, h]])
+            poly = convex_footprint(corners)
+        s.footprint_cache = (
+            min_area_rectangle(poly) if cfg.footprint_shape == "rectangle" else poly
+        )
+        return s.footprint_cache
 
     def _negative_evidence(self, matched: set[int], view: CameraView | None) -> None:
         if view is None:
@@ -492,10 +531,7 @@ class ObjectMap:
     def _snapshot(self, s: _State) -> MappedObject:
         cfg = self.config
         p = _sigmoid(s.logodds)
-        footprint = (
-            _robust_rectangle(s.hull_xy_m, list(s.hull_hist))
-            if cfg.footprint_shape == "rectangle" else s.hull_xy_m
-        )
+        footprint = self._evidence_footprint(s)
         z_max = float(np.quantile(np.asarray(s.z_max_hist), 0.8))
         z_min = float(np.quantile(np.asarray(s.z_min_hist), 0.2))
         top = float(np.median(np.asarray(s.top_hist))) if s.top_hist else None

@@ -22,6 +22,8 @@ from semmap.frames import Transform, invert, make_transform
 
 #: Upper bound on the size of one (N, H) distance block, to bound memory.
 _MAX_BLOCK = 2_000_000
+#: Points on which hypotheses are scored.
+_SCORE_POINTS = 512
 
 
 @dataclass(frozen=True)
@@ -115,16 +117,19 @@ def fit_plane(
     if len(normals) == 0:
         return None
     offsets = -np.einsum("hj,hj->h", normals, p0)  # (H,)
+    # Hypotheses are scored on a random subset (the winner is re-scored on every point):
+    # the inlier ratio, not the count, decides, and a few hundred points estimate it well.
+    S = P if n_pts <= _SCORE_POINTS else P[rng.choice(n_pts, _SCORE_POINTS, replace=False)]
     counts = np.zeros(len(normals), np.int64)
-    step = max(1, _MAX_BLOCK // max(1, n_pts))
+    step = max(1, _MAX_BLOCK // max(1, len(S)))
     for s in range(0, len(normals), step):
-        d = np.abs(P @ normals[s : s + step].T + offsets[s : s + step])  # (N, h)
+        d = np.abs(S @ normals[s : s + step].T + offsets[s : s + step])  # (n, h)
         counts[s : s + step] = (d <= distance_m).sum(axis=0)
     best = int(np.argmax(counts))
-    if counts[best] < max(3, min_inliers):
-        return None
     n, off = normals[best], float(offsets[best])
     inliers = np.abs(P @ n + off) <= distance_m
+    if inliers.sum() < max(3, min_inliers):
+        return None
     n_ref, off_ref = _refine(P[inliers])
     if u is not None:
         if n_ref @ u < 0:
