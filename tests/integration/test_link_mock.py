@@ -45,7 +45,7 @@ from semmap.grid import GridSpec
 pytestmark = pytest.mark.timeout(120)
 
 TAKEOFF_ALT_M = 1.5
-HB_TIMEOUT_S = 1.0
+HB_TIMEOUT_S = 2.0  # PX4 heartbeats at 1 Hz: two periods
 
 
 @dataclass
