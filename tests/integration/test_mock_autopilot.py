@@ -357,3 +357,72 @@ async def test_vision_messages_recorded(link) -> None:
     await ap.wait_until(lambda: len(ap.vision) == 2, 2.0, "two vision messages")
     assert ap.vision[0].position_ned_m == (1.0, 2.0, -0.5)
     assert ap.vision[1].msg_type == "ODOMETRY" and ap.vision[1].time_usec == 223456
+
+
+async def test_rtl_returns_home_and_lands(link) -> None:
+    ap, c = link
+    ap.params.set("COM_DISARM_LAND", 0.3)
+    await _fly_to_hold(ap, c)
+    # Reposition (COMMAND_INT, as MAVSDK's goto_location sends it) 3 m north-east.
+    lat, lon, _ = ap.home.to_global(3.0, 3.0, 0.0)
+    since = c.mark()
+    c.send(c.mav.command_int_encode(1, 1, mavlink.MAV_FRAME_GLOBAL_INT,
+                                    mavlink.MAV_CMD_DO_REPOSITION, 0, 0, -1, 0, 0, NAN,
+                                    int(lat * 1e7), int(lon * 1e7), ap.home.alt_m + 2.0))
+    ack = await c.recv("COMMAND_ACK", since=since)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED and ap.mode is FlightMode.HOLD
+    await ap.wait_until(lambda: math.dist(ap.position_ned_m, (3.0, 3.0, -2.0)) < 0.1, 15.0,
+                        "repositioned")
+    assert await c.command(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH) == mavlink.MAV_RESULT_ACCEPTED
+    await ap.wait_until(lambda: not ap.armed, 30.0, "RTL, land and disarm")
+    n, e, d = ap.position_ned_m
+    assert math.hypot(n, e) < 0.35 and d == 0.0
+
+
+async def test_mission_pause_resume_and_set_current(link) -> None:
+    ap, c = link
+    pts = [ap.home.to_global(n, 0.0, 0.0)[:2] + (2.0,) for n in (2.0, 4.0, 6.0)]
+    assert await _upload(c, pts) == mavlink.MAV_MISSION_ACCEPTED
+    # Jump to item 1 before starting (MISSION_SET_CURRENT): the vehicle answers MISSION_CURRENT.
+    c.send(c.mav.mission_set_current_encode(1, 1, 1))
+    cur = await c.recv("MISSION_CURRENT", pred=lambda m: m.seq == 1)
+    assert cur.total == 3
+    assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+    assert await c.command(mavlink.MAV_CMD_MISSION_START, 0, 0) == mavlink.MAV_RESULT_ACCEPTED
+    await ap.wait_until(lambda: ap.reached_items == [1], 20.0, "item 1 reached")
+    # Pause (Hold), then resume: it continues with item 2, item 0 is never flown.
+    assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(FlightMode.HOLD)) \
+        == mavlink.MAV_RESULT_ACCEPTED
+    assert ap.navigator.mission_state == mavlink.MISSION_STATE_PAUSED
+    assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(FlightMode.MISSION)) \
+        == mavlink.MAV_RESULT_ACCEPTED
+    await ap.wait_until(lambda: ap.navigator.mission_state == mavlink.MISSION_STATE_COMPLETE,
+                        20.0, "mission complete")
+    assert ap.reached_items == [1, 2]
+    assert await c.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 7) == mavlink.MAV_RESULT_DENIED
+
+
+async def test_fence_and_rally_are_stored_separately(link) -> None:
+    ap, c = link
+    pts = [ap.home.to_global(n, 1.0, 0.0)[:2] + (2.0,) for n in (1.0, 2.0)]
+    assert await _upload(c, pts) == mavlink.MAV_MISSION_ACCEPTED
+    assert await _upload(c, pts[:1], mission_type=mavlink.MAV_MISSION_TYPE_RALLY) == \
+        mavlink.MAV_MISSION_ACCEPTED
+    assert len(ap.mission_items(mavlink.MAV_MISSION_TYPE_RALLY)) == 1
+    assert len(ap.mission_items()) == 2
+    c.send(c.mav.mission_clear_all_encode(1, 1, mavlink.MAV_MISSION_TYPE_ALL))
+    assert (await c.recv("MISSION_ACK")).type == mavlink.MAV_MISSION_ACCEPTED
+    assert ap.mission_items() == [] and ap.mission_items(mavlink.MAV_MISSION_TYPE_RALLY) == []
+
+
+async def test_delayed_link_still_answers(link) -> None:
+    ap, c = link
+    ap.faults.delay_s = 0.6
+    # Shorter than the injected delay: the ack is late ...
+    with pytest.raises(AssertionError, match="no COMMAND_ACK"):
+        await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, timeout_s=0.3)
+    # ... but it does arrive, and the command was executed exactly once.
+    await c.recv("COMMAND_ACK", timeout_s=3.0, since=0,
+                 pred=lambda m: m.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM)
+    assert ap.armed
+    assert len(ap.commands.received(mavlink.MAV_CMD_COMPONENT_ARM_DISARM)) == 1
