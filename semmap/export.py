@@ -285,8 +285,11 @@ def render_picture(
         c0, c1 = max(0, cols_any.min() - m), min(spec.cols, cols_any.max() + 1 + m)
     else:
         r0, r1, c0, c1 = 0, spec.rows, 0, spec.cols
-    for fp in smap.objects:  # never crop an object away
-        rc = spec.cell_of(np.asarray(fp.polygon_xy_m))
+    keep = [np.asarray(fp.polygon_xy_m).reshape(-1, 2) for fp in smap.objects]
+    if len(smap.path_xyz_m):
+        keep.append(smap.path_xyz_m[:, :2])
+    for pts_xy in keep:  # never crop an object or the path away
+        rc = np.clip(spec.cell_of(pts_xy), 0, [spec.rows - 1, spec.cols - 1])
         r0, r1 = max(0, min(r0, int(rc[:, 0].min()) - 2)), min(spec.rows, max(r1, int(rc[:, 0].max()) + 3))
         c0, c1 = max(0, min(c0, int(rc[:, 1].min()) - 2)), min(spec.cols, max(c1, int(rc[:, 1].max()) + 3))
     scale = max(1, int(math.ceil(min_width_px / max(1, c1 - c0))))

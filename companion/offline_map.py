@@ -1,0 +1,278 @@
+"""Build a semantic map offline from a recorded RGB-D folder (``companion map``).
+
+The same per-frame pipeline as the service: detections (from a detector model or a
+detections file), tracks (BoT-SORT, or one track per box for sparse keyframes), per-object
+geometry, the object map, the depth band scan into the grid, the layers. Recorded poses are
+camera-to-world in the recording's own world frame (for the dining room, roughly the first
+camera's optical frame, floor tilted), so the floor is estimated first (RANSAC, the lowest
+large near-horizontal plane) and a gravity-aligned map frame built on it: z up, floor at 0.
+
+Outputs (see :func:`semmap.export.export_all`): ``map.pgm/.yaml``, ``costmap.pgm/.yaml``,
+``map.png``, ``objects.json`` (and ``objects.geojson`` with a geographic origin),
+``semantic_map.npz`` and the effective ``config.yaml``.
+
+A detections file is JSON ``{"frames": {"<colour file name>": [{"class": str, "score":
+float, "xyxy": [u0, v0, u1, v1]}, ...]}}`` (the format of
+``../shared/data/rgbd/diningroom/detections_yolox_nano.json``). Its class names are the
+detector's (COCO); ``detector.class_map`` maps them to ours, or, when empty,
+:data:`COCO_TO_CLASSES` does.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+import companion
+from companion.config import CompanionConfig, write_effective_config
+from companion.sources.recorded import RecordedFrameSource
+from semmap.costmap import VerticalBand
+from semmap.detection import Detector, detector_from_config
+from semmap.errors import ConfigError, DataError, FrameError, MapError
+from semmap.export import export_all
+from semmap.frames import transform_points
+from semmap.geometry import ObjectObservation, observe_object
+from semmap.objects import ObjectMap
+from semmap.pointcloud import backproject
+from semmap.ransac import estimate_floor, gravity_aligned_frame
+from semmap.semantic_map import SemanticMap, SemanticMapSettings
+from semmap.tracking.botsort import BoTSORT
+from semmap.types import Detection, Frame, Track
+
+log = logging.getLogger(__name__)
+
+#: COCO detector names -> our classes, used for detections files when ``detector.class_map``
+#: is empty. A dining table is open underneath like a desk.
+COCO_TO_CLASSES: dict[str, str] = {"chair": "chair", "couch": "sofa", "dining table": "desk"}
+
+#: Called after each frame with (frames done, frames total).
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class OfflineMapOptions:
+    """How to build the map. ``detections_path``: a detections file instead of the config's
+    detector. ``use_tracker``: BoT-SORT across frames (off for sparse keyframes: each box is
+    its own track and the object map re-associates by footprint). ``align_floor``: estimate
+    the floor; off when the recording's world is already z-up with the floor at 0.
+    ``geo_origin_lat_lon_deg``: the map origin's WGS-84 position for GeoJSON.
+    ``max_frames``: stop after this many frames. ``floor_sample_frames``: frames pooled for
+    the floor estimate."""
+
+    detections_path: Path | None = None
+    use_tracker: bool = True
+    align_floor: bool = True
+    geo_origin_lat_lon_deg: tuple[float, float] | None = None
+    max_frames: int | None = None
+    floor_sample_frames: int = 12
+
+
+@dataclass(frozen=True, eq=False)
+class OfflineMapResult:
+    """What :func:`build_offline_map` produced."""
+
+    semantic_map: SemanticMap
+    object_map: ObjectMap
+    T_map_world: NDArray[np.float64]
+    frames_used: int
+    frames_skipped: int
+    files: dict[str, Path] = field(default_factory=dict)
+
+
+def load_detections_file(
+    path: Path, class_names: Sequence[str], class_map: Mapping[str, str] | None = None,
+    score_threshold: float = 0.0,
+) -> dict[str, list[Detection]]:
+    """Detections per colour file name, mapped to our classes (others dropped).
+
+    Raises :class:`DataError` naming the file and the bad entry.
+    """
+    mapping = dict(class_map) if class_map else dict(COCO_TO_CLASSES)
+    bad_targets = sorted({t for t in mapping.values() if t not in class_names})
+    if class_map and bad_targets:
+        raise ConfigError(f"detector.class_map maps to unknown classes {bad_targets} (classes: {list(class_names)})")
+    mapping = {k: v for k, v in mapping.items() if v in class_names}
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: detections file not found") from exc
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"{path}: not a readable JSON detections file ({exc})") from exc
+    frames = doc.get("frames") if isinstance(doc, dict) else None
+    if not isinstance(frames, dict):
+        raise DataError(f"{path}: expected an object with a 'frames' mapping (file name -> boxes)")
+    out: dict[str, list[Detection]] = {}
+    for name, boxes in frames.items():
+        if not isinstance(boxes, list):
+            raise DataError(f"{path}: frames[{name!r}] must be a list of boxes")
+        dets = []
+        for j, b in enumerate(boxes):
+            where = f"{path}: frames[{name!r}][{j}]"
+            try:
+                cls, score, xyxy = str(b["class"]), float(b["score"]), [float(v) for v in b["xyxy"]]
+            except (KeyError, TypeError, ValueError) as exc:
+                raise DataError(f"{where}: needs 'class', 'score' and 'xyxy' ({exc})") from exc
+            if len(xyxy) != 4 or xyxy[2] <= xyxy[0] or xyxy[3] <= xyxy[1]:
+                raise DataError(f"{where}: xyxy must be [u0, v0, u1, v1] with u1 > u0, v1 > v0")
+            target = mapping.get(cls)
+            if target is None or score < score_threshold:
+                continue
+            dets.append(Detection((xyxy[0], xyxy[1], xyxy[2], xyxy[3]), score, target))
+        out[str(name)] = sorted(dets, key=lambda d: -d.score)
+    return out
+
+
+def estimate_map_alignment(
+    source: RecordedFrameSource, depth_range_m: tuple[float, float], n_frames: int = 12,
+) -> NDArray[np.float64]:
+    """``T_map_world`` (4, 4): a gravity-aligned map frame on the floor of the recording.
+
+    Pools a subsampled cloud of up to ``n_frames`` evenly spaced posed frames in the world
+    frame; "up" starts as the first camera's -y (a roughly level camera). The map x axis
+    follows the first camera's viewing direction. Raises :class:`MapError` without a floor.
+    """
+    n = len(source)
+    picks = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(n, max(1, n_frames)))})
+    clouds, first_R = [], None
+    for i in picks:
+        f = source.frame_at(i)
+        if f.T_map_camera is None:
+            continue
+        T = np.asarray(f.T_map_camera, np.float64)
+        first_R = T[:3, :3] if first_R is None else first_R
+        pts, _ = backproject(f.depth_m, f.intrinsics, *depth_range_m, stride_px=4)
+        clouds.append(transform_points(T, pts))
+    if first_R is None or not clouds:
+        raise DataError(f"{source.path}: no frame has a pose; the offline map needs camera poses")
+    up_hint = first_R @ np.array([0.0, -1.0, 0.0])
+    forward = first_R @ np.array([0.0, 0.0, 1.0])
+    floor = estimate_floor(np.concatenate(clouds), up_hint=up_hint, rng=np.random.default_rng(0))
+    return gravity_aligned_frame(floor.plane, forward_hint=(float(forward[0]), float(forward[1]), float(forward[2])))
+
+
+class _OneTrackPerBox:
+    """Tracks for sparse keyframes: every box is a new track id."""
+
+    def __init__(self) -> None:
+        self._next = 1
+
+    def update(self, detections: Sequence[Detection], image_rgb: NDArray[np.uint8] | None = None) -> list[Track]:
+        out = []
+        for d in detections:
+            out.append(Track(self._next, d.xyxy_px, d.score, d.class_name))
+            self._next += 1
+        return out
+
+
+def build_offline_map(
+    sequence: str | Path, out_dir: str | Path, cfg: CompanionConfig,
+    options: OfflineMapOptions | None = None, progress: Progress | None = None,
+) -> OfflineMapResult:
+    """Map a recorded folder into ``out_dir`` (see the module docstring). Frames that cannot
+    be read are skipped with a warning; a recording without poses is an error."""
+    opts = options or OfflineMapOptions()
+    out = Path(out_dir)
+    class_names = [c.name for c in cfg.classes]
+    by_name = {c.name: c for c in cfg.classes}
+    cam = cfg.camera
+    depth_range = (cam.depth_min_m, cam.depth_max_m)
+    source = RecordedFrameSource(sequence, default_intrinsics=cam.intrinsics(), depth_min_m=cam.depth_min_m,
+                                 depth_max_m=cam.depth_max_m, rate_hz=cam.rate_hz)
+    source.open()
+    n_total = len(source) if opts.max_frames is None else min(len(source), opts.max_frames)
+    if n_total == 0:
+        raise DataError(f"{sequence}: the recording has no frames")
+
+    detections: dict[str, list[Detection]] | None = None
+    detector: Detector | None = None
+    if opts.detections_path is not None:
+        detections = load_detections_file(Path(opts.detections_path), class_names, cfg.detector.class_map,
+                                          cfg.detector.score_threshold)
+    elif cfg.detector.kind == "oracle":
+        raise ConfigError("detector.kind 'oracle' needs the simulator; for a recording give "
+                          "--detections FILE or configure detector.kind: onnx")
+    else:
+        detector = detector_from_config(cfg.detector, class_names,
+                                        builtin_dir=Path(companion.__file__).parent / "models")
+
+    T_map_world = (estimate_map_alignment(source, depth_range, opts.floor_sample_frames)
+                   if opts.align_floor else np.eye(4))
+    p = cfg.planner
+    band = VerticalBand.for_altitude(p.flight_altitude_m, p.vehicle_height_m, p.vertical_margin_m)
+    settings = SemanticMapSettings.from_config(cfg.map, cfg.classes, band, *depth_range)
+    omap = ObjectMap(cfg.classes, cfg.map)
+    smap = SemanticMap(settings, omap)
+    tracker: BoTSORT | _OneTrackPerBox = (BoTSORT.from_config(cfg.tracker) if opts.use_tracker
+                                          else _OneTrackPerBox())
+    rng = np.random.default_rng(0)
+    entries = source.entries
+    used = skipped = 0
+    for i in range(n_total):
+        try:
+            frame = source.frame_at(i)
+        except FrameError as exc:
+            log.warning("skipping frame %d: %s", i, exc)
+            skipped += 1
+            continue
+        if frame.T_map_camera is None:
+            log.warning("skipping frame %d (%s): no pose", i, entries[i].rgb_path.name)
+            skipped += 1
+            continue
+        T = T_map_world @ np.asarray(frame.T_map_camera, np.float64)
+        if detections is not None:
+            dets = detections.get(entries[i].rgb_path.name, [])
+        else:
+            assert detector is not None
+            dets = detector.detect_frame(frame)
+        tracks = tracker.update(dets, frame.rgb)
+        obs = _observe(frame, T, tracks, by_name, cfg, depth_range, rng)
+        smap.integrate_frame(frame, T_map_camera=T, observations=obs)
+        used += 1
+        if progress is not None:
+            progress(i + 1, n_total)
+    source.close()
+    if used == 0:
+        raise DataError(f"{sequence}: no usable frame (all unreadable or without pose)")
+    colours = {c.name: c.color_rgb for c in cfg.classes}
+    files = export_all(out, smap, colours, opts.geo_origin_lat_lon_deg)
+    files["config"] = write_effective_config(cfg, out)
+    log.info("mapped %d frames (%d skipped): %d objects, grid %dx%d", used, skipped, len(smap.objects),
+             *smap.spec.shape_rc)
+    return OfflineMapResult(smap, omap, T_map_world, used, skipped, files)
+
+
+def _observe(
+    frame: Frame, T_map_camera: NDArray[np.float64], tracks: Sequence[Track], by_name: Mapping[str, Any],
+    cfg: CompanionConfig, depth_range: tuple[float, float], rng: np.random.Generator,
+) -> list[ObjectObservation]:
+    obs = []
+    for tr in tracks:
+        o = observe_object(frame.depth_m, frame.intrinsics, T_map_camera, tr, by_name[tr.class_name],
+                           cfg.geometry, depth_range_m=depth_range, stamp_s=frame.stamp_s, rng=rng)
+        if o is not None:
+            obs.append(o)
+    return obs
+
+
+def parse_lat_lon(text: str) -> tuple[float, float]:
+    """``"LAT,LON"`` in degrees -> (lat, lon); raises :class:`ConfigError` when malformed."""
+    try:
+        lat_s, lon_s = text.split(",")
+        lat, lon = float(lat_s), float(lon_s)
+    except ValueError as exc:
+        raise ConfigError(f"--geo-origin must be LAT,LON in degrees (got {text!r})") from exc
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0) or math.isnan(lat + lon):
+        raise ConfigError(f"--geo-origin out of range (got {text!r})")
+    return lat, lon
+
+
+__all__ = ["COCO_TO_CLASSES", "MapError", "OfflineMapOptions", "OfflineMapResult", "build_offline_map",
+           "estimate_map_alignment", "load_detections_file", "parse_lat_lon"]

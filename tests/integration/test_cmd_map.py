@@ -1,0 +1,59 @@
+"""``companion map`` on the real dining-room recording with its detections file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.cli import main
+from companion.config import load_config
+from companion.offline_map import OfflineMapOptions, build_offline_map, load_detections_file
+from semmap.errors import ConfigError, DataError
+from semmap.export import read_ros_map
+from semmap.semantic_map import SemanticMap
+
+
+@pytest.fixture(scope="module")
+def dining(shared_data: Path) -> Path:
+    return shared_data / "rgbd" / "diningroom"
+
+
+def test_cli_builds_and_exports_the_dining_room(dining: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "map"
+    rc = main(["map", str(dining), "--out", str(out), "--detections", str(dining / "detections_yolox_nano.json"),
+               "--no-tracker", "--geo-origin", "47.397742,8.545594"])
+    assert rc == 0
+    captured = capsys.readouterr()
+    assert "mapping [" in captured.err and "5/5" in captured.err  # progress bar on stderr
+    assert "5 frames" in captured.out
+    for name in ("map.pgm", "map.yaml", "costmap.pgm", "costmap.yaml", "map.png", "objects.json",
+                 "objects.geojson", "semantic_map.npz", "effective-config.yaml"):
+        assert (out / name).is_file(), name
+    ros = read_ros_map(out / "map.yaml")
+    assert (ros.occupancy == 100).sum() > 50 and (ros.occupancy == 0).sum() > 1000
+    doc = json.loads((out / "objects.json").read_text())
+    chairs = [o for o in doc["objects"] if o["class_name"] == "chair"]
+    assert len(chairs) >= 2
+    # Heights above the estimated floor are chair-like (the map frame is gravity-aligned).
+    for c in chairs:
+        assert c["z_min_m"] < c["z_max_m"] and 0.5 < c["z_max_m"] < 1.4
+    loaded = SemanticMap.load(out / "semantic_map.npz")
+    assert len(loaded.objects) == len(doc["objects"])
+    # The cameras fly at a plausible handheld height above the estimated floor.
+    assert np.all((loaded.path_xyz_m[:, 2] > 0.5) & (loaded.path_xyz_m[:, 2] < 2.5))
+
+
+def test_bad_inputs_are_reported(dining: Path, tmp_path: Path) -> None:
+    cfg = load_config(None)
+    with pytest.raises(ConfigError, match="oracle"):
+        build_offline_map(dining, tmp_path / "a", cfg, OfflineMapOptions())
+    with pytest.raises(DataError, match="not found"):
+        build_offline_map(tmp_path / "missing", tmp_path / "b", cfg, OfflineMapOptions(detections_path=dining / "x.json"))
+    bad = tmp_path / "dets.json"
+    bad.write_text(json.dumps({"frames": {"1.png": [{"class": "chair", "score": 0.9, "xyxy": [5, 5, 1, 1]}]}}))
+    with pytest.raises(DataError, match=r"frames\['1.png'\]\[0\]"):
+        load_detections_file(bad, ["chair"])
+    assert main(["map", str(dining), "--out", str(tmp_path / "c"), "--detections", str(bad)]) == 2
