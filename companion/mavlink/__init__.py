@@ -5,6 +5,8 @@ Modules: :mod:`~companion.mavlink.urls` (connection URLs), :mod:`~companion.mavl
 adapter over pymavlink), :mod:`~companion.mavlink.state` (VehicleState from telemetry),
 :mod:`~companion.mavlink.commands` (COMMAND_LONG with acks), :mod:`~companion.mavlink.failsafe`
 and :mod:`~companion.mavlink.offboard` (setpoint streaming and the failsafe rules),
-:mod:`~companion.mavlink.obstacle_distance` (OBSTACLE_DISTANCE from the costmap) and
-:mod:`~companion.mavlink.mission_download` (reading the autopilot's mission).
+:mod:`~companion.mavlink.obstacle_distance` (OBSTACLE_DISTANCE from the costmap),
+:mod:`~companion.mavlink.mission_download` (reading the autopilot's mission),
+:mod:`~companion.mavlink.vision` (our pose to PX4 as external vision) and
+:mod:`~companion.mavlink.vehicle` (all of it as one context manager built from LinkConfig).
 """

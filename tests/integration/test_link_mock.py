@@ -37,6 +37,7 @@ from companion.mavlink.obstacle_distance import (
 from companion.mavlink.offboard import OffboardController
 from companion.mavlink.state import LandedState, VehicleState, VehicleStateTracker
 from companion.mavlink.vehicle import Vehicle
+from companion.mavlink.vision import vision_odometry_message
 from companion.px4 import FlightMode
 from companion.sim.autopilot import MockAutopilot
 from semmap.costmap import LETHAL_OBSTACLE, Costmap, VerticalBand
@@ -118,6 +119,14 @@ async def test_arm_takeoff_offboard_and_land(flight: Flight) -> None:
         s = await flight.wait(_near(target, 0.15), "offboard target")
         assert s.flight_mode is FlightMode.OFFBOARD
         await flight.wait(lambda s: abs(math.remainder((s.yaw_ned_rad or 0.0) - 0.5, math.tau)) < 0.1, "yaw")
+        # Our map-frame pose back to PX4 as external vision lands in the autopilot's NED/FRD.
+        _, T_map_body = flight.ap.T_map_body()
+        flight.link.send(vision_odometry_message(flight.link, T_map_body, 42))
+        await flight.ap.wait_until(lambda: any(v.time_usec == 42 for v in flight.ap.vision), 3.0, "vision")
+        sample = [v for v in flight.ap.vision if v.time_usec == 42][0]
+        yaw = 2.0 * math.atan2(sample.q_wxyz[3], sample.q_wxyz[0])
+        assert abs(math.remainder(yaw - flight.ap.state().yaw_rad, math.tau)) < 0.05
+        assert math.dist(sample.position_ned_m, flight.ap.position_ned_m) < 0.2
         await ctl.release(FlightMode.HOLD)
         assert ctl.state is OffboardState.IDLE
         assert all(t.new is not OffboardState.YIELDED for t in ctl.status().transitions)

@@ -1,0 +1,77 @@
+"""External-vision ODOMETRY: map ENU / body FLU poses converted to PX4's NED / FRD."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.mavlink.link import MavlinkLink
+from companion.mavlink.vision import (
+    R_FLU_FRD,
+    R_NED_ENU,
+    ned_pose_from_map,
+    quaternion_wxyz,
+    vision_odometry_message,
+)
+from semmap.frames import (
+    make_transform,
+    pose_from_xyz_rpy,
+    quaternion_to_rotation,
+    rotation_from_rpy,
+)
+
+angles = st.floats(-math.pi, math.pi)
+small = st.floats(-1.2, 1.2)
+coords = st.floats(-50.0, 50.0)
+
+
+def test_level_vehicle_facing_north() -> None:
+    # Map ENU yaw +90 deg = facing north; at map (east 1, north 2, up 3).
+    p, R = ned_pose_from_map(pose_from_xyz_rpy(1.0, 2.0, 3.0, yaw_rad=math.pi / 2))
+    assert p == pytest.approx([2.0, 1.0, -3.0])
+    assert R == pytest.approx(np.eye(3), abs=1e-12)  # FRD aligned with NED: heading north
+    assert quaternion_wxyz(R) == pytest.approx((1.0, 0.0, 0.0, 0.0))
+
+
+@given(roll=small, pitch=small, yaw=angles, n=coords, e=coords, d=coords)
+def test_round_trip_from_a_ned_attitude(roll: float, pitch: float, yaw: float, n: float, e: float, d: float) -> None:
+    """A PX4 attitude (NED/FRD Euler angles) expressed as a map pose converts back exactly."""
+    R_ned_frd = rotation_from_rpy(roll, pitch, yaw)
+    T_map_body = make_transform(R_NED_ENU.T @ R_ned_frd @ R_FLU_FRD.T, R_NED_ENU.T @ np.array([n, e, d]))
+    p, R = ned_pose_from_map(T_map_body)
+    assert p == pytest.approx([n, e, d], abs=1e-9)
+    assert R == pytest.approx(R_ned_frd, abs=1e-9)
+    w, x, y, z = quaternion_wxyz(R)
+    assert w >= 0.0
+    assert quaternion_to_rotation(x, y, z, w) == pytest.approx(R_ned_frd, abs=1e-9)
+
+
+def test_bad_pose_is_rejected() -> None:
+    with pytest.raises(ValueError, match=r"\(4, 4\)"):
+        ned_pose_from_map(np.eye(3))
+    bad = np.eye(4)
+    bad[0, 3] = math.nan
+    with pytest.raises(ValueError, match="finite"):
+        ned_pose_from_map(bad)
+
+
+def test_odometry_message_fields() -> None:
+    link = MavlinkLink("udpout://127.0.0.1:9")
+    T = pose_from_xyz_rpy(1.0, 2.0, 0.5, yaw_rad=0.0)  # facing east
+    msg = vision_odometry_message(link, T, 1234, velocity_map_m_s=np.array([1.0, 0.0, 0.0]),
+                                  reset_counter=3)
+    decoded = mavlink.MAVLink(None).decode(bytearray(msg.pack(link.mav)))
+    assert (decoded.frame_id, decoded.child_frame_id) == (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD)
+    assert decoded.estimator_type == mavlink.MAV_ESTIMATOR_TYPE_VISION
+    assert (decoded.x, decoded.y, decoded.z) == pytest.approx((2.0, 1.0, -0.5))
+    # Facing east and moving east: forward speed 1 m/s in the body frame.
+    assert (decoded.vx, decoded.vy, decoded.vz) == pytest.approx((1.0, 0.0, 0.0), abs=1e-6)
+    assert decoded.reset_counter == 3 and decoded.time_usec == 1234
+    assert math.isnan(decoded.rollspeed) and math.isnan(decoded.pose_covariance[0])
+    no_vel = vision_odometry_message(link, T, 1)
+    assert math.isnan(no_vel.vx)
