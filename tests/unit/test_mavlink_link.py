@@ -546,3 +546,18 @@ async def test_errors_in_the_body_propagate_unwrapped() -> None:
         with pytest.raises(KeyError):
             async with SetpointStreamer(link, 50.0, lambda: None):
                 raise KeyError("body")
+
+
+@pytest.mark.asyncio
+async def test_tcp_client_reconnects_when_the_server_comes_back() -> None:
+    async with MavlinkLink("tcpin://127.0.0.1:0", heartbeat_rate_hz=20.0) as server:
+        port = server.transport.local_address[1]  # type: ignore[attr-defined]
+        client = MavlinkLink(f"tcp://127.0.0.1:{port}", component_id=1, heartbeat_rate_hz=20.0)
+        async with client:
+            await server.wait_message("HEARTBEAT", 3.0, lambda m: m.get_srcComponent() == 1)
+            await server.__aexit__(None, None, None)  # the server goes away ...
+            await _until(lambda: not client.transport.connected)
+            async with MavlinkLink(f"tcpin://127.0.0.1:{port}", heartbeat_rate_hz=20.0) as server2:
+                # ... and comes back on the same port: the client finds it again by itself.
+                await server2.wait_message("HEARTBEAT", 5.0, lambda m: m.get_srcComponent() == 1)
+                await client.wait_message("HEARTBEAT", 3.0)
