@@ -208,6 +208,11 @@ async def test_params_bytewise_int_and_float(link) -> None:
     pv = await c.recv("PARAM_VALUE", pred=lambda m: m.param_id == "COM_OBL_RC_ACT")
     assert decode_value(pv.param_value, pv.param_type) == 4
     assert ap.params.get("COM_OBL_RC_ACT") == 4
+    # A set with the wrong type is refused: the answer carries the unchanged value.
+    c.send(c.mav.param_set_encode(1, 1, b"MIS_TAKEOFF_ALT", encode_value(7, MAV_PARAM_TYPE_INT32),
+                                  MAV_PARAM_TYPE_INT32))
+    pv = await c.recv("PARAM_VALUE", pred=lambda m: m.param_id == "MIS_TAKEOFF_ALT")
+    assert pv.param_value == pytest.approx(2.5) and ap.params.get("MIS_TAKEOFF_ALT") == 2.5
     c.send(c.mav.param_request_list_encode(1, 1))
     await asyncio.sleep(0.5)
     assert c.count("PARAM_VALUE") >= len(ap.params)

@@ -477,13 +477,18 @@ class MockAutopilot:
             log.warning("PARAM_SET for unknown parameter %r ignored", name)
             return
         spec = self.params.spec(name)
-        raw = decode_value(msg.param_value, msg.param_type) if msg.param_type else msg.param_value
-        if not math.isfinite(raw):
-            log.warning("PARAM_SET %s: non-finite value ignored", name)
+        if int(msg.param_type) != spec.param_type:
+            # PX4 refuses a set whose type differs from the parameter's; it answers with the
+            # unchanged value so the client sees the set did not take.
+            log.warning("PARAM_SET %s: type %d does not match the parameter's type %d", name,
+                        msg.param_type, spec.param_type)
         else:
-            self.params.set(name, raw)
-            self.vehicle.limits = self._limits_from_params()
-        del spec
+            value = decode_value(msg.param_value, spec.param_type)
+            if math.isfinite(value):
+                self.params.set(name, value)
+                self.vehicle.limits = self._limits_from_params()
+            else:
+                log.warning("PARAM_SET %s: non-finite value ignored", name)
         self._send_param(name)
 
     def _limits_from_params(self) -> VehicleLimits:
