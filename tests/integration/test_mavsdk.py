@@ -14,7 +14,10 @@ from collections.abc import AsyncIterator
 
 import pytest
 import pytest_asyncio
+from mavsdk.asyncio.plugins.mission import MissionAsync
 from mavsdk.plugins.action import ActionError
+from mavsdk.plugins.mission import MissionItem as SdkMissionItem
+from mavsdk.plugins.mission import MissionPlan as SdkMissionPlan
 from mavsdk.plugins.offboard import OffboardError, PositionNedYaw
 from mavsdk.plugins.telemetry import FlightMode as SdkFlightMode
 from pymavlink.dialects.v20 import common as mavlink
@@ -149,6 +152,17 @@ async def test_mission_upload_download_fly_and_reject(session, tmp_path) -> None
     it = ap.mission_items()[0]
     n, e, _ = ap.home.to_ned(it.lat_deg, it.lon_deg, ap.home.alt_m)
     assert (e, n) == pytest.approx((1.0, 2.0), abs=0.01)
+
+    # MAVSDK's high-level Mission plugin (what most MAVSDK users call) works against it too.
+    mission = MissionAsync(c._system)  # noqa: SLF001 - the connected System
+    items = [SdkMissionItem(latitude_deg=lat, longitude_deg=lon, relative_altitude_m=2.0,
+                            speed_m_s=1.5, is_fly_through=True)
+             for lat, lon, _ in (ap.home.to_global(n, 1.0, 0.0) for n in (1.0, 2.0, 3.0))]
+    await mission.upload_mission(SdkMissionPlan(items))
+    down_sdk = await mission.download_mission()
+    assert [round(i.latitude_deg, 7) for i in down_sdk.mission_items] == \
+        [round(i.latitude_deg, 7) for i in items]
+    assert all(i.speed_m_s == pytest.approx(1.5) for i in down_sdk.mission_items)
 
 
 async def test_offboard_position_setpoints_and_setpoint_loss(session) -> None:
