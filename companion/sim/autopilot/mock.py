@@ -67,7 +67,8 @@ class MockAutopilot:
     """The mock PX4. Use ``async with MockAutopilot(...) as ap:``.
 
     ``local_port=0`` binds an ephemeral port (see :attr:`local_port`); ``remote_ports`` are
-    sent to on ``remote_host``. All positions are local NED metres around ``home``.
+    sent to on ``remote_host``. All positions are local NED metres around ``home``, where the
+    vehicle starts on the floor facing ``start_yaw_rad`` (NED yaw, from north, clockwise).
     """
 
     def __init__(
@@ -83,6 +84,7 @@ class MockAutopilot:
         physics_rate_hz: float = 100.0,
         stream_rates_hz: dict[str, float] | None = None,
         seed: int = 0,
+        start_yaw_rad: float = 0.0,
     ) -> None:
         if physics_rate_hz <= 0:
             raise SimulationError(f"physics_rate_hz must be > 0 (got {physics_rate_hz})")
@@ -102,7 +104,7 @@ class MockAutopilot:
                                  self._on_message, seed)
         self._task: asyncio.Task[None] | None = None
         self._t0 = time.monotonic()
-        self.vehicle = KinematicMulticopter(self._limits_from_params())
+        self.vehicle = KinematicMulticopter(self._limits_from_params(), yaw_rad=start_yaw_rad)
         self._mode = FlightMode.HOLD
         self._armed = False
         self._armed_at_s = 0.0
