@@ -12,7 +12,9 @@ from semmap.config import StageConfig
 class PlannerConfig(StageConfig):
     """OMPL planning and trajectory limits for a multicopter at a commanded altitude."""
 
-    algorithm: Literal["rrtstar", "informed_rrtstar", "bitstar", "prmstar", "rrtconnect"] = (
+    #: OMPL planner. (PRM* is not offered: it grows its roadmap in a second thread that
+    #: would call the Python validity checker while ``solve`` holds the GIL: a deadlock.)
+    algorithm: Literal["rrtstar", "informed_rrtstar", "bitstar", "rrtconnect"] = (
         "informed_rrtstar"
     )
     #: Planning time budget; the best path found by then is used.

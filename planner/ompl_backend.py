@@ -36,12 +36,12 @@ from semmap.errors import PlanningError
 
 log = logging.getLogger(__name__)
 
-#: Config name -> OMPL planner class name.
+#: Config name -> OMPL planner class name. Only single-threaded planners: a planner that calls
+#: the Python checkers from a thread of its own (PRM, PRM*) deadlocks on the GIL.
 PLANNERS: dict[str, str] = {
     "rrtstar": "RRTstar",
     "informed_rrtstar": "InformedRRTstar",
     "bitstar": "BITstar",
-    "prmstar": "PRMstar",
     "rrtconnect": "RRTConnect",
 }
 

@@ -1,0 +1,235 @@
+"""Time parametrisation of a planned path under speed, acceleration and yaw-rate limits.
+
+The vehicle flies exactly along the (checked) polyline at a constant altitude, so every
+sampled position is on the path the planner validated. Along the path the speed follows a
+trapezoidal profile per segment (accelerate, cruise, brake, each within ``max_accel``) between
+vertex speeds found by a forward/backward pass. At a corner of turn angle ``theta`` the speed
+is capped so that the change of the velocity vector, ``2 v sin(theta / 2)``, stays below
+``corner_speed_jump_m_s``: sharp corners are taken slowly, gentle bends at full speed.
+
+Yaw follows the direction of travel at no more than ``max_yaw_rate``: each heading change
+is a constant-rate turn centred on the corner (pushed later if the previous turn has not
+finished), so yaw may briefly lead or lag the direction of travel, which a multicopter does
+not mind. Angles are in the map frame (ENU: 0 = +x east, counter-clockwise positive).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semmap.errors import PlanningError
+
+
+@dataclass(frozen=True)
+class TrajectoryLimits:
+    """Kinematic limits of the vehicle (m/s, m/s^2, rad/s; corner jump in m/s)."""
+
+    max_speed_m_s: float
+    max_accel_m_s2: float
+    max_yaw_rate_rad_s: float
+    corner_speed_jump_m_s: float = 0.3
+
+    def __post_init__(self) -> None:
+        for name in ("max_speed_m_s", "max_accel_m_s2", "max_yaw_rate_rad_s", "corner_speed_jump_m_s"):
+            v = getattr(self, name)
+            if not (v > 0.0 and math.isfinite(v)):
+                raise PlanningError(f"trajectory limit {name} must be a positive number (got {v})")
+
+
+@dataclass(frozen=True)
+class TrajectorySample:
+    """The setpoint at one time: position and velocity in the map frame (ENU), yaw."""
+
+    t_s: float
+    position_m: NDArray[np.float64]  # (3,) x, y, z
+    velocity_m_s: NDArray[np.float64]  # (3,)
+    yaw_rad: float
+    yaw_rate_rad_s: float
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A time-parametrised path; build with :func:`time_parametrize`, read with :meth:`sample`."""
+
+    waypoints_xy_m: NDArray[np.float64]  # (K, 2)
+    altitude_m: float
+    limits: TrajectoryLimits
+    seg_t0_s: NDArray[np.float64]  # (K-1,) start time of each segment
+    seg_len_m: NDArray[np.float64]  # (K-1,)
+    seg_dir: NDArray[np.float64]  # (K-1, 2) unit direction
+    vertex_speed_m_s: NDArray[np.float64]  # (K,)
+    seg_peak_m_s: NDArray[np.float64]  # (K-1,) top speed within the segment
+    seg_phase_s: NDArray[np.float64]  # (K-1, 3) accelerate, cruise, brake durations
+    yaw_turns: NDArray[np.float64]  # (M, 4) start time, end time, yaw from, yaw to (unwrapped)
+    initial_yaw_rad: float
+    motion_end_s: float
+
+    @property
+    def duration_s(self) -> float:
+        """Time until the vehicle stands at the goal with its final yaw."""
+        end = self.motion_end_s
+        if len(self.yaw_turns):
+            end = max(end, float(self.yaw_turns[-1, 1]))
+        return end
+
+    @property
+    def length_m(self) -> float:
+        return float(self.seg_len_m.sum())
+
+    def _along(self, t_s: float) -> tuple[int, float, float]:
+        """(segment, distance into it, speed) at time t (clamped to the motion)."""
+        n = len(self.seg_len_m)
+        if n == 0:
+            return 0, 0.0, 0.0
+        if t_s >= self.motion_end_s:
+            return n - 1, float(self.seg_len_m[-1]), 0.0
+        t = max(t_s, 0.0)
+        i = int(np.searchsorted(self.seg_t0_s, t, side="right") - 1)
+        i = min(max(i, 0), n - 1)
+        tau = t - float(self.seg_t0_s[i])
+        a = self.limits.max_accel_m_s2
+        v0, vp = float(self.vertex_speed_m_s[i]), float(self.seg_peak_m_s[i])
+        ta, tc, tb = (float(x) for x in self.seg_phase_s[i])
+        if tau <= ta:
+            return i, v0 * tau + 0.5 * a * tau * tau, v0 + a * tau
+        s = v0 * ta + 0.5 * a * ta * ta
+        if tau <= ta + tc:
+            return i, s + vp * (tau - ta), vp
+        s += vp * tc
+        u = min(tau - ta - tc, tb)
+        return i, min(s + vp * u - 0.5 * a * u * u, float(self.seg_len_m[i])), max(vp - a * u, 0.0)
+
+    def _yaw(self, t_s: float) -> tuple[float, float]:
+        yaw = self.initial_yaw_rad
+        for t0, t1, y0, y1 in self.yaw_turns:
+            if t_s >= t1:
+                yaw = y1
+                continue
+            if t_s > t0:
+                frac = (t_s - t0) / max(t1 - t0, 1e-12)
+                rate = (y1 - y0) / max(t1 - t0, 1e-12)
+                return _wrap(y0 + frac * (y1 - y0)), rate
+            break
+        return _wrap(yaw), 0.0
+
+    def sample(self, t_s: float) -> TrajectorySample:
+        """The setpoint at ``t_s`` seconds after the start (clamped to [0, duration])."""
+        i, s, v = self._along(t_s)
+        if len(self.seg_len_m) == 0:
+            xy = self.waypoints_xy_m[0]
+            d = np.zeros(2)
+        else:
+            d = self.seg_dir[i]
+            xy = self.waypoints_xy_m[i] + s * d
+        yaw, rate = self._yaw(t_s)
+        return TrajectorySample(
+            t_s=float(t_s),
+            position_m=np.array([xy[0], xy[1], self.altitude_m]),
+            velocity_m_s=np.array([v * d[0], v * d[1], 0.0]),
+            yaw_rad=yaw, yaw_rate_rad_s=rate,
+        )
+
+
+def _segment_profile(L: float, v0: float, v1: float, vmax: float, a: float) -> tuple[float, float, float, float]:
+    """(peak speed, accelerate, cruise, brake durations) of a trapezoid over length L."""
+    vp = min(vmax, math.sqrt(max((2.0 * a * L + v0 * v0 + v1 * v1) / 2.0, 0.0)))
+    vp = max(vp, v0, v1)
+    ta = (vp - v0) / a
+    tb = (vp - v1) / a
+    d = L - (vp * vp - v0 * v0) / (2.0 * a) - (vp * vp - v1 * v1) / (2.0 * a)
+    tc = max(d, 0.0) / vp if vp > 0.0 else 0.0
+    return vp, ta, tc, tb
+
+
+def time_parametrize(
+    path_xy_m: NDArray[np.floating],
+    altitude_m: float,
+    limits: TrajectoryLimits,
+    initial_yaw_rad: float | None = None,
+) -> Trajectory:
+    """Trajectory along a (K, 2) map-frame polyline at ``altitude_m``, from rest to rest.
+
+    ``initial_yaw_rad``: the vehicle's yaw at the start (default: the first segment's
+    heading); the first turn starts at t = 0.
+    """
+    p = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
+    if len(p) == 0 or not np.all(np.isfinite(p)):
+        raise PlanningError(f"path must be a non-empty (K, 2) array of finite metres, got shape {p.shape}")
+    keep = np.ones(len(p), dtype=bool)
+    keep[1:] = np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-6
+    p = p[keep]
+    seg = np.diff(p, axis=0)
+    L = np.linalg.norm(seg, axis=1)
+    n = len(L)
+    u = seg / L[:, None] if n else np.zeros((0, 2))
+    heading = np.arctan2(u[:, 1], u[:, 0]) if n else np.zeros(0)
+    vmax, a = limits.max_speed_m_s, limits.max_accel_m_s2
+
+    v = np.full(n + 1, vmax)
+    v[0] = 0.0
+    v[-1] = 0.0
+    for k in range(1, n):
+        cos_t = float(np.clip(np.dot(u[k - 1], u[k]), -1.0, 1.0))
+        half = 0.5 * math.acos(cos_t)
+        if half > 1e-9:
+            v[k] = min(vmax, limits.corner_speed_jump_m_s / (2.0 * math.sin(half)))
+    for k in range(n):
+        v[k + 1] = min(v[k + 1], math.sqrt(v[k] ** 2 + 2.0 * a * L[k]))
+    for k in range(n - 1, -1, -1):
+        v[k] = min(v[k], math.sqrt(v[k + 1] ** 2 + 2.0 * a * L[k]))
+
+    peak = np.zeros(n)
+    phase = np.zeros((n, 3))
+    t0 = np.zeros(n)
+    t = 0.0
+    for k in range(n):
+        vp, ta, tc, tb = _segment_profile(float(L[k]), float(v[k]), float(v[k + 1]), vmax, a)
+        peak[k] = vp
+        phase[k] = (ta, tc, tb)
+        t0[k] = t
+        t += ta + tc + tb
+    motion_end = t
+
+    # Yaw turns, each centred on its corner, never overlapping the previous one.
+    omega = limits.max_yaw_rate_rad_s
+    yaw0 = float(heading[0]) if initial_yaw_rad is None and n else float(initial_yaw_rad or 0.0)
+    turns: list[tuple[float, float, float, float]] = []
+    current = yaw0
+    free_at = 0.0
+    if n:
+        delta = _wrap(float(heading[0]) - current)
+        if abs(delta) > 1e-9:
+            d = abs(delta) / omega
+            turns.append((0.0, d, current, current + delta))
+            current += delta
+            free_at = d
+    for k in range(1, n):
+        delta = _wrap(float(heading[k]) - _wrap(current))
+        if abs(delta) <= 1e-9:
+            continue
+        d = abs(delta) / omega
+        start = max(float(t0[k]) - d / 2.0, free_at)
+        turns.append((start, start + d, current, current + delta))
+        current += delta
+        free_at = start + d
+    return Trajectory(
+        waypoints_xy_m=p, altitude_m=float(altitude_m), limits=limits, seg_t0_s=t0, seg_len_m=L,
+        seg_dir=u, vertex_speed_m_s=v, seg_peak_m_s=peak, seg_phase_s=phase,
+        yaw_turns=np.array(turns, dtype=np.float64).reshape(-1, 4), initial_yaw_rad=yaw0,
+        motion_end_s=motion_end,
+    )
+
+
+def limits_from_config(max_speed_m_s: float, max_accel_m_s2: float, max_yaw_rate_deg_s: float,
+                       corner_speed_jump_m_s: float) -> TrajectoryLimits:
+    """Limits from the planner config's units (yaw rate in degrees per second)."""
+    return TrajectoryLimits(max_speed_m_s, max_accel_m_s2, math.radians(max_yaw_rate_deg_s),
+                            corner_speed_jump_m_s)

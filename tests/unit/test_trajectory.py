@@ -1,0 +1,102 @@
+"""Trajectory time parametrisation: limits hold, the vehicle stays on the path, ends at rest."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from planner.trajectory import TrajectoryLimits, time_parametrize
+from semmap.errors import PlanningError
+
+LIMITS = TrajectoryLimits(max_speed_m_s=1.0, max_accel_m_s2=0.8, max_yaw_rate_rad_s=math.radians(60),
+                          corner_speed_jump_m_s=0.3)
+
+
+def _dist_to_polyline(p: np.ndarray, poly: np.ndarray) -> float:
+    a, b = poly[:-1], poly[1:]
+    ab = b - a
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12), 0, 1)
+    return float(np.min(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
+
+
+def _samples(traj, dt=0.01):
+    ts = np.arange(0.0, traj.duration_s + dt, dt)
+    return ts, [traj.sample(float(t)) for t in ts]
+
+
+paths = st.lists(st.tuples(st.floats(-5, 5), st.floats(-5, 5)), min_size=2, max_size=6).map(
+    lambda pts: np.array(pts, dtype=np.float64)
+).filter(lambda p: np.linalg.norm(np.diff(p, axis=0), axis=1).min() > 0.05)
+
+
+@settings(max_examples=30, deadline=None)
+@given(paths)
+def test_limits_hold_and_position_stays_on_path(path: np.ndarray) -> None:
+    traj = time_parametrize(path, 1.2, LIMITS)
+    ts, samples = _samples(traj)
+    speeds = np.array([np.linalg.norm(s.velocity_m_s) for s in samples])
+    assert speeds.max() <= LIMITS.max_speed_m_s + 1e-9
+    for s in samples[:: max(1, len(samples) // 50)]:
+        assert _dist_to_polyline(s.position_m[:2], path) < 1e-6
+        assert s.position_m[2] == pytest.approx(1.2)
+    # Speed changes within max_accel (velocity direction jumps only at corners).
+    dv = np.abs(np.diff(speeds)) / np.diff(ts)
+    assert dv.max() <= LIMITS.max_accel_m_s2 * 1.02 + 1e-6
+    # Yaw rate within the limit (unwrapped finite differences).
+    yaw = np.unwrap([s.yaw_rad for s in samples])
+    assert np.max(np.abs(np.diff(yaw) / np.diff(ts))) <= LIMITS.max_yaw_rate_rad_s * 1.01 + 1e-6
+    # Starts and ends at rest at the path's ends.
+    np.testing.assert_allclose(samples[0].position_m[:2], path[0], atol=1e-9)
+    np.testing.assert_allclose(traj.sample(traj.duration_s).position_m[:2], path[-1], atol=1e-6)
+    assert np.linalg.norm(traj.sample(traj.duration_s).velocity_m_s) == 0.0
+    assert speeds[0] == 0.0
+
+
+def test_straight_line_reaches_cruise_speed_and_takes_trapezoid_time() -> None:
+    traj = time_parametrize(np.array([[0.0, 0.0], [10.0, 0.0]]), 1.0, LIMITS)
+    # accelerate 1.25 s over 0.625 m, cruise 8.75 m, brake 1.25 s.
+    assert traj.motion_end_s == pytest.approx(1.25 + 8.75 + 1.25)
+    assert np.linalg.norm(traj.sample(5.0).velocity_m_s) == pytest.approx(1.0)
+
+
+def test_sharp_corner_is_slow_gentle_bend_is_fast() -> None:
+    sharp = time_parametrize(np.array([[0.0, 0.0], [5.0, 0.0], [5.0, 5.0]]), 1.0, LIMITS)
+    gentle = time_parametrize(np.array([[0.0, 0.0], [5.0, 0.0], [10.0, 0.2]]), 1.0, LIMITS)
+    assert sharp.vertex_speed_m_s[1] == pytest.approx(0.3 / (2 * math.sin(math.pi / 4)))
+    assert gentle.vertex_speed_m_s[1] == pytest.approx(1.0)
+    # Velocity jump at the corner stays within the configured bound.
+    t_corner = sharp.seg_t0_s[1]
+    before = sharp.sample(t_corner - 1e-6).velocity_m_s
+    after = sharp.sample(t_corner + 1e-6).velocity_m_s
+    assert np.linalg.norm(after - before) <= 0.3 + 1e-3
+
+
+def test_yaw_follows_direction_of_travel() -> None:
+    traj = time_parametrize(np.array([[0.0, 0.0], [5.0, 0.0], [5.0, 5.0]]), 1.0, LIMITS)
+    assert traj.sample(1.0).yaw_rad == pytest.approx(0.0, abs=1e-9)
+    assert traj.sample(traj.duration_s).yaw_rad == pytest.approx(math.pi / 2)
+
+
+def test_initial_yaw_turns_at_limited_rate() -> None:
+    traj = time_parametrize(np.array([[0.0, 0.0], [0.0, 3.0]]), 1.0, LIMITS, initial_yaw_rad=0.0)
+    s = traj.sample(0.5)
+    assert s.yaw_rad == pytest.approx(math.radians(30), abs=1e-6)
+    assert s.yaw_rate_rad_s == pytest.approx(LIMITS.max_yaw_rate_rad_s)
+
+
+def test_single_point_path_holds() -> None:
+    traj = time_parametrize(np.array([[1.0, 2.0]]), 0.5, LIMITS)
+    s = traj.sample(3.0)
+    np.testing.assert_allclose(s.position_m, [1.0, 2.0, 0.5])
+    assert traj.duration_s == 0.0
+
+
+def test_bad_input_raises() -> None:
+    with pytest.raises(PlanningError):
+        time_parametrize(np.array([[0.0, np.nan], [1.0, 1.0]]), 1.0, LIMITS)
+    with pytest.raises(PlanningError):
+        TrajectoryLimits(0.0, 1.0, 1.0)
