@@ -166,13 +166,24 @@ def min_area_rectangle(polygon_xy_m: NDArray[np.floating]) -> NDArray[np.float64
     return corners[:, :1] * edges[k] + corners[:, 1:] * perp[k]
 
 
+def _signed_area(pts: list[list[float]]) -> float:
+    """Shoelace signed area (counter-clockwise positive) of a vertex list, in plain floats:
+    footprints have a handful of vertices, where numpy's per-call cost dominates."""
+    n = len(pts)
+    acc = 0.0
+    for i in range(n):
+        x0, y0 = pts[i]
+        x1, y1 = pts[(i + 1) % n]
+        acc += x0 * y1 - x1 * y0
+    return 0.5 * acc
+
+
 def polygon_area_m2(polygon_xy_m: NDArray[np.floating]) -> float:
     """Area of a simple polygon (M, 2) by the shoelace formula, any winding."""
     p = np.asarray(polygon_xy_m, dtype=np.float64).reshape(-1, 2)
     if len(p) < 3:
         return 0.0
-    x, y = p[:, 0], p[:, 1]
-    return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+    return abs(_signed_area(p.tolist()))
 
 
 def _pick_cluster(
@@ -217,9 +228,7 @@ def _pick_cluster(
 
 
 def _ccw(poly: NDArray[np.float64]) -> NDArray[np.float64]:
-    x, y = poly[:, 0], poly[:, 1]
-    signed = float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
-    return poly if signed >= 0 else poly[::-1]
+    return poly if _signed_area(poly.tolist()) >= 0 else poly[::-1]
 
 
 def convex_intersection(

@@ -224,6 +224,12 @@ class _State:
     cell_w: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     footprint_cache: NDArray[np.float64] | None = None
 
+    @property
+    def bbox_xy_m(self) -> tuple[float, float, float, float]:
+        """(x_min, y_min, x_max, y_max) of the hull."""
+        lo, hi = self.hull_xy_m.min(axis=0), self.hull_xy_m.max(axis=0)
+        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
 
 class ObjectMap:
     """Persistent objects from per-frame observations (see the module doc).
@@ -305,6 +311,21 @@ class ObjectMap:
         self._prune(stamp_s)
         return [merged.get(assigned[i], assigned[i]) for i in range(len(obs))]
 
+    def _nearby(
+        self, lo_xy: NDArray[np.float64], hi_xy: NDArray[np.float64], xy: NDArray[np.float64]
+    ) -> list[int]:
+        """Ids of objects whose footprint's bounding box meets [lo, hi] or whose centroid is
+        within ``reassociate_distance_m`` of ``xy``: the only ones worth an overlap test."""
+        if not self._objects:
+            return []
+        ids = list(self._objects)
+        boxes = np.array([self._objects[i].bbox_xy_m for i in ids])  # (N, 4)
+        pos = np.array([self._objects[i].position_m[:2] for i in ids])  # (N, 2)
+        overlap = (boxes[:, 0] <= hi_xy[0]) & (boxes[:, 2] >= lo_xy[0]) & (
+            boxes[:, 1] <= hi_xy[1]) & (boxes[:, 3] >= lo_xy[1])
+        close = np.linalg.norm(pos - xy, axis=1) <= self.config.reassociate_distance_m
+        return [ids[i] for i in np.nonzero(overlap | close)[0]]
+
     def _same_object(self, a: _State, b: _State, both_seen_now: bool) -> bool:
         """Duplicate test: heavy overlap whatever the classes, or (same class, not two
         detections of one frame) overlap / proximity as for re-association."""
@@ -329,7 +350,9 @@ class ObjectMap:
         for oid in sorted(touched):
             if oid not in self._objects:
                 continue
-            for other in sorted(self._objects):
+            me = self._objects[oid]
+            near = self._nearby(me.hull_xy_m.min(axis=0), me.hull_xy_m.max(axis=0), me.position_m[:2])
+            for other in sorted(near):
                 if other == oid or other not in self._objects or oid not in self._objects:
                     continue
                 a, b = self._objects[other], self._objects[oid]
@@ -386,9 +409,11 @@ class ObjectMap:
                       float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m)), oid)
         k = self._class_index[o.class_name]
         best: tuple[float, float, int] | None = None
-        for cand, s in self._objects.items():
+        fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
+        for cand in self._nearby(fp.min(axis=0), fp.max(axis=0), o.centroid_xy_m):
             if cand in used:
                 continue
+            s = self._objects[cand]
             iou = convex_iou(s.hull_xy_m, o.footprint_xy_m)
             dist = float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m))
             same_class = int(np.argmax(s.class_probs)) == k

@@ -5,8 +5,9 @@ normal points up, so ``normal . p + offset_m`` is the signed height of ``p`` abo
 RANSAC evaluates all its hypotheses at once as one (N, H) distance matrix: a few hundred
 hypotheses on a thousand points is a single numpy expression, no Python loop per hypothesis.
 With an ``up`` direction the hypotheses are constrained near horizontal (tilt at most
-``max_tilt_rad``), and exactly-horizontal hypotheses through sampled points are added, so a
-seat or table top wins even when most points lie on vertical surfaces (backrests, legs).
+``max_tilt_rad``), and the best exactly-horizontal plane (every point's height tried, by a
+window count on sorted heights) joins them, so a seat or table top wins even when most points
+lie on vertical surfaces (backrests, legs).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from semmap.frames import Transform, invert, make_transform
 #: Upper bound on the size of one (N, H) distance block, to bound memory.
 _MAX_BLOCK = 2_000_000
 #: Points on which hypotheses are scored.
-_SCORE_POINTS = 512
+_SCORE_POINTS = 256
 
 
 @dataclass(frozen=True)
@@ -84,7 +85,7 @@ def fit_plane(
 ) -> PlaneFit | None:
     """Best plane of (N, 3) points: the hypothesis with most points within ``distance_m``.
 
-    ``iterations`` three-point hypotheses are drawn (plus as many exactly-horizontal ones when
+    ``iterations`` three-point hypotheses are drawn (plus the best exactly-horizontal plane when
     ``up`` (3,) is given); with ``up`` only planes tilted at most ``max_tilt_rad`` from
     horizontal are accepted and the normal is oriented towards ``up``. The winner is refined by
     least squares on its inliers. Returns None when fewer than ``min_inliers`` points support
@@ -110,10 +111,13 @@ def fit_plane(
         normals = normals * np.where(dots < 0, -1.0, 1.0)[:, None]
         keep = np.abs(dots) >= math.cos(max_tilt_rad) - 1e-12
         normals, p0 = normals[keep], p0[keep]
-        # Exactly horizontal hypotheses through random points.
-        extra = P[rng.integers(0, n_pts, size=iterations)]
-        normals = np.concatenate([normals, np.broadcast_to(u, extra.shape)])
-        p0 = np.concatenate([p0, extra])
+        # The best exactly-horizontal plane, found exhaustively: every point's height is a
+        # hypothesis and its support is a window count on the sorted heights.
+        hs = np.sort(P @ u)
+        support = np.searchsorted(hs, hs + distance_m, "right") - np.searchsorted(hs, hs - distance_m, "left")
+        h_best = float(hs[int(np.argmax(support))])
+        normals = np.concatenate([normals, u[None, :]])
+        p0 = np.concatenate([p0, (h_best * u)[None, :]])
     if len(normals) == 0:
         return None
     offsets = -np.einsum("hj,hj->h", normals, p0)  # (H,)

@@ -57,3 +57,30 @@ def test_close_points_share_a_cluster_and_clusters_are_apart(pts: np.ndarray, d:
     apart = labels[:, None] != labels[None, :]
     axis_gap = np.abs(pts[:, None, :] - pts[None, :, :]).max(axis=2)
     assert np.all(axis_gap[apart] > d * (1 - 1e-9))
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(1, 300), spread=st.sampled_from([0.05, 0.5, 50.0]), voxel=st.floats(0.01, 0.2),
+    seed=st.integers(0, 1000),
+)
+def test_voxel_downsample_matches_a_per_voxel_mean(n: int, spread: float, voxel: float, seed: int) -> None:
+    # Small spreads take the compact-key path, large ones the sorted-key path.
+    pts = np.random.default_rng(seed).uniform(0.0, spread, (n, 3))
+    cent, inv = voxel_downsample(pts, voxel)
+    groups: dict[tuple[int, int, int], list[int]] = {}
+    for i, key in enumerate(map(tuple, np.floor(pts / voxel).astype(int))):
+        groups.setdefault(key, []).append(i)
+    assert len(cent) == len(groups)
+    for members in groups.values():
+        assert len(set(inv[members])) == 1
+        np.testing.assert_allclose(cent[inv[members[0]]], pts[members].mean(axis=0), atol=1e-12)
+
+
+def test_dense_and_sparse_labelling_agree() -> None:
+    rng = np.random.default_rng(7)
+    blobs = np.concatenate([rng.normal(c, 0.03, (80, 3)) for c in ([0, 0, 0], [0.5, 0, 0], [0, 0.6, 0.2])])
+    dense = euclidean_clusters(blobs, 0.05)
+    # One far point makes the bounding grid huge: the sparse path runs.
+    far = euclidean_clusters(np.concatenate([blobs, [[500.0, 500.0, 500.0]]]), 0.05)
+    assert np.array_equal(dense, far[:-1])
