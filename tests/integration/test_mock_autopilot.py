@@ -431,3 +431,12 @@ async def test_delayed_link_still_answers(link) -> None:
                  pred=lambda m: m.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM)
     assert ap.armed
     assert len(ap.commands.received(mavlink.MAV_CMD_COMPONENT_ARM_DISARM)) == 1
+
+
+async def test_truncated_datagram_does_not_swallow_the_next_one(link) -> None:
+    """Regression: a stream parser kept the partial packet and ate the next datagram's start."""
+    ap, c = link
+    whole = c.mav.command_long_encode(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                      mavlink.MAVLINK_MSG_ID_HOME_POSITION, 0, 0, 0, 0, 0, 0)
+    c.send_raw(whole.pack(c.mav)[:20])  # a packet cut short: header says more is coming
+    assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
