@@ -70,6 +70,13 @@ def _cell_keys(xy_m: NDArray[np.float64]) -> NDArray[np.int64]:
     return ij[:, 0] * _KEY_SHIFT + ij[:, 1]
 
 
+def _inside_convex(poly: NDArray[np.float64], xy: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """(N,) True where points (N, 2) lie inside a convex polygon (M, 2), either winding."""
+    e = np.roll(poly, -1, axis=0) - poly  # (M, 2)
+    cross = e[None, :, 0] * (xy[:, None, 1] - poly[None, :, 1]) - e[None, :, 1] * (xy[:, None, 0] - poly[None, :, 0])
+    return np.all(cross >= -1e-12, axis=1) | np.all(cross <= 1e-12, axis=1)
+
+
 def _cell_centres(keys: NDArray[np.int64]) -> NDArray[np.float64]:
     i = keys // _KEY_SHIFT - _KEY_SHIFT // 2
     j = keys % _KEY_SHIFT - _KEY_SHIFT // 2
@@ -273,6 +280,52 @@ class ObjectMap:
         """JSON-able dump of every object."""
         return {"classes": self.class_names, "objects": [o.to_dict() for o in self.objects()]}
 
+    def load_dict(self, data: Mapping[str, Any]) -> None:
+        """Replace the objects by those of a :meth:`to_dict` dump (a saved map).
+
+        Each object comes back with its id, class probabilities, existence, position and
+        uncertainty, footprint (as its evidence), height range and times; track links are
+        not kept (tracks do not survive a restart). Raises :class:`MapError` naming the
+        object and key when the dump does not fit this map's classes or is malformed.
+        """
+        if list(data.get("classes", [])) != self.class_names:
+            raise MapError(f"saved object map has classes {data.get('classes')}, this map {self.class_names}")
+        objects: dict[int, _State] = {}
+        for i, d in enumerate(data.get("objects", [])):
+            try:
+                oid = int(d["object_id"])
+                probs = np.array([float(d["class_probs"][n]) for n in self.class_names])
+                fp = np.asarray(d["footprint_xy_m"], dtype=np.float64).reshape(-1, 2)
+                existence = min(max(float(d["existence"]), 1e-6), 1.0 - 1e-6)
+                s = _State(
+                    object_id=oid, class_probs=probs / probs.sum(), logodds=_logit(existence),
+                    position_m=np.asarray(d["position_map_m"], dtype=np.float64).reshape(3),
+                    position_var_m2=float(d["position_std_m"]) ** 2, hull_xy_m=fp,
+                    first_seen_s=float(d["first_seen_s"]), last_seen_s=float(d["last_seen_s"]),
+                    n_observations=int(d["n_observations"]), shape_tier=0,
+                )
+                z0, z1 = float(d["z_min_m"]), float(d["z_max_m"])
+                top = d.get("top_height_m")
+            except (KeyError, TypeError, ValueError) as exc:
+                raise MapError(f"saved object #{i}: missing or bad value ({exc!r})") from exc
+            if len(fp) < 3 or probs.sum() <= 0:
+                raise MapError(f"saved object {oid}: footprint needs 3+ vertices and some class probability")
+            s.z_max_hist.append(z1)
+            s.z_min_hist.append(z0)
+            if top is not None:
+                s.top_hist.append(float(top))
+            # The footprint becomes evidence: its cells, at full weight.
+            lo, hi = fp.min(axis=0), fp.max(axis=0)
+            gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + _CELL_M, _CELL_M),
+                                 np.arange(lo[1], hi[1] + _CELL_M, _CELL_M))
+            grid = np.column_stack([gx.ravel(), gy.ravel()])
+            inside = _inside_convex(fp, grid)
+            self._add_evidence(s, np.unique(_cell_keys(grid[inside] if inside.any() else fp)), 1.0)
+            objects[oid] = s
+        self._objects = objects
+        self._track_to_object = {}
+        self._next_id = max(objects, default=0) + 1
+
     # --- update ---------------------------------------------------------------------------
 
     def update(
@@ -386,7 +439,7 @@ class ObjectMap:
             keep.z_min_hist.extend(drop.z_min_hist)
         keep.cell_keys, inv = np.unique(np.concatenate([keep.cell_keys, drop.cell_keys]), return_inverse=True)
         keep.cell_w = np.bincount(inv.reshape(-1), weights=np.concatenate([keep.cell_w, drop.cell_w]),
-                                  minlength=len(keep.cell_keys))
+                                  minlength=len(keep.cell_keys)).astype(np.float64)
         keep.footprint_cache = None
         keep.top_hist.extend(drop.top_hist)
         keep.n_observations += drop.n_observations
@@ -504,7 +557,7 @@ class ObjectMap:
         allw = np.concatenate([s.cell_w, np.full(len(keys), weight)])
         uk, inv = np.unique(allk, return_inverse=True)
         s.cell_keys = uk
-        s.cell_w = np.bincount(inv.reshape(-1), weights=allw, minlength=len(uk))
+        s.cell_w = np.bincount(inv.reshape(-1), weights=allw, minlength=len(uk)).astype(np.float64)
         s.footprint_cache = None
 
     def _evidence_footprint(self, s: _State) -> NDArray[np.float64]:

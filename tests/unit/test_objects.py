@@ -9,7 +9,7 @@ import pytest
 
 from semmap.config import MapConfig, default_classes
 from semmap.frames import make_transform
-from semmap.geometry import ObjectObservation
+from semmap.geometry import ObjectObservation, convex_iou
 from semmap.objects import CameraView, ObjectMap
 from semmap.types import CameraIntrinsics
 
@@ -132,3 +132,32 @@ def test_unknown_class_is_a_clear_error() -> None:
 
     with pytest.raises(MapError, match="'lamp'"):
         ObjectMap(default_classes()).update([obs(1, cls="lamp")], 0.0)
+
+
+def test_dump_and_load_round_trip() -> None:
+    m = ObjectMap(default_classes())
+    for t in range(4):
+        m.update([obs(1, stamp=t), obs(2, cls="desk", xy=(6.0, 1.0), size=1.0, stamp=t)], float(t))
+    dump = json.loads(json.dumps(m.to_dict()))
+    back = ObjectMap(default_classes())
+    back.load_dict(dump)
+    a, b = m.objects(), back.objects()
+    assert [o.object_id for o in a] == [o.object_id for o in b]
+    for x, y in zip(a, b, strict=True):
+        assert x.class_name == y.class_name and x.existence == pytest.approx(y.existence, abs=1e-5)
+        assert np.allclose(x.position_map_m, y.position_map_m, atol=1e-3)
+        assert convex_iou(x.footprint_xy_m, y.footprint_xy_m) > 0.9
+        assert x.z_max_m == pytest.approx(y.z_max_m, abs=1e-3)
+    # New observations keep fusing into the restored objects.
+    back.update([obs(9, xy=(3.05, 0.0), stamp=5.0)], 5.0)
+    assert len(back) == 2
+
+
+def test_load_rejects_a_dump_of_other_classes() -> None:
+    from semmap.errors import MapError
+
+    with pytest.raises(MapError, match="classes"):
+        ObjectMap(default_classes()).load_dict({"classes": ["chair"], "objects": []})
+    with pytest.raises(MapError, match="saved object #0"):
+        ObjectMap(default_classes()).load_dict({"classes": [c.name for c in default_classes()],
+                                                 "objects": [{"object_id": 1}]})
