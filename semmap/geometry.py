@@ -16,6 +16,10 @@ The pipeline per track (one I/O-free step, :func:`observe_object`):
 6. Footprint: the convex hull of the projection of the object's points (top and legs alike)
    onto the map plane, so the space between the legs is inside it. Heights are true heights
    above the floor plane; the position is the centroid of the object's (downsampled) points.
+
+Also here: the polygon helpers the object map shares (convex hull, minimum-area rectangle,
+convex intersection / IoU) and :class:`CameraView`, which tells whether a map point should be
+visible in a frame (negative evidence for the object map).
 """
 
 from __future__ import annotations
@@ -29,8 +33,8 @@ from numpy.typing import NDArray
 
 from semmap.clustering import euclidean_clusters, voxel_downsample
 from semmap.config import ClassConfig, GeometryConfig
-from semmap.frames import Transform
-from semmap.pointcloud import backproject
+from semmap.frames import Transform, invert
+from semmap.pointcloud import backproject, valid_depth_mask
 from semmap.ransac import Plane, fit_plane
 from semmap.types import CameraIntrinsics, Track
 
@@ -77,6 +81,51 @@ class ObjectObservation:
     def height_m(self) -> float:
         """The top of the object above the floor."""
         return self.z_max_m
+
+
+@dataclass(frozen=True)
+class CameraView:
+    """What one frame could see: for "should be visible but is not" (negative evidence).
+
+    ``depth_m``: (H, W) metres, 0/NaN invalid. ``T_map_camera``: (4, 4). Points beyond
+    ``depth_range_m`` or within ``margin_px`` of the image border are not expected to be seen.
+    """
+
+    depth_m: NDArray[np.floating]
+    intrinsics: CameraIntrinsics
+    T_map_camera: Transform
+    depth_range_m: tuple[float, float] = (0.3, 6.0)
+    tolerance_m: float = 0.3
+    margin_px: int = 10
+
+    def expects_visible(self, points_map_m: NDArray[np.floating]) -> NDArray[np.bool_]:
+        """(N,) True where a map point (N, 3) projects inside the image, within range, and the
+        measured depth there (median of a 5x5 patch) is not nearer than the point by more than
+        the tolerance. Pixels without valid depth are not evidence either way (False)."""
+        pts = np.asarray(points_map_m, dtype=np.float64).reshape(-1, 3)
+        out = np.zeros(len(pts), dtype=bool)
+        if len(pts) == 0:
+            return out
+        T = invert(np.asarray(self.T_map_camera, dtype=np.float64))
+        pc = pts @ T[:3, :3].T + T[:3, 3]  # (N, 3) camera frame
+        K = self.intrinsics
+        z = pc[:, 2]
+        in_range = (z >= self.depth_range_m[0]) & (z <= self.depth_range_m[1])
+        zs = np.where(in_range, z, 1.0)
+        u = K.fx_px * pc[:, 0] / zs + K.cx_px
+        v = K.fy_px * pc[:, 1] / zs + K.cy_px
+        m = self.margin_px
+        inside = in_range & (u >= m) & (u < K.width_px - m) & (v >= m) & (v < K.height_px - m)
+        d = np.asarray(self.depth_m)
+        for i in np.nonzero(inside)[0]:
+            ui, vi = int(u[i]), int(v[i])
+            patch = d[max(0, vi - 2) : vi + 3, max(0, ui - 2) : ui + 3]
+            ok = valid_depth_mask(patch, self.depth_range_m[0], self.depth_range_m[1])
+            if ok.sum() == 0:
+                continue
+            measured = float(np.median(patch[ok]))
+            out[i] = measured >= z[i] - self.tolerance_m
+        return out
 
 
 def shrink_box(
