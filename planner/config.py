@@ -24,8 +24,11 @@ class PlannerConfig(StageConfig):
     vehicle_height_m: float = Field(default=0.15, gt=0.0, le=5.0)
     #: Added above and below the vehicle's vertical band when deciding if an object blocks.
     vertical_margin_m: float = Field(default=0.10, ge=0.0)
-    #: Cost weight of the probabilistic map relative to path length.
-    cost_weight: float = Field(default=1.0, ge=0.0)
+    #: Cost weight of the probabilistic map relative to path length: the objective is
+    #: length + weight * integral of the cell cost (0..1) along the path, in metres. Small by
+    #: default: the hard clearance already keeps the vehicle's radius off obstacles; this
+    #: only prefers the middle of a passage when that costs little extra length.
+    cost_weight: float = Field(default=0.2, ge=0.0)
     #: Unknown cells cost this (0..1) times a lethal cell; 1 forbids them.
     unknown_cost: float = Field(default=0.5, ge=0.0, le=1.0)
     snap_goal_to_free: bool = False
@@ -34,7 +37,7 @@ class PlannerConfig(StageConfig):
     #: grid disconnects start and goal).
     search_cell_m: float = Field(default=0.1, gt=0.0, le=1.0)
     #: Proximity cost near obstacles decays by e over this distance beyond the vehicle radius.
-    clearance_decay_m: float = Field(default=0.2, gt=0.0, le=5.0)
+    clearance_decay_m: float = Field(default=0.15, gt=0.0, le=5.0)
     #: Spend the rest of the time budget on the OMPL planner to improve the first path.
     refine_with_ompl: bool = True
     #: Corners are taken at a speed whose change of velocity vector is at most this.

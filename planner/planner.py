@@ -104,6 +104,7 @@ class Planner:
             for g in self._graphs.values():
                 g.update(self._cs, window)
         self._graph(self._coarse_factor())
+        self._graph(1)
         self.last_prepare_s = time.perf_counter() - t0
         return window
 
@@ -192,13 +193,12 @@ class Planner:
         t_search = time.perf_counter()
         path: NDArray[np.float64] | None = None
         factors = sorted({self._coarse_factor(), 1}, reverse=True)
-        reachable = False
+        used_factor = 1
         for f in factors:
             outcome = self._graph(f).search(start, goal)
             if outcome.path_xy_m is not None and cs.path_free(outcome.path_xy_m):
-                path = outcome.path_xy_m
+                path, used_factor = outcome.path_xy_m, f
                 break
-            reachable = reachable or outcome.reachable
         if path is None:
             if snap and not snapped:
                 new_goal = self._snap(start, goal)
@@ -217,13 +217,19 @@ class Planner:
                         "altitude: they are in separate free regions")
         t_first = time.perf_counter()
 
-        # Any-angle post-processing.
+        # Any-angle post-processing; a coarse first path is also compared with the
+        # full-resolution one (the coarse grid can close a narrow gap and force a detour).
         w = cfg.cost_weight
-        best = refine_vertices(cs, shortcut(cs, path, w), w)
-        if not cs.path_free(best):
-            best = path
+        best = self._polish(path)
         best_cost = cs.path_cost(best, w)
-        source = "grid"
+        source = f"grid:{used_factor}"
+        if used_factor > 1 and budget - (time.perf_counter() - t0) > 0.0:
+            fine = self._graph(1).search(start, goal).path_xy_m
+            if fine is not None and cs.path_free(fine):
+                fine = self._polish(fine)
+                c = cs.path_cost(fine, w)
+                if c < best_cost - 1e-9:
+                    best, best_cost, source = fine, c, "grid:1"
         t_smooth = time.perf_counter()
 
         ompl_improved = 0.0
@@ -231,7 +237,7 @@ class Planner:
         if use_ompl and remaining > 0.01:
             cand = ompl_solve(cs, start, goal, cfg.algorithm, remaining, w, cost_bound=best_cost)
             if cand is not None:
-                cand = refine_vertices(cs, shortcut(cs, cand, w), w)
+                cand = self._polish(cand)
                 if cs.path_free(cand):
                     c = cs.path_cost(cand, w)
                     if c < best_cost - 1e-6:
@@ -272,6 +278,12 @@ class Planner:
             if same_goal and self.path_still_valid(remaining):
                 return previous, False
         return self.plan(cur, goal, time_limit_s), True
+
+    def _polish(self, path: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Any-angle shortcuts and corner sliding of a free path (the input if that fails)."""
+        cs, w = self.cspace, self.config.cost_weight
+        out = refine_vertices(cs, shortcut(cs, path, w), w)
+        return out if cs.path_free(out) else path
 
     def _snap(self, start: NDArray[np.float64], goal: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """Nearest free point reachable from ``start`` (full-resolution graph) to ``goal``."""
