@@ -48,7 +48,7 @@ from planner.cspace import CSpace  # noqa: E402
 from planner.gridsearch import GridGraph, refine_vertices, shortcut  # noqa: E402
 from planner.ompl_backend import set_ompl_seed  # noqa: E402
 from planner.planner import Planner  # noqa: E402
-from planner.types import PlanResult, path_length_m  # noqa: E402
+from planner.types import path_length_m  # noqa: E402
 
 HOLLOW_CLASSES = ("chair", "coffee_table", "conference_table", "desk", "whiteboard")
 
@@ -130,6 +130,35 @@ def add_desk_across(room: Room, path: np.ndarray, start: np.ndarray, goal: np.nd
     return None
 
 
+def altitude_sweep(room: Room, spec: Any, cfg: PlannerConfig, queries: list[Query],
+                   altitudes: list[float], tallies: dict[float, dict[str, int]]) -> None:
+    """Semantic vs metric-only map at several altitudes: paths that hit the true geometry.
+
+    Judged twice: with the vehicle's height (exact) and with its planning band (height plus
+    the vertical margin above and below), i.e. "passes closer than the margin".
+    """
+    r, h = cfg.vehicle_radius_m, cfg.vehicle_height_m
+    h_band = h + 2.0 * cfg.vertical_margin_m
+    for alt in altitudes:
+        c = cfg.model_copy(update={"flight_altitude_m": alt, "refine_with_ompl": False})
+        sem, met = Planner(c), Planner(c)
+        sem.set_map(gt.semantic_costmap(room, spec, sem.band))
+        met.set_map(gt.metric_costmap(room, spec, alt))
+        t = tallies.setdefault(alt, {k: 0 for k in (
+            "queries", "semantic_paths", "semantic_collisions", "semantic_margin_violations",
+            "metric_paths", "metric_collisions", "metric_margin_violations")})
+        for q in queries:
+            t["queries"] += 1
+            for name, pl in (("semantic", sem), ("metric", met)):
+                res = pl.plan(q.start, q.goal)
+                if not res.ok:
+                    continue
+                t[f"{name}_paths"] += 1
+                xyz = _xyz(res.path_xy_m, alt)
+                t[f"{name}_collisions"] += int(gt.path_collides(room, xyz, r, h))
+                t[f"{name}_margin_violations"] += int(gt.path_collides(room, xyz, r, h_band))
+
+
 def pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
@@ -147,8 +176,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     sem: dict[str, list[float]] = {k: [] for k in ("first", "first_prep", "prep", "total", "ratio", "ref_ms")}
     counts = {"queries": 0, "sem_ok": 0, "sem_collide": 0, "sem_no_path": 0, "ompl_improved": 0,
               "replan_cases": 0, "replan_ok": 0, "replan_collide": 0, "replan_no_path": 0,
-              "metric_ok": 0, "metric_collide": 0, "metric_collide_objects": 0, "ref_missing": 0}
+              "metric_ok": 0, "metric_collide": 0, "metric_collide_objects": 0, "metric_margin": 0, "ref_missing": 0}
     replan_ms: list[float] = []
+    sweep: dict[float, dict[str, int]] = {}
     rows: list[str] = []
     t_start = time.perf_counter()
     for i in range(args.rooms):
@@ -161,7 +191,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         prep_s = planner.last_prepare_s
         metric = Planner(cfg)
         metric.set_map(gt.metric_costmap(room, spec, z))
-        for q in pick_queries(room, planner.cspace, rng):
+        queries = pick_queries(room, planner.cspace, rng)
+        altitude_sweep(room, spec, cfg, queries, args.altitudes, sweep)
+        for q in queries:
             counts["queries"] += 1
             res = planner.plan(q.start, q.goal)
             ref, ref_s = reference_path(planner.cspace, q.start, q.goal)
@@ -194,6 +226,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 counts["metric_collide"] += int(m_collide)
                 objs = gt.clearance_m(room, gt.densify(xyz, 0.02), h, include_walls=False) < r
                 counts["metric_collide_objects"] += int(bool(objs.any()))
+                counts["metric_margin"] += int(gt.path_collides(room, xyz, r, h + 2 * cfg.vertical_margin_m))
             # Replanning after a desk appears across the path.
             rp_text = "-"
             new_room = add_desk_across(room, res.path_xy_m, q.start, q.goal)
@@ -247,8 +280,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "metric_only": {
             "paths": counts["metric_ok"], "collisions": counts["metric_collide"],
             "collisions_with_objects": counts["metric_collide_objects"],
+            "margin_violations": counts["metric_margin"],
             "collision_frac": counts["metric_collide"] / max(counts["metric_ok"], 1),
         },
+        "altitudes": {f"{alt:.2f}m": t for alt, t in sorted(sweep.items())},
         "wall_time_s": wall_s,
     }
     print(f"planner benchmark: {args.rooms} rooms {args.size_m:g} x {args.size_m:g} m, {args.objects} objects, "
@@ -267,7 +302,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     print(f"replan     {rp['paths']}/{rp['cases']} after a desk appears: p50 {rp['replan_ms_p50']:.1f} ms "
           f"p95 {rp['replan_ms_p95']:.1f} ms  collisions {rp['collisions']}")
     print(f"metric-only {mo['collisions']}/{mo['paths']} paths collide with the true geometry "
-          f"({mo['collisions_with_objects']} with furniture)")
+          f"({mo['collisions_with_objects']} with furniture), {mo['margin_violations']} pass closer than the "
+          f"vertical margin")
+    print()
+    print("semantic vs metric-only map by altitude (first path + any-angle, no OMPL stage):")
+    print("  altitude  queries | semantic: paths  hit  <margin | metric-only: paths  hit  <margin")
+    for alt, t in sorted(sweep.items()):
+        print(f"  {alt:6.2f} m  {t['queries']:7d} | {t['semantic_paths']:15d} {t['semantic_collisions']:4d} "
+              f"{t['semantic_margin_violations']:8d} | {t['metric_paths']:18d} {t['metric_collisions']:4d} "
+              f"{t['metric_margin_violations']:8d}")
+    print(f"  (hit: the vehicle ({h} m tall, radius {r} m) touches the true geometry; <margin: it passes "
+          f"closer than the vertical margin {cfg.vertical_margin_m} m above or below)")
     return figures
 
 
@@ -280,6 +325,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1000)
     ap.add_argument("--time-limit-s", type=float, default=None, help="planner budget (default: config)")
     ap.add_argument("--altitude-m", type=float, default=None, help="flight altitude (default: config)")
+    ap.add_argument("--altitudes", type=lambda v: [float(x) for x in v.split(",")],
+                    default=[0.45, 0.6, 0.75], help="altitudes of the semantic vs metric comparison")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a PlannerConfig field (repeatable)")
     args = ap.parse_args(argv)
