@@ -440,3 +440,28 @@ async def test_truncated_datagram_does_not_swallow_the_next_one(link) -> None:
                                       mavlink.MAVLINK_MSG_ID_HOME_POSITION, 0, 0, 0, 0, 0, 0)
     c.send_raw(whole.pack(c.mav)[:20])  # a packet cut short: header says more is coming
     assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+
+
+async def test_home_moves_to_where_the_vehicle_arms(link) -> None:
+    ap, c = link
+    ap.params.set("COM_DISARM_LAND", 0.3)
+    await _fly_to_hold(ap, c)
+    lat, lon, _ = ap.home.to_global(2.0, 1.0, 0.0)
+    c.send(c.mav.command_int_encode(1, 1, mavlink.MAV_FRAME_GLOBAL_INT,
+                                    mavlink.MAV_CMD_DO_REPOSITION, 0, 0, -1, 0, 0, NAN,
+                                    int(lat * 1e7), int(lon * 1e7), NAN))
+    await ap.wait_until(lambda: math.hypot(ap.position_ned_m[0] - 2.0,
+                                           ap.position_ned_m[1] - 1.0) < 0.05, 15.0, "moved")
+    assert await c.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
+    await ap.wait_until(lambda: not ap.armed, 15.0, "landed and disarmed")
+    assert ap.home_ned_m == (0.0, 0.0, 0.0)
+    since = c.mark()
+    assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+    home = await c.recv("HOME_POSITION", since=since)
+    assert (home.x, home.y) == pytest.approx((2.0, 1.0), abs=0.05)
+    assert (home.latitude, home.longitude) == pytest.approx((lat * 1e7, lon * 1e7), abs=10)
+    # The local origin (and so the map frame) does not move with home.
+    assert await c.command(mavlink.MAV_CMD_REQUEST_MESSAGE,
+                           mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN) == mavlink.MAV_RESULT_ACCEPTED
+    origin = await c.recv("GPS_GLOBAL_ORIGIN", since=since)
+    assert origin.latitude == round(ap.home.lat_deg * 1e7)

@@ -10,7 +10,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.geo import GeoOrigin
+from companion.px4 import FlightMode
 from companion.sim.autopilot import offboard
+from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import (
     MAV_PARAM_TYPE_INT32,
     MAV_PARAM_TYPE_REAL32,
@@ -166,3 +169,23 @@ def test_climb_rate_limit_applies_to_takeoff_targets() -> None:
     trace = _fly(v, 2.0)
     assert min(vel[2] for _, vel in trace) >= -1.0 - 1e-9
     assert v.position_ned_m[2] < -1.5  # it does climb
+
+
+def test_rtl_goes_to_home_not_the_origin() -> None:
+    v = KinematicMulticopter(position_ned_m=(0.0, 0.0, -3.0))
+    v.motors_on = True
+    params = ParamStore({"RTL_RETURN_ALT": 4.0, "RTL_DESCEND_ALT": 2.0})
+    modes: list[FlightMode] = []
+    nav = Navigator(v, params, GeoOrigin(), modes.append, lambda s: None, lambda s: None)
+    nav.home_ned_m = (5.0, -2.0, 0.0)
+    nav.enter(FlightMode.RTL)
+    lowest_d = 0.0
+    for _ in range(int(40 / DT)):
+        v.step(DT)
+        nav.tick(v.stamp_s)
+        lowest_d = min(lowest_d, v.position_ned_m[2])
+        if nav.landed_by_navigator:
+            break
+    assert nav.landed_by_navigator
+    assert v.position_ned_m == pytest.approx((5.0, -2.0, 0.0), abs=0.05)
+    assert lowest_d == pytest.approx(-4.0, abs=0.1)  # climbed to RTL_RETURN_ALT first

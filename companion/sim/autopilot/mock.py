@@ -205,9 +205,14 @@ class MockAutopilot:
         return self.vehicle.state()
 
     def T_map_body(self) -> tuple[float, Transform]:  # noqa: N802 - frame names
-        """``(stamp_s, T_map_body)``: the body pose in the map frame (ENU, origin = local NED
-        origin = home), stamped on the mock clock."""
+        """``(stamp_s, T_map_body)``: the body pose in the map frame (ENU, origin = the local
+        NED origin = ``home`` given at construction), stamped on the mock clock."""
         return self.vehicle.stamp_s, self.vehicle.T_map_body()
+
+    @property
+    def home_ned_m(self) -> tuple[float, float, float]:
+        """Home in local NED: the origin at start, then wherever the vehicle last armed."""
+        return self.navigator.home_ned_m
 
     def mission_items(self, mission_type: int = 0) -> list[MissionItem]:
         return self.missions.items(mission_type)
@@ -248,6 +253,10 @@ class MockAutopilot:
             log.info("armed")
         self._armed = True
         self._armed_at_s = self.now_s()
+        if self.vehicle.on_ground:
+            # PX4 sets home where it arms: RTL returns there, relative altitudes refer to it.
+            self.navigator.home_ned_m = self.vehicle.position_ned_m
+            self._send_now("HOME_POSITION")
         self._has_flown = False
         self._landed_since_s = None
         self.vehicle.motors_on = True
@@ -365,7 +374,7 @@ class MockAutopilot:
         nav = self.navigator
         return telemetry.Snapshot(
             time_boot_ms=int(now * 1000), time_usec=int(now * 1e6), vehicle=self.vehicle.state(),
-            home=self.home, mode=self._mode, armed=self._armed, landed_state=self.landed_state,
+            home=self.home, home_ned_m=self.navigator.home_ned_m, mode=self._mode, armed=self._armed, landed_state=self.landed_state,
             sensors_health=health, mission_seq=nav.mission_seq, mission_total=nav.mission_count,
             mission_state=int(nav.mission_state), battery_remaining_pct=int(self._battery_pct),
             system_id=self.system_id)

@@ -80,7 +80,9 @@ class Navigator:
     ) -> None:
         self._vehicle = vehicle
         self._params = params
-        self.home = home
+        self.home = home  # the local NED origin, for lat/lon conversions
+        #: Home (where the vehicle last armed) in local NED: RTL target, relative altitudes.
+        self.home_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._set_mode = set_mode
         self._item_reached = item_reached
         self._current_changed = current_changed
@@ -183,20 +185,22 @@ class Navigator:
 
     def _rtl_legs(self) -> list[_Leg]:
         n, e, d = self._pos()
+        hn, he, hd = self.home_ned_m
         yaw = self._vehicle.yaw_rad
-        ret_alt = self._params.get("RTL_RETURN_ALT")
-        desc_alt = self._params.get("RTL_DESCEND_ALT")
-        cruise_d = min(d, -ret_alt)
+        ret_d = hd - self._params.get("RTL_RETURN_ALT")
+        desc_d = hd - self._params.get("RTL_DESCEND_ALT")
+        cruise_d = min(d, ret_d)
         legs = []
         if cruise_d < d - 0.05:
             legs.append(_Leg(_Phase.CLIMB, (n, e, cruise_d), yaw, accept_radius_m=0.2))
-        legs.append(_Leg(_Phase.GOTO, (0.0, 0.0, cruise_d), None, accept_radius_m=0.3))
-        if -desc_alt > cruise_d + 0.05:
-            legs.append(_Leg(_Phase.DESCEND, (0.0, 0.0, -desc_alt), None, accept_radius_m=0.2))
+        legs.append(_Leg(_Phase.GOTO, (hn, he, cruise_d), None, accept_radius_m=0.3))
+        if desc_d > cruise_d + 0.05:
+            legs.append(_Leg(_Phase.DESCEND, (hn, he, desc_d), None, accept_radius_m=0.2))
         delay = self._params.get("RTL_LAND_DELAY")
         if delay > 0:
-            legs.append(_Leg(_Phase.WAIT, (0.0, 0.0, -desc_alt), None, hold_s=delay))
-        legs.append(_Leg(_Phase.LAND, (0.0, 0.0, math.nan), None))
+            legs.append(_Leg(_Phase.GOTO, (hn, he, max(cruise_d, desc_d)), None,
+                             accept_radius_m=0.3, hold_s=delay))
+        legs.append(_Leg(_Phase.LAND, (hn, he, math.nan), None))
         return legs
 
     # --- mission items -------------------------------------------------------------------
@@ -204,16 +208,16 @@ class Navigator:
     def _item_ned(self, it: MissionItem) -> tuple[float, float, float]:
         """Local NED of an item; lat/lon 0 means "here" (PX4 convention for takeoff/land)."""
         n, e, d = self._pos()
-        if it.frame in GLOBAL_FRAMES and (it.x != 0 or it.y != 0):
-            alt_amsl = it.z if it.frame in (mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_INT) \
-                else self.home.alt_m + it.z
-            return self.home.to_ned(it.lat_deg, it.lon_deg, alt_amsl)
-        if it.frame in GLOBAL_FRAMES:
-            alt_d = -(it.z if it.frame not in (mavlink.MAV_FRAME_GLOBAL,
-                                               mavlink.MAV_FRAME_GLOBAL_INT)
-                      else it.z - self.home.alt_m)
-            return (n, e, alt_d)
-        return (n, e, d)
+        if it.frame not in GLOBAL_FRAMES:
+            return (n, e, d)
+        if it.frame in (mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_INT):
+            alt_d = self.home.alt_m - it.z  # AMSL
+        else:
+            alt_d = self.home_ned_m[2] - it.z  # relative to home
+        if it.x != 0 or it.y != 0:
+            tn, te, _ = self.home.to_ned(it.lat_deg, it.lon_deg, self.home.alt_m)
+            return (tn, te, alt_d)
+        return (n, e, alt_d)
 
     def _accept_radius(self, it: MissionItem) -> float:
         return it.param2 if it.param2 > 0 else self._params.get("NAV_ACC_RAD")

@@ -63,7 +63,8 @@ class Snapshot:
     time_boot_ms: int
     time_usec: int
     vehicle: VehicleState
-    home: GeoOrigin
+    home: GeoOrigin  # the local NED origin (PX4's EKF/global origin)
+    home_ned_m: tuple[float, float, float]  # home (where the vehicle last armed), local NED
     mode: FlightMode
     armed: bool
     landed_state: int  # MAV_LANDED_STATE_*
@@ -128,15 +129,22 @@ def global_position_int(mav: mavlink.MAVLink, s: Snapshot) -> Any:
     hdg = int(round(math.degrees(s.vehicle.yaw_rad) % 360.0 * 100)) % 36000
     return mav.global_position_int_encode(
         s.time_boot_ms, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
-        int(round(-d * 1000)), int(round(vn * 100)), int(round(ve * 100)),
+        int(round((s.home_ned_m[2] - d) * 1000)), int(round(vn * 100)), int(round(ve * 100)),
         int(round(vd * 100)), hdg)
 
 
 def home_position(mav: mavlink.MAVLink, s: Snapshot) -> Any:
-    h = s.home
+    lat, lon, alt = s.home.to_global(*s.home_ned_m)
+    hn, he, hd = s.home_ned_m
     return mav.home_position_encode(
-        int(round(h.lat_deg * 1e7)), int(round(h.lon_deg * 1e7)), int(round(h.alt_m * 1000)),
-        0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, s.time_usec)
+        int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
+        hn, he, hd, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, s.time_usec)
+
+
+def gps_global_origin(mav: mavlink.MAVLink, s: Snapshot) -> Any:
+    h = s.home
+    return mav.gps_global_origin_encode(int(round(h.lat_deg * 1e7)), int(round(h.lon_deg * 1e7)),
+                                        int(round(h.alt_m * 1000)), s.time_usec)
 
 
 def gps_raw_int(mav: mavlink.MAVLink, s: Snapshot) -> Any:
@@ -151,7 +159,8 @@ def gps_raw_int(mav: mavlink.MAVLink, s: Snapshot) -> Any:
 def altitude(mav: mavlink.MAVLink, s: Snapshot) -> Any:
     d = s.vehicle.position_ned_m[2]
     amsl = s.home.alt_m - d
-    return mav.altitude_encode(s.time_usec, amsl, amsl, -d, -d, -d, -d)
+    rel = s.home_ned_m[2] - d
+    return mav.altitude_encode(s.time_usec, amsl, amsl, -d, rel, -d, -d)
 
 
 def vfr_hud(mav: mavlink.MAVLink, s: Snapshot) -> Any:
@@ -219,5 +228,6 @@ STREAMS: dict[str, tuple[int, Encoder, float]] = {
 #: Messages that can be requested once (MAV_CMD_REQUEST_MESSAGE) but are not streamed.
 ON_REQUEST: dict[int, Encoder] = {
     mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: autopilot_version,
+    mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: gps_global_origin,
     **{msg_id: enc for msg_id, enc, _rate in STREAMS.values()},
 }
