@@ -258,8 +258,11 @@ class Navigator:
                                       mavlink.MAV_CMD_NAV_LOITER_TIME) else math.inf
             return [_Leg(_Phase.GOTO, tgt, yaw, self._accept_radius(it), hold_s=max(0.0, hold))]
         if c == mavlink.MAV_CMD_NAV_TAKEOFF:
-            n, e, d = self._item_ned(it)
-            return [_Leg(_Phase.CLIMB, (n, e, d), self._vehicle.yaw_rad, accept_radius_m=0.2)]
+            # Straight up where the vehicle is; already higher = reached (PX4 does the same).
+            _tn, _te, td = self._item_ned(it)
+            n, e, d = self._pos()
+            return [_Leg(_Phase.CLIMB, (n, e, min(td, d)), self._vehicle.yaw_rad,
+                         accept_radius_m=0.2)]
         if c == mavlink.MAV_CMD_NAV_LAND:
             n, e, d = self._item_ned(it)
             cur_d = self._pos()[2]
