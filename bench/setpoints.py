@@ -4,26 +4,33 @@
 
 What is measured: our real :class:`~companion.mavlink.offboard.SetpointStreamer` on a real
 :class:`~companion.mavlink.link.MavlinkLink` (``udpout://`` to loopback) sends
-SET_POSITION_TARGET_LOCAL_NED at ``--rate-hz``. Two clocks are read, both
-``time.monotonic()`` (CLOCK_MONOTONIC, shared by all processes on Linux):
+SET_POSITION_TARGET_LOCAL_NED at ``--rate-hz``. The streamer, a receiver and the load each run
+in their own process (so a scheduler setting of one case cannot leak into the next). Two
+clocks are read, both ``time.monotonic()`` (CLOCK_MONOTONIC, shared by all processes):
 
-* ``send``: in-process, right after each setpoint is handed to the socket;
-* ``recv``: in a separate receiver process, when ``recv()`` returns the datagram (so it
-  includes that process's own scheduling delay: an upper bound on what the autopilot sees).
+* ``send``: in the streamer process, right after each setpoint is handed to the socket;
+* ``recv``: in the receiver process, when ``recv()`` returns the datagram. The receiver
+  stands in for the flight controller (which has a CPU of its own), so it asks for a short
+  scheduler slice; its wake-up delay still adds to this clock, making it an upper bound.
 
 Period = difference of consecutive timestamps; jitter = ``|period - 1/rate|``. Cases:
 
-* ``idle``: no extra load;
-* ``loaded``: two busy-loop processes (one per core on a 2-core machine) at the same
-  priority as us, started before and stopped after the case. Each starts its own session
-  (``setsid``), i.e. they are independent programs, as other services or a perception
-  process are on the drone; on Linux with ``sched_autogroup`` that puts them in their own
-  scheduling group. ``--same-session`` keeps them in ours instead, which makes them
-  compete for our group's share like threads of our own process would (a harsher case:
-  expect p99 jitter of 10-20 ms on 2 cores);
-* ``loaded_relative_sleep`` (reference, same process): the same task written the naive way,
+* ``idle``: no extra load; the streamer requests the service's scheduler slice
+  (``link.scheduler_slice_ms``, see :mod:`companion.mavlink.sched`), as the service does;
+* ``loaded``: the same with two busy-loop processes (one per core on a 2-core machine) at
+  the same priority, started before and stopped after the case. Each starts its own session
+  (``setsid``): independent programs, as other services are on the drone. With Linux's
+  ``sched_autogroup`` (or systemd's per-service cgroups) they form their own scheduling
+  group, and groups share the CPUs fairly whatever slice a task inside asks for;
+* ``loaded_same_group``: the busy processes stay in our session, competing inside our
+  group the way the service's own perception threads do - where the slice request acts;
+* ``loaded_same_group_no_slice`` (reference): the same without the slice request;
+* ``loaded_relative_sleep`` (reference): the task written the naive way,
   ``await asyncio.sleep(period)`` after each send, to show the drift that absolute
   ``time.monotonic()`` deadlines avoid (its mean rate falls below the target).
+
+The machine's own load (other programs) is printed with the results: on a shared machine it
+dominates the tail, so compare cases of one run, not runs of different moments.
 
 Target: ``loaded`` p99 jitter <= 5 ms at 50 Hz. The last line is one JSON object.
 """
@@ -46,12 +53,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from companion.config import LinkConfig  # noqa: E402
 from companion.mavlink.failsafe import PositionSetpoint  # noqa: E402
 from companion.mavlink.link import MavlinkLink  # noqa: E402
 from companion.mavlink.offboard import SetpointStreamer, encode_setpoint  # noqa: E402
+from companion.mavlink.sched import request_short_slice  # noqa: E402
 
 SET_POSITION_TARGET_LOCAL_NED_ID = 84
 TARGET_P99_JITTER_MS = 5.0
+RECEIVER_SLICE_S = 0.0002
 
 
 def _busy_loop(own_session: bool) -> None:
@@ -64,7 +74,12 @@ def _busy_loop(own_session: bool) -> None:
 
 
 def _receiver(port_out: Connection, stop_after_s: float, result_out: Connection) -> None:
-    """Bind a UDP socket, report its port, timestamp every setpoint datagram until idle."""
+    """Bind a UDP socket, report its port, timestamp every setpoint datagram until idle.
+
+    The receiver stands in for the flight controller, which has a CPU of its own: it asks
+    for a short scheduler slice so its own wake-up delay disturbs the measurement less.
+    """
+    request_short_slice(RECEIVER_SLICE_S)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
     port_out.send(sock.getsockname()[1])
@@ -130,12 +145,21 @@ async def _stream(port: int, rate_hz: float, seconds: float, relative: bool) -> 
     return send_stamps
 
 
-def run_case(rate_hz: float, seconds: float, load_procs: int, relative: bool,
+def _streamer_proc(port: int, rate_hz: float, seconds: float, relative: bool,
+                   slice_s: float, out: Connection) -> None:
+    """The process under test: our setpoint task (optionally with the service's slice request)."""
+    if slice_s > 0:
+        request_short_slice(slice_s)
+    out.send(asyncio.run(_stream(port, rate_hz, seconds, relative)))
+
+
+def run_case(rate_hz: float, seconds: float, load_procs: int, relative: bool, slice_s: float,
              same_session: bool = False) -> dict[str, Any]:
-    """One case: receiver process, optional busy processes, our streamer in this process."""
+    """One case: receiver, optional busy processes and the streamer, each its own process."""
     ctx = mp.get_context("fork")
     port_rx, port_tx = ctx.Pipe(duplex=False)
     res_rx, res_tx = ctx.Pipe(duplex=False)
+    send_rx, send_tx = ctx.Pipe(duplex=False)
     receiver = ctx.Process(target=_receiver, args=(port_tx, 1.0, res_tx), daemon=True)
     receiver.start()
     busy = [ctx.Process(target=_busy_loop, args=(not same_session,), daemon=True)
@@ -145,7 +169,11 @@ def run_case(rate_hz: float, seconds: float, load_procs: int, relative: bool,
         for p in busy:
             p.start()
         time.sleep(0.5 if busy else 0.0)  # let the load settle onto the cores
-        send_stamps = asyncio.run(_stream(port, rate_hz, seconds, relative))
+        streamer = ctx.Process(target=_streamer_proc,
+                               args=(port, rate_hz, seconds, relative, slice_s, send_tx))
+        streamer.start()
+        send_stamps = send_rx.recv() if send_rx.poll(seconds + 30.0) else []
+        streamer.join(timeout=5.0)
     finally:
         for p in busy:
             p.terminate()
@@ -158,34 +186,39 @@ def run_case(rate_hz: float, seconds: float, load_procs: int, relative: bool,
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="5 s per case instead of 20 s")
+    ap.add_argument("--quick", action="store_true", help="4 s per case instead of 15 s")
     ap.add_argument("--rate-hz", type=float, default=50.0)
     ap.add_argument("--seconds", type=float, default=None, help="seconds per case")
     ap.add_argument("--load-procs", type=int, default=2, help="busy-loop processes for loaded cases")
-    ap.add_argument("--same-session", action="store_true",
-                    help="keep the busy processes in our session (scheduling group)")
+    ap.add_argument("--slice-ms", type=float, default=LinkConfig().scheduler_slice_ms,
+                    help="scheduler slice the streamer requests (the service default)")
     args = ap.parse_args(argv)
-    seconds = args.seconds or (5.0 if args.quick else 20.0)
+    seconds = args.seconds or (4.0 if args.quick else 15.0)
+    slice_s = args.slice_ms / 1000.0
+    n = args.load_procs
+    # name -> (busy processes, in our session?, relative-sleep reference?, slice requested)
     cases = {
-        "idle": (0, False),
-        "loaded": (args.load_procs, False),
-        "loaded_relative_sleep": (args.load_procs, True),
+        "idle": (0, False, False, slice_s),
+        "loaded": (n, False, False, slice_s),
+        "loaded_same_group": (n, True, False, slice_s),
+        "loaded_same_group_no_slice": (n, True, False, 0.0),
+        "loaded_relative_sleep": (n, False, True, slice_s),
     }
     results: dict[str, Any] = {}
-    for name, (procs, relative) in cases.items():
-        results[name] = run_case(args.rate_hz, seconds, procs, relative, args.same_session)
+    for name, (procs, same_session, relative, case_slice_s) in cases.items():
+        results[name] = run_case(args.rate_hz, seconds, procs, relative, case_slice_s, same_session)
 
     cols = ["n", "rate_hz", "period_ms_p50", "period_ms_p99", "period_ms_max",
             "jitter_ms_p50", "jitter_ms_p99", "jitter_ms_max"]
-    where = "our session" if args.same_session else "their own sessions"
-    print(f"setpoint task at {args.rate_hz:.0f} Hz, {seconds:.0f} s per case, "
-          f"{args.load_procs} busy processes ({where}) in loaded cases, {mp.cpu_count()} CPUs, "
+    print(f"setpoint task at {args.rate_hz:.0f} Hz, {seconds:.0f} s per case, slice request "
+          f"{args.slice_ms:.2f} ms, "
+          f"{args.load_procs} busy processes in loaded cases, {mp.cpu_count()} CPUs, "
           f"load average before start {os.getloadavg()[0]:.1f}")
-    print(f"{'case':<24}{'clock':<6}" + "".join(f"{c:>15}" for c in cols))
+    print(f"{'case':<28}{'clock':<6}" + "".join(f"{c:>15}" for c in cols))
     for name, res in results.items():
         for clock in ("send", "recv"):
             row = res[clock]
-            print(f"{name:<24}{clock:<6}" + "".join(
+            print(f"{name:<28}{clock:<6}" + "".join(
                 f"{row.get(c, float('nan')):>15.2f}" for c in cols))
     loaded_p99 = results["loaded"]["recv"].get("jitter_ms_p99", float("nan"))
     ok = loaded_p99 <= TARGET_P99_JITTER_MS
@@ -195,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         "rate_hz": args.rate_hz,
         "seconds_per_case": seconds,
         "load_procs": args.load_procs,
-        "load_same_session": bool(args.same_session),
+        "slice_ms": args.slice_ms,
         "loadavg_1min_at_end": os.getloadavg()[0],
         "cpus": mp.cpu_count(),
         "target_jitter_ms_p99": TARGET_P99_JITTER_MS,

@@ -60,6 +60,9 @@ class LinkConfig(StageConfig):
     obstacle_distance_max_m: float = Field(default=8.0, gt=0.0, le=600.0)
     #: Seconds to wait for the vehicle to report OFFBOARD after requesting it.
     offboard_engage_timeout_s: float = Field(default=3.0, gt=0.0)
+    #: Scheduler slice (ms) the event-loop thread asks Linux for, so the setpoint task wakes
+    #: on time under CPU load (EEVDF, Linux >= 6.12; ignored before); 0 = leave it alone.
+    scheduler_slice_ms: float = Field(default=0.5, ge=0.0, le=100.0)
     #: Send the SLAM pose to PX4 as external vision.
     external_vision: bool = False
 
@@ -72,6 +75,13 @@ class LinkConfig(StageConfig):
             parse_url(v)
         except LinkError as exc:
             raise ValueError(str(exc)) from exc
+        return v
+
+    @field_validator("scheduler_slice_ms")
+    @classmethod
+    def _slice(cls, v: float) -> float:
+        if 0.0 < v < 0.1:
+            raise ValueError(f"must be 0 (off) or 0.1..100 ms (got {v})")
         return v
 
     @model_validator(mode="after")

@@ -13,7 +13,9 @@ that logs when the autopilot's heartbeat is lost and when it comes back::
         await vehicle.commands.arm()
         ...
 
-Everything is closed in reverse order on exit, also when the body raises.
+Everything is closed in reverse order on exit, also when the body raises. Entering also asks
+Linux for a short scheduler slice for the calling (event-loop) thread when
+``cfg.scheduler_slice_ms`` is set (see :mod:`companion.mavlink.sched`).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from companion.mavlink.link import MavlinkLink
 from companion.mavlink.mission_download import MissionItem, download_mission
 from companion.mavlink.obstacle_distance import ObstacleDistanceFeed, ObstacleDistanceInput
 from companion.mavlink.offboard import OffboardController
+from companion.mavlink.sched import request_short_slice
 from companion.mavlink.state import VehicleState, VehicleStateTracker
 
 if TYPE_CHECKING:
@@ -88,6 +91,8 @@ class Vehicle:
         self._connected = False
 
     async def __aenter__(self) -> "Vehicle":
+        if self.cfg.scheduler_slice_ms > 0:
+            request_short_slice(self.cfg.scheduler_slice_ms / 1000.0)
         async with contextlib.AsyncExitStack() as stack:
             await stack.enter_async_context(self.link)
             stack.callback(self.state.attach(self.link))
