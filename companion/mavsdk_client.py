@@ -130,7 +130,11 @@ class MavsdkClient:
         except MavsdkConnectionError as exc:
             self._close()
             raise LinkError(f"MAVSDK cannot open {self.url}: {exc}") from exc
-        system = await self._sdk.first_autopilot(timeout_s=self.connect_timeout_s)
+        try:
+            system = await self._sdk.first_autopilot(timeout_s=self.connect_timeout_s)
+        except BaseException:  # cancelled (Ctrl-C): do not leak the native core
+            self._close()
+            raise
         if system is None:
             self._close()
             raise LinkError(f"no autopilot heard on {self.url} within "
