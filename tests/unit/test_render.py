@@ -173,6 +173,28 @@ def test_masks_match_geometry_from_any_pose(
     check_masks_match_geometry(room, r, T)
 
 
+@pytest.mark.parametrize("pose", [(1.0, 1.0, 1.0, 0.3, 0.4), (5.0, 2.5, 0.5, 2.0, -0.3),
+                                  (2.0, 4.5, 2.2, -2.5, 0.7), (7.5, 0.5, 1.5, 2.4, 0.0)])
+def test_analytic_floor_and_ceiling_match_the_full_ray_cast(
+    furnished: tuple[Room, RoomRenderer], pose: tuple[float, float, float, float, float],
+) -> None:
+    _, r = furnished
+    x, y, z, yaw, pitch = pose
+    T = pose_from_xyz_rpy(x, y, z, 0.0, pitch, yaw) @ make_transform(R_BODY_CAMERA_FORWARD, np.zeros(3))
+    fast = {k: np.array(v, copy=True) for k, v in r.cast(T).items() if k != "T"}
+    r.analytic_slabs = False
+    try:
+        full = r.cast(T)
+    finally:
+        r.analytic_slabs = True
+    same_prim = fast["prim"] == full["prim"]
+    assert same_prim.mean() > 0.999  # differences only where two surfaces meet at a pixel
+    assert np.array_equal(fast["face"][same_prim], full["face"][same_prim])
+    both = same_prim & np.isfinite(full["depth_m"])
+    assert np.allclose(fast["depth_m"][both], full["depth_m"][both], rtol=1e-4, atol=1e-4)
+    assert np.any(fast["prim"] == 0) or np.any(fast["prim"] == 1)  # the pose sees floor or ceiling
+
+
 def test_visible_objects_report_mask_pixels_and_ground_truth(furnished: tuple[Room, RoomRenderer]) -> None:
     room, r = furnished
     T = object_poses(room)[0]
