@@ -18,6 +18,7 @@ service can fly the mission leg by leg with offboard setpoints.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
 from collections.abc import Callable
@@ -190,7 +191,8 @@ class _Download:
         items: list[MissionItem] = []
         for seq in range(count):
             msg = await self._request(
-                lambda s=seq: mav.mission_request_int_encode(self.ts, self.tc, s, self.mission_type),
+                functools.partial(mav.mission_request_int_encode, self.ts, self.tc, seq,
+                                  self.mission_type),
                 "ITEM", seq, f"mission item {seq} of {count}",
             )
             items.append(MissionItem.from_message(msg))
