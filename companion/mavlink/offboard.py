@@ -325,8 +325,10 @@ class OffboardController:
             if first is not None and time.monotonic() - first >= self.warmup_s:
                 return
             if loop.time() > deadline:
-                raise StateTimeoutError("offboard warm-up: no setpoint could be streamed "
-                                   "(no planner setpoint and no vehicle position to hold)")
+                raise StateTimeoutError(
+                    "offboard warm-up: no setpoint could be streamed "
+                    "(no planner setpoint and no vehicle position to hold)"
+                )
             await asyncio.sleep(self.streamer.period_s)
 
     def _check_still_engaging(self) -> None:

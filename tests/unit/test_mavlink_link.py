@@ -561,3 +561,18 @@ async def test_tcp_client_reconnects_when_the_server_comes_back() -> None:
                 # ... and comes back on the same port: the client finds it again by itself.
                 await server2.wait_message("HEARTBEAT", 5.0, lambda m: m.get_srcComponent() == 1)
                 await client.wait_message("HEARTBEAT", 3.0)
+
+
+def test_link_from_config_reads_the_signing_key(tmp_path: Path) -> None:
+    from companion.config import LinkConfig
+
+    key_file = tmp_path / "link.key"
+    key_file.write_bytes(bytes(range(100, 132)))
+    link = MavlinkLink.from_config(LinkConfig(url="udpout://127.0.0.1:14580", component_id=191,
+                                              signing_key_path=str(key_file)))
+    assert link.signing is not None and link.signing.key == bytes(range(100, 132))
+    assert link.mav.signing.sign_outgoing
+    assert (link.system_id, link.component_id) == (1, 191)
+    assert MavlinkLink.from_config(LinkConfig()).signing is None  # off by default
+    with pytest.raises(ConfigError, match="missing.key"):
+        MavlinkLink.from_config(LinkConfig(signing_key_path=str(tmp_path / "missing.key")))
