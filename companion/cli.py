@@ -26,6 +26,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "companion.cmd_sim",
     "companion.cmd_mission",
     "companion.cmd_map",
+    "companion.cmd_plan",
 )
 
 
