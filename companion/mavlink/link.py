@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any, TypeAlias
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError, LinkError
+from companion.mavlink.tlog import TlogWriter
 from companion.mavlink.transport import Transport, make_transport
 from companion.mavlink.urls import parse_url
 
@@ -192,7 +193,8 @@ class MavlinkLink:
 
     ``system_id``/``component_id``: our identity (the vehicle's system id and
     ``MAV_COMP_ID_ONBOARD_COMPUTER``). ``heartbeat_rate_hz``: our heartbeat (0 = none, for
-    passive tools). ``signing``: MAVLink 2 signing, or None for off.
+    passive tools). ``signing``: MAVLink 2 signing, or None for off. ``record_path``: append
+    every valid received packet to this ``.tlog`` (replay it later with ``tlog://``).
     """
 
     def __init__(
@@ -204,8 +206,11 @@ class MavlinkLink:
         heartbeat_rate_hz: float = 1.0,
         mav_type: int = mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
         signing: SigningConfig | None = None,
+        record_path: str | Path | None = None,
     ) -> None:
         self.endpoint = parse_url(url)
+        self.record_path = Path(record_path) if record_path is not None else None
+        self._recorder: TlogWriter | None = None
         self.system_id = system_id
         self.component_id = component_id
         self.heartbeat_rate_hz = heartbeat_rate_hz
@@ -246,8 +251,14 @@ class MavlinkLink:
     # --- lifecycle -------------------------------------------------------------------
 
     async def __aenter__(self) -> "MavlinkLink":
+        if self.record_path is not None:
+            self._recorder = TlogWriter(self.record_path).__enter__()
         transport = make_transport(self.endpoint, self._on_bytes)
-        await transport.__aenter__()
+        try:
+            await transport.__aenter__()
+        except BaseException:
+            self._close_recorder()
+            raise
         self._transport = transport
         self._writer.transport = transport
         try:
@@ -283,8 +294,16 @@ class MavlinkLink:
     async def _close_transport(self) -> None:
         transport, self._transport = self._transport, None
         self._writer.transport = None
-        if transport is not None:
-            await transport.__aexit__(None, None, None)
+        try:
+            if transport is not None:
+                await transport.__aexit__(None, None, None)
+        finally:
+            self._close_recorder()
+
+    def _close_recorder(self) -> None:
+        recorder, self._recorder = self._recorder, None
+        if recorder is not None:
+            recorder.close()
 
     @property
     def transport(self) -> Transport:
@@ -356,6 +375,8 @@ class MavlinkLink:
 
     def _dispatch(self, msg: Message) -> None:
         self._received += 1
+        if self._recorder is not None:
+            self._recorder.write(bytes(msg.get_msgbuf()))
         mtype = msg.get_type()
         self._received_by_type[mtype] += 1
         for types, callback in list(self._listeners):

@@ -8,6 +8,8 @@ Accepted forms (the same as MAVSDK's ``System.connect``)::
     tcp://127.0.0.1:5760         connect to a TCP server (reconnects when it drops)
     tcpin://0.0.0.0:5760         accept one TCP client at a time
     serial:///dev/ttyTHS1:921600 a serial device at a baud rate (default 57600)
+    tlog:///runs/flight.tlog     replay a telemetry log at recorded speed (read-only link);
+    tlog:///runs/f.tlog?speed=0  ... as fast as possible (?speed=4: four times faster)
 
 Every error is a :class:`~companion.errors.LinkError` whose message repeats the bad URL.
 """
@@ -31,6 +33,7 @@ class EndpointKind(enum.Enum):
     TCP_CLIENT = "tcp"
     TCP_SERVER = "tcpin"
     SERIAL = "serial"
+    REPLAY = "tlog"
 
 
 _SCHEMES: dict[str, EndpointKind] = {
@@ -40,6 +43,7 @@ _SCHEMES: dict[str, EndpointKind] = {
     "tcp": EndpointKind.TCP_CLIENT,
     "tcpin": EndpointKind.TCP_SERVER,
     "serial": EndpointKind.SERIAL,
+    "tlog": EndpointKind.REPLAY,
 }
 
 
@@ -47,7 +51,8 @@ _SCHEMES: dict[str, EndpointKind] = {
 class Endpoint:
     """A parsed connection URL.
 
-    Network kinds fill ``host``/``port``; ``SERIAL`` fills ``device``/``baud``.
+    Network kinds fill ``host``/``port``; ``SERIAL`` fills ``device``/``baud``; ``REPLAY``
+    fills ``device`` (the log file) and ``speed`` (0 = as fast as possible).
     """
 
     kind: EndpointKind
@@ -56,10 +61,11 @@ class Endpoint:
     port: int = 0
     device: str = ""
     baud: int = 0
+    speed: float = 1.0
 
     @property
     def is_network(self) -> bool:
-        return self.kind is not EndpointKind.SERIAL
+        return self.kind not in (EndpointKind.SERIAL, EndpointKind.REPLAY)
 
     def __str__(self) -> str:
         return self.url
@@ -89,6 +95,8 @@ def parse_url(url: str) -> Endpoint:
         raise LinkError(f"connection URL {url!r}: unknown scheme {scheme!r} (allowed: {allowed})")
     if kind is EndpointKind.SERIAL:
         return _parse_serial(rest, url)
+    if kind is EndpointKind.REPLAY:
+        return _parse_replay(rest, url)
     if rest.startswith("["):  # IPv6 literal: [::1]:14540
         host, sep, port_text = rest[1:].partition("]:")
         if not sep:
@@ -121,3 +129,19 @@ def _parse_serial(rest: str, url: str) -> Endpoint:
     if not device.startswith("/") and not device.upper().startswith("COM"):
         raise LinkError(f"connection URL {url!r}: serial device must be an absolute path (got {device!r})")
     return Endpoint(kind=EndpointKind.SERIAL, url=url, device=device, baud=baud)
+
+
+def _parse_replay(rest: str, url: str) -> Endpoint:
+    path, _, query = rest.partition("?")
+    if not path.startswith("/"):
+        raise LinkError(f"connection URL {url!r}: tlog:// needs an absolute file path, e.g. tlog:///runs/flight.tlog")
+    speed = 1.0
+    if query:
+        key, _, value = query.partition("=")
+        try:
+            speed = float(value)
+        except ValueError:
+            speed = -1.0
+        if key != "speed" or not speed >= 0.0:
+            raise LinkError(f"connection URL {url!r}: the only option is ?speed=N with N >= 0 (got {query!r})")
+    return Endpoint(kind=EndpointKind.REPLAY, url=url, device=path, speed=speed)

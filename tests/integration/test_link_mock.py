@@ -13,6 +13,7 @@ import math
 import os
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -385,3 +386,34 @@ async def test_vehicle_stack_from_config(caplog: pytest.LogCaptureFixture) -> No
             await ap.wait_until(lambda: "autopilot heartbeat lost" in caplog.text, 3.0, "watchdog log")
             assert not vehicle.connected
     assert not vehicle.link.is_open
+
+
+@pytest.mark.asyncio
+async def test_recorded_flight_replays_through_the_same_link(tmp_path: Path) -> None:
+    tlog = tmp_path / "flight.tlog"
+    async with MavlinkLink("udpin://127.0.0.1:0", record_path=tlog) as link:
+        port = link.transport.local_address[1]  # type: ignore[attr-defined]
+        async with MockAutopilot(local_port=0, remote_ports=[port]) as ap:
+            live = VehicleStateTracker()
+            live.attach(link)
+            cmds = VehicleCommands(CommandSender(link), live)
+            await live.wait_for(lambda s: s.home is not None, 10.0, "telemetry")
+            await cmds.arm()
+            await cmds.takeoff(1.0)
+            await live.wait_for(lambda s: s.flight_mode is FlightMode.HOLD and s.in_air, 20.0, "airborne")
+            ap.faults.drop_link = True  # freeze what gets recorded
+            await asyncio.sleep(0.2)
+            final = live.snapshot()
+            received = link.stats.messages_received
+    assert tlog.stat().st_size > 0
+
+    async with MavlinkLink(f"tlog://{tlog}?speed=0", heartbeat_rate_hz=0) as replay:
+        replayed = VehicleStateTracker()
+        replayed.attach(replay)
+        await asyncio.wait_for(replay.transport.finished.wait(), 30.0)  # type: ignore[attr-defined]
+        again = replayed.snapshot()
+        assert replay.stats.messages_received == received
+        assert replay.stats.bad_data == 0
+    assert again.flight_mode is FlightMode.HOLD and again.armed and again.in_air
+    assert again.position_ned_m == final.position_ned_m
+    assert again.home == final.home and again.battery_v == final.battery_v

@@ -17,7 +17,7 @@ import pytest
 import pytest_asyncio
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.errors import CommandError, ConfigError, LinkError, MissionError
+from companion.errors import CommandError, ConfigError, DataError, LinkError, MissionError
 from companion.mavlink.commands import (
     CommandDeniedError,
     CommandSender,
@@ -30,6 +30,7 @@ from companion.mavlink.link import MavlinkLink, SigningConfig, load_signing_key
 from companion.mavlink.mission_download import MissionItem, download_mission, waypoint_ned_m
 from companion.mavlink.offboard import SetpointStreamer
 from companion.mavlink.state import HomePosition, LandedState, VehicleStateTracker
+from companion.mavlink.tlog import TlogWriter, iter_tlog
 from companion.px4 import FlightMode, encode_heartbeat_base_mode
 
 Handler = Callable[["Peer", Any], None]
@@ -576,3 +577,36 @@ def test_link_from_config_reads_the_signing_key(tmp_path: Path) -> None:
     assert MavlinkLink.from_config(LinkConfig()).signing is None  # off by default
     with pytest.raises(ConfigError, match="missing.key"):
         MavlinkLink.from_config(LinkConfig(signing_key_path=str(tmp_path / "missing.key")))
+
+
+# --- telemetry logs ----------------------------------------------------------------------
+
+def test_tlog_round_trip_and_damaged_files(tmp_path: Path) -> None:
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    packets = [bytes(mav.attitude_encode(i, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0).pack(mav)) for i in range(3)]
+    v1 = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    packets.append(bytes(v1.heartbeat_encode(2, 12, 0, 0, 0).pack(v1, force_mavlink1=True)))
+    path = tmp_path / "a.tlog"
+    with TlogWriter(path) as w:
+        for i, p in enumerate(packets):
+            w.write(p, stamp_s=1000.0 + i * 0.1)
+    records = list(iter_tlog(path))
+    assert [r.packet for r in records] == packets
+    assert [r.stamp_s for r in records] == pytest.approx([1000.0, 1000.1, 1000.2, 1000.3])
+    # A log cut off mid-packet (power loss) yields the complete records only.
+    cut = tmp_path / "cut.tlog"
+    cut.write_bytes(path.read_bytes()[:-5])
+    assert len(list(iter_tlog(cut))) == 3
+    junk = tmp_path / "junk.tlog"
+    junk.write_bytes(b"\x00" * 8 + b"not mavlink at all")
+    with pytest.raises(DataError, match=r"junk.tlog: not a MAVLink telemetry log \(no packet start at byte 8\)"):
+        list(iter_tlog(junk))
+    with pytest.raises(DataError, match="cannot read"):
+        list(iter_tlog(tmp_path / "missing.tlog"))
+
+
+@pytest.mark.asyncio
+async def test_replay_of_a_missing_log_is_a_link_error(tmp_path: Path) -> None:
+    with pytest.raises(LinkError, match="no such telemetry log"):
+        async with MavlinkLink(f"tlog://{tmp_path}/missing.tlog"):
+            pass

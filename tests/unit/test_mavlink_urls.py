@@ -36,6 +36,13 @@ def test_serial_with_and_without_baud() -> None:
     assert (ep.device, ep.baud) == ("/dev/ttyUSB0", DEFAULT_SERIAL_BAUD)
 
 
+def test_tlog_replay_urls() -> None:
+    ep = parse_url("tlog:///runs/flight.tlog")
+    assert (ep.kind, ep.device, ep.speed, ep.is_network) == (EndpointKind.REPLAY, "/runs/flight.tlog", 1.0, False)
+    assert parse_url("tlog:///runs/flight.tlog?speed=0").speed == 0.0
+    assert parse_url("tlog:///runs/flight.tlog?speed=2.5").speed == 2.5
+
+
 @pytest.mark.parametrize(
     ("url", "fragment"),
     [
@@ -52,6 +59,10 @@ def test_serial_with_and_without_baud() -> None:
         ("serial:///dev/ttyS0:fast", "baud rate must be a positive number"),
         ("serial://ttyS0:57600", "absolute path"),
         ("udpin://[::1]14540", "IPv6"),
+        ("tlog://runs/flight.tlog", "absolute file path"),
+        ("tlog:///f.tlog?speed=-1", "?speed=N with N >= 0"),
+        ("tlog:///f.tlog?rate=2", "the only option"),
+        ("tlog:///f.tlog?speed=fast", "the only option"),
     ],
 )
 def test_bad_urls_name_the_url(url: str, fragment: str) -> None:
