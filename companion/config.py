@@ -36,7 +36,7 @@ class LinkConfig(StageConfig):
     """The MAVLink link to the autopilot."""
 
     #: MAVSDK-style URL: udpin://host:port, udpout://host:port, tcp://host:port,
-    #: serial:///dev/ttyX:baud.
+    #: tcpin://host:port, serial:///dev/ttyX:baud; tlog:///path.tlog replays a recording.
     url: str = "udpin://0.0.0.0:14540"
     #: Our identity: the vehicle's system id and MAV_COMP_ID_ONBOARD_COMPUTER.
     system_id: int = Field(default=1, ge=1, le=255)

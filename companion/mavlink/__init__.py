@@ -7,6 +7,8 @@ adapter over pymavlink), :mod:`~companion.mavlink.state` (VehicleState from tele
 and :mod:`~companion.mavlink.offboard` (setpoint streaming and the failsafe rules),
 :mod:`~companion.mavlink.obstacle_distance` (OBSTACLE_DISTANCE from the costmap),
 :mod:`~companion.mavlink.mission_download` (reading the autopilot's mission),
-:mod:`~companion.mavlink.vision` (our pose to PX4 as external vision) and
+:mod:`~companion.mavlink.vision` (our pose to PX4 as external vision),
+:mod:`~companion.mavlink.tlog` (record and replay telemetry logs),
+:mod:`~companion.mavlink.sched` (a short scheduler slice for the event loop) and
 :mod:`~companion.mavlink.vehicle` (all of it as one context manager built from LinkConfig).
 """
