@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from planner.config import PlannerConfig
 from semmap.errors import PlanningError
 
 
@@ -32,6 +33,12 @@ class TrajectoryLimits:
     max_accel_m_s2: float
     max_yaw_rate_rad_s: float
     corner_speed_jump_m_s: float = 0.3
+
+    @classmethod
+    def from_config(cls, config: PlannerConfig) -> "TrajectoryLimits":
+        """The limits in a planner config (whose yaw rate is in degrees per second)."""
+        return cls(config.max_speed_m_s, config.max_accel_m_s2, math.radians(config.max_yaw_rate_deg_s),
+                   config.corner_speed_jump_m_s)
 
     def __post_init__(self) -> None:
         for name in ("max_speed_m_s", "max_accel_m_s2", "max_yaw_rate_rad_s", "corner_speed_jump_m_s"):
@@ -226,10 +233,3 @@ def time_parametrize(
         yaw_turns=np.array(turns, dtype=np.float64).reshape(-1, 4), initial_yaw_rad=yaw0,
         motion_end_s=motion_end,
     )
-
-
-def limits_from_config(max_speed_m_s: float, max_accel_m_s2: float, max_yaw_rate_deg_s: float,
-                       corner_speed_jump_m_s: float) -> TrajectoryLimits:
-    """Limits from the planner config's units (yaw rate in degrees per second)."""
-    return TrajectoryLimits(max_speed_m_s, max_accel_m_s2, math.radians(max_yaw_rate_deg_s),
-                            corner_speed_jump_m_s)

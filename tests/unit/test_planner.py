@@ -189,3 +189,16 @@ def test_cost_weight_keeps_path_away_from_obstacles() -> None:
     cb = far.cspace.clearance_at(far.cspace.densify(b.path_xy_m)).min()
     assert cb > ca
     assert b.length_m >= a.length_m - 1e-9
+
+
+def test_windowed_graph_update_equals_fresh_graph() -> None:
+    from planner.gridsearch import GridGraph
+
+    pl = make(0.5)
+    pl.set_map(base_map(pl))
+    chair = ObjectFootprint(3, "chair", rect(2.8, 1.2, 3.3, 1.8), 0.0, 0.9)
+    pl.set_base_map(base_map(pl), [chair])
+    for factor, graph in pl._graphs.items():
+        fresh = GridGraph(pl.cspace, pl.config.cost_weight, factor)
+        np.testing.assert_array_equal(graph.node_free, fresh.node_free)
+        np.testing.assert_allclose(graph._weights, fresh._weights)

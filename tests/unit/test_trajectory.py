@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from planner.config import PlannerConfig
 from planner.trajectory import TrajectoryLimits, time_parametrize
 from semmap.errors import PlanningError
 
@@ -93,6 +94,11 @@ def test_single_point_path_holds() -> None:
     s = traj.sample(3.0)
     np.testing.assert_allclose(s.position_m, [1.0, 2.0, 0.5])
     assert traj.duration_s == 0.0
+
+
+def test_limits_from_config_convert_degrees() -> None:
+    lim = TrajectoryLimits.from_config(PlannerConfig(max_yaw_rate_deg_s=90.0, max_speed_m_s=2.0))
+    assert lim.max_yaw_rate_rad_s == pytest.approx(math.pi / 2) and lim.max_speed_m_s == 2.0
 
 
 def test_bad_input_raises() -> None:
