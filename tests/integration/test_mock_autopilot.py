@@ -107,7 +107,15 @@ async def link():
     params = {"MPC_TKO_SPEED": 3.0, "MPC_LAND_SPEED": 1.5}
     async with MockAutopilot(local_port=0, remote_ports=[client.port], params=params) as ap:
         client.ap_addr = ("127.0.0.1", ap.local_port)
+
+        async def keep_reading() -> None:  # like a real client: never let the socket overflow
+            while True:
+                client._drain()
+                await asyncio.sleep(0.01)
+
+        reader = asyncio.create_task(keep_reading())
         yield ap, client
+        reader.cancel()
     client.close()
 
 
@@ -146,6 +154,11 @@ async def test_arm_takeoff_land_disarms(link) -> None:
     assert await c.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
     await ap.wait_until(lambda: not ap.armed, 15.0, "land and auto-disarm")
     assert ap.position_ned_m[2] == pytest.approx(0.0, abs=0.02)
+    # PX4-style STATUSTEXT reports the events a ground station shows.
+    c.mark()
+    texts = [m.text for m in c.log if m.get_type() == "STATUSTEXT"]
+    assert texts == ["Takeoff detected", "Disarming denied: not landed", "Landing detected",
+                     "Disarmed by landing"]
 
 
 async def test_duplicate_command_acked_but_executed_once(link) -> None:

@@ -32,6 +32,7 @@ ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
 DENIED = mavlink.MAV_RESULT_DENIED
 TEMPORARILY_REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
 UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
+CRITICAL = mavlink.MAV_SEVERITY_CRITICAL
 FAILED = mavlink.MAV_RESULT_FAILED
 
 #: Modes PX4 lets you arm in (without RC; POSCTL etc. hold position in the mock).
@@ -129,13 +130,13 @@ class CommandHandler:
             if ap.armed:
                 return ACCEPTED
             if ap.faults.prearm_fail:
-                log.warning("arming denied: pre-arm checks failing")
+                ap.announce(CRITICAL, "Arming denied: pre-arm checks failed")
                 return DENIED
             if ap.mode not in ARMABLE_MODES:
-                log.warning("arming denied in %s", ap.mode.name)
+                ap.announce(CRITICAL, f"Arming denied: not armable in {ap.mode.name.title()}")
                 return DENIED
             if ap.mode is FlightMode.MISSION and ap.navigator.mission_count == 0:
-                log.warning("arming denied: Mission mode without a mission")
+                ap.announce(CRITICAL, "Arming denied: no valid mission")
                 return DENIED
             if ap.mode is FlightMode.OFFBOARD and not ap.offboard_available():
                 return DENIED
@@ -144,7 +145,7 @@ class CommandHandler:
         if not ap.armed:
             return ACCEPTED
         if ap.in_air and p[1] != px4.PX4_FORCE_DISARM_MAGIC:
-            log.warning("disarm denied: not landed")
+            ap.announce(CRITICAL, "Disarming denied: not landed")
             return DENIED
         ap.disarm()
         return ACCEPTED
@@ -152,7 +153,7 @@ class CommandHandler:
     def _takeoff(self, p: tuple[float, ...], is_int: bool) -> int:
         ap = self._ap
         if not ap.armed:
-            log.warning("takeoff denied: not armed")
+            ap.announce(CRITICAL, "Takeoff denied: disarmed")
             return DENIED
         alt_rel = None
         if math.isfinite(p[6]):
@@ -185,10 +186,10 @@ class CommandHandler:
         if mode is ap.mode:
             return ACCEPTED
         if mode is FlightMode.OFFBOARD and not ap.offboard_available():
-            log.warning("OFFBOARD refused: no setpoints within COM_OF_LOSS_T")
+            ap.announce(CRITICAL, "Switching to Offboard is currently not available")
             return TEMPORARILY_REJECTED
         if mode is FlightMode.MISSION and ap.navigator.mission_count == 0:
-            log.warning("MISSION refused: no mission")
+            ap.announce(CRITICAL, "Switching to Mission: no valid mission")
             return TEMPORARILY_REJECTED
         if mode in (FlightMode.RTL, FlightMode.LAND, FlightMode.TAKEOFF) and not ap.armed:
             return TEMPORARILY_REJECTED

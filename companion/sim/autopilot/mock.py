@@ -127,6 +127,7 @@ class MockAutopilot:
         self.messages_received: Counter[str] = Counter()
         self.last_received: dict[str, Any] = {}
         self.peer_heartbeats: dict[tuple[int, int], float] = {}
+        self.status_texts: deque[str] = deque(maxlen=200)
         self.reached_items: list[int] = []
         # telemetry schedule: name -> [interval_s or 0, next_due_s]
         rates = {name: rate for name, (_id, _enc, rate) in telemetry.STREAMS.items()}
@@ -232,6 +233,14 @@ class MockAutopilot:
         """Send ``n_bytes`` random bytes (including a MAVLink 2 start byte) to every peer."""
         self._link.send_raw(bytes([0xFD]) + self._link.random_bytes(n_bytes - 1))
 
+    def announce(self, severity: int, text: str) -> None:
+        """Log ``text`` and send it as STATUSTEXT (``MAV_SEVERITY_*``), as PX4 reports events."""
+        level = logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
+        log.log(level, "%s", text)
+        self.status_texts.append(text)
+        if self._link.is_open:
+            self.send(self._mav.statustext_encode(severity, text.encode("ascii", "replace")[:50]))
+
     # --- mode and arming (used by the command handler and the navigator) ----------------
 
     def set_mode(self, mode: FlightMode, *, takeoff_alt_m: float | None = None,
@@ -317,8 +326,8 @@ class MockAutopilot:
                 int(self.params.get("COM_OBL_RC_ACT")), FlightMode.HOLD)
             if action is FlightMode.RTL and not self.in_air:
                 action = FlightMode.HOLD
-            log.warning("offboard setpoints lost for > %.1f s: failsafe -> %s",
-                        self.params.get("COM_OF_LOSS_T"), action.name)
+            self.announce(mavlink.MAV_SEVERITY_WARNING,
+                          f"Failsafe: offboard signal lost, {action.name.title()}")
             self.failsafes.append(FailsafeEvent(now, "offboard setpoint loss", action))
             self.set_mode(action)
 
@@ -336,10 +345,13 @@ class MockAutopilot:
             self.landed_state = _LANDED
             if self._landed_since_s is None:
                 self._landed_since_s = now
+                if self._armed and self._has_flown:
+                    self.announce(mavlink.MAV_SEVERITY_INFO, "Landing detected")
         else:
             self._landed_since_s = None
-            if -self.vehicle.position_ned_m[2] > 0.1:
+            if -self.vehicle.position_ned_m[2] > 0.1 and not self._has_flown:
                 self._has_flown = True
+                self.announce(mavlink.MAV_SEVERITY_INFO, "Takeoff detected")
             if self._mode is FlightMode.TAKEOFF:
                 self.landed_state = mavlink.MAV_LANDED_STATE_TAKEOFF
             elif self._mode is FlightMode.LAND or (
@@ -354,14 +366,14 @@ class MockAutopilot:
         if self._has_flown:
             limit = self.params.get("COM_DISARM_LAND")
             if limit > 0 and landed_for >= limit:
-                log.info("landed for %.1f s: auto-disarm", landed_for)
+                self.announce(mavlink.MAV_SEVERITY_INFO, "Disarmed by landing")
                 self.disarm()
                 if self._mode in (FlightMode.LAND, FlightMode.RTL):
                     self.set_mode(FlightMode.HOLD)
         else:
             limit = self.params.get("COM_DISARM_PRFLT")
             if limit > 0 and now - self._armed_at_s >= limit:
-                log.info("no takeoff %.1f s after arming: auto-disarm", limit)
+                self.announce(mavlink.MAV_SEVERITY_INFO, "Disarmed by auto preflight disarming")
                 self.disarm()
 
     # --- telemetry -----------------------------------------------------------------------
