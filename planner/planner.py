@@ -103,8 +103,9 @@ class Planner:
             self._cs, window = update_cspace(self._cs, costmap, self._version)
             for g in self._graphs.values():
                 g.update(self._cs, window)
+        # The coarse graph gives first paths; the full-resolution one is built on first use
+        # (after the first path exists) and from then on kept up to date by windowed updates.
         self._graph(self._coarse_factor())
-        self._graph(1)
         self.last_prepare_s = time.perf_counter() - t0
         return window
 
