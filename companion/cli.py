@@ -25,6 +25,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "companion.cmd_demo",
     "companion.cmd_sim",
     "companion.cmd_mission",
+    "companion.cmd_dataset",
     "companion.cmd_map",
     "companion.cmd_plan",
 )

@@ -1,0 +1,118 @@
+"""Detector dataset generator: labels from masks, YOLO lines, split seeds, camera poses."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.sim.dataset import (
+    DatasetSpec,
+    generate,
+    labels_from_instance_mask,
+    room_seeds,
+    sample_camera_pose,
+    varied_room,
+    write_dataset,
+    yolo_label_lines,
+)
+from companion.sim.groundtruth import clearance_m
+from semmap.errors import SimulationError
+from semmap.frames import rpy_from_rotation
+from semmap.types import CameraIntrinsics
+
+SMALL = CameraIntrinsics(96.0, 96.0, 80.0, 60.0, 160, 120)
+
+
+def test_labels_are_tight_boxes_of_visible_pixels_and_small_objects_are_dropped() -> None:
+    inst = np.zeros((50, 80), dtype=np.int32)
+    cls = np.full((50, 80), -1, dtype=np.int16)
+    inst[10:20, 30:45] = 3  # 150 px
+    cls[10:20, 30:45] = 2
+    inst[40:42, 0:5] = 7  # 10 px: below the threshold
+    cls[40:42, 0:5] = 0
+    inst[0:30, 70:80] = 9  # building-less object without a class: never labelled
+    boxes, classes, px = labels_from_instance_mask(inst, cls, min_visible_px=100)
+    np.testing.assert_array_equal(boxes, [[30, 10, 45, 20]])
+    np.testing.assert_array_equal(classes, [2])
+    np.testing.assert_array_equal(px, [150])
+
+
+def test_empty_mask_gives_empty_arrays() -> None:
+    boxes, classes, px = labels_from_instance_mask(
+        np.zeros((4, 4), np.int32), np.full((4, 4), -1, np.int16), 1
+    )
+    assert boxes.shape == (0, 4) and classes.shape == (0,) and px.shape == (0,)
+
+
+@given(
+    u0=st.integers(0, 600), v0=st.integers(0, 400), w=st.integers(1, 40), h=st.integers(1, 80),
+    c=st.integers(0, 5),
+)
+def test_yolo_line_round_trips_the_box(u0: int, v0: int, w: int, h: int, c: int) -> None:
+    (line,) = yolo_label_lines(np.array([[u0, v0, u0 + w, v0 + h]], float), np.array([c]), 640, 480)
+    k, cx, cy, bw, bh = line.split()
+    assert int(k) == c
+    assert float(cx) * 640 - float(bw) * 640 / 2 == pytest.approx(u0, abs=1e-3)
+    assert float(cy) * 480 + float(bh) * 480 / 2 == pytest.approx(v0 + h, abs=1e-3)
+
+
+def test_split_room_seeds_are_disjoint() -> None:
+    assert not set(room_seeds("train", 5000)) & set(room_seeds("heldout", 5000))
+    with pytest.raises(SimulationError, match="split"):
+        room_seeds("validation", 3)
+    with pytest.raises(SimulationError, match="split"):
+        DatasetSpec(split="test")
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_camera_poses_fly_inside_the_room_clear_of_furniture(seed: int) -> None:
+    spec = DatasetSpec()
+    rng = np.random.default_rng(seed)
+    room = varied_room(100_000 + seed % 50, rng, spec.class_names)
+    for _ in range(5):
+        T = sample_camera_pose(room, spec, rng)
+        x, y, z = T[:3, 3]
+        assert 0.0 < x < room.width_m and 0.0 < y < room.depth_m
+        assert spec.height_range_m[0] <= z <= min(spec.height_range_m[1], room.wall_height_m)
+        assert clearance_m(room, T[None, :3, 3], 0.2)[0] >= spec.min_clearance_m
+        # Optical z (forward) to body FLU: roll about the optical axis stays within limits,
+        # and the view never points more than 60 degrees down or 20 degrees up.
+        fwd = T[:3, 2]
+        pitch_down_deg = math.degrees(math.asin(-fwd[2]))
+        assert -20.0 - 1e-6 <= pitch_down_deg <= 60.0 + 1e-6
+        R_body = T[:3, :3] @ np.array([[0, -1, 0], [0, 0, -1], [1, 0, 0]], float)
+        roll, _, _ = rpy_from_rotation(R_body)
+        assert abs(math.degrees(roll)) <= spec.max_roll_pitch_deg + 1e-6
+
+
+def test_generated_images_are_labelled_from_the_rendered_masks(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    spec = DatasetSpec(split="heldout", n_rooms=1, images_per_room=3, intrinsics=SMALL, min_visible_px=20)
+    items = list(generate(spec))
+    assert len(items) == 3
+    assert len({it.name for it in items}) == 3
+    n_labels = 0
+    for it in items:
+        assert it.rgb.shape == (120, 160, 3) and it.rgb.dtype == np.uint8
+        assert it.room_seed == room_seeds("heldout", 1)[0]
+        b = it.boxes_xyxy_px
+        assert np.all(b[:, 0] >= 0) and np.all(b[:, 2] <= 160) and np.all(b[:, 3] <= 120)
+        assert np.all(b[:, 2] > b[:, 0]) and np.all(b[:, 3] > b[:, 1])
+        assert np.all((it.class_ids >= 0) & (it.class_ids < len(spec.class_names)))
+        assert np.all(it.visible_px >= 20)
+        n_labels += len(b)
+    assert n_labels > 0  # poses are aimed at furniture most of the time
+    # Same spec, same images (the dataset is reproducible).
+    again = next(iter(generate(spec)))
+    np.testing.assert_array_equal(again.rgb, items[0].rgb)
+
+    counts = write_dataset(spec, tmp_path)
+    assert counts["images"] == 3 and counts["labels"] == n_labels
+    assert len(list((tmp_path / "images" / "heldout").glob("*.jpg"))) == 3
+    lines = [ln for p in (tmp_path / "labels" / "heldout").glob("*.txt") for ln in p.read_text().splitlines()]
+    assert len(lines) == n_labels
+    assert "names" in (tmp_path / "data.yaml").read_text()
