@@ -52,7 +52,7 @@ CLASSES = default_classes()
 
 def grid_flight(room: Room, n_frames: int, rng: np.random.Generator) -> list[np.ndarray]:
     """Camera poses (4, 4) on a loop 0.7 m inside the walls, looking at the centre +- 60 deg,
-    skipping positions that would put the camera inside furniture."""
+    skipping positions where the vehicle's band would be within 0.25 m of furniture."""
     inset = 0.7
     x0, x1, y0, y1 = inset, room.width_m - inset, inset, room.depth_m - inset
     corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]])
@@ -64,7 +64,9 @@ def grid_flight(room: Room, n_frames: int, rng: np.random.Generator) -> list[np.
         i = int(np.searchsorted(np.cumsum(seg), s, side="right"))
         t = (s - (np.cumsum(seg)[i - 1] if i else 0.0)) / seg[i]
         xy = corners[i] + t * (corners[i + 1] - corners[i])
-        if gt.clearance_m(room, np.array([[xy[0], xy[1], ALTITUDE_M]]), 0.15)[0] < 0.15:
+        # The vehicle never flies where its band meets furniture (under a desk top, say).
+        band_height = BAND.z_max_m - BAND.z_min_m
+        if gt.clearance_m(room, np.array([[xy[0], xy[1], ALTITUDE_M]]), band_height)[0] < 0.25:
             continue
         look = centre - xy
         yaw = math.atan2(look[1], look[0]) + math.radians(60) * math.sin(phase + 0.35 * k)

@@ -315,8 +315,12 @@ def objects_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]
 #: Benchmark sections in print order: name -> function(args) -> (table lines, figures).
 #: The occupancy-grid agreement figure is a section of its own, registered here beside
 #: ``objects``.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _grid import grid_section  # noqa: E402  (occupancy grid agreement, stage times, memory)
+
 SECTIONS: dict[str, Callable[[argparse.Namespace], tuple[list[str], dict[str, Any]]]] = {
     "objects": objects_section,
+    "grid": grid_section,
 }
 
 

@@ -85,6 +85,8 @@ def extract_band_scan(
     range_tolerance_m: float = 0.05,
     range_tolerance_per_m2: float = 0.01,
     fill_px: int = 4,
+    free_sigma: float = 1.0,
+    cluster_tol: float = 1.0,
     stamp_s: float = 0.0,
 ) -> BandScan:
     """Extract the band scan of one depth image.
@@ -98,8 +100,10 @@ def extract_band_scan(
     points (itself included) within the range tolerance among the column's next point and the
     two neighbouring columns' nearest, so a single flying pixel is not a wall.
     The obstacle is placed at the median range of the column's nearest cluster, the points
-    within ``2 * tol`` of it with ``tol = range_tolerance_m + range_tolerance_per_m2 * r**2``
-    (about three sigma of a D455-like depth noise): the nearest point alone is biased.
+    within ``cluster_tol * tol`` of it with ``tol = range_tolerance_m +
+    range_tolerance_per_m2 * r**2`` (about three sigma of a D455-like depth noise): the
+    nearest point alone is biased towards the sensor. Free space ends ``free_sigma`` noise
+    sigmas (``tol / 3``) before the obstacle, or at the nearest point if that is farther.
     """
     d = np.asarray(depth_m)
     if d.ndim != 2:
@@ -165,15 +169,17 @@ def extract_band_scan(
     hit_row = np.argmin(np.abs(hit_rng - np.where(is_hit, r_near, 0)[None, :]), axis=0)
     # The nearest minimum of noisy ranges is biased towards the sensor (by ~2 sigma for a
     # wall seen by 50 pixels), so the obstacle is placed at the median of the nearest
-    # cluster, [r_near, r_near + 2 * tol]; free space still ends at r_near.
+    # cluster, [r_near, r_near + cluster_tol * tol] (1 tol measured best on simulated rooms:
+    # wider windows reach through thin parts to what lies behind them).
     r_near_f = np.where(is_hit, r_near, np.float32(0.0))
     tol = np.float32(range_tolerance_m) + np.float32(range_tolerance_per_m2) * r_near_f**2
-    n_cluster = np.sum(r_sorted <= (r_near_f + 2.0 * tol)[None, :], axis=0)
+    n_cluster = np.sum(r_sorted <= (r_near_f + cluster_tol * tol)[None, :], axis=0)
     med_idx = np.clip((k_idx + n_cluster - 1) // 2, k_idx, h - 1)
     r_hit = np.where(is_hit, r_sorted[med_idx, cols], np.float32(0.0))
 
-    # Far end of the free part: the nearest in-band point (confirmed or not: an unconfirmed
-    # point still blocks), else the farthest band exit of the column's rays.
+    # Far end of the free part: near the obstacle, or the nearest in-band point when there is
+    # no confirmed obstacle (an unconfirmed point still blocks), else the farthest band exit
+    # of the column's rays.
     blocked = np.isfinite(r1)
     first_row = np.argmin(hit_rng, axis=0)
     far_rng = np.where(crosses, s_hi * rng, np.float32(-1.0))
@@ -182,8 +188,13 @@ def extract_band_scan(
     # The pixel at the cluster's median range (its own bearing: columns of a tilted camera
     # are not vertical planes).
     med_row = np.argmin(np.abs(hit_rng - r_hit[None, :]), axis=0)
+    # Free space reaches to one noise sigma (tol / 3) before the obstacle, not just to the
+    # nearest (most negatively noisy) point, so cells in front of a surface that a noisy
+    # hit once marked get cleared again by later scans.
+    r_first = rng[first_row, cols]
+    r_free = np.where(is_hit, np.maximum(r1, r_hit - free_sigma * tol / 3.0), r1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        far_s = np.where(blocked, 1.0, s_hi[far_row, cols])
+        far_s = np.where(blocked, r_free / r_first, s_hi[far_row, cols])
     far_s = np.nan_to_num(far_s, nan=0.0, posinf=0.0)
     near_rng = np.where(crosses, s_lo * rng, np.float32(np.inf))
     near_row = np.argmin(near_rng, axis=0)
