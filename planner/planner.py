@@ -156,6 +156,7 @@ class Planner:
         use_ompl = cfg.refine_with_ompl if refine is None else bool(refine)
         start = _xy(start_xy_m, "start")
         goal = _xy(goal_xy_m, "goal")
+        requested = (float(goal[0]), float(goal[1]))
         cs = self.cspace
         version = self._version
 
@@ -209,6 +210,7 @@ class Planner:
                     if res.ok:
                         return dataclasses.replace(
                             res, snapped_goal=True, planning_time_s=time.perf_counter() - t0,
+                            requested_goal_xy_m=requested,
                             reason="goal unreachable; snapped to the nearest reachable free point",
                         )
                     return res
@@ -251,6 +253,7 @@ class Planner:
             path_xy_m=best, length_m=path_length_m(best), cost=best_cost,
             planning_time_s=t_end - t0, first_solution_time_s=t_first - t0,
             goal_xy_m=(float(goal[0]), float(goal[1])), snapped_goal=snapped, source=source,
+            requested_goal_xy_m=requested,
             map_version=version,
             stats={
                 "search_s": t_first - t_search, "smooth_s": t_smooth - t_first,
@@ -273,8 +276,8 @@ class Planner:
         """
         cur = _xy(current_xy_m, "current position")
         goal = _xy(goal_xy_m, "goal")
-        if previous is not None and previous.ok and previous.goal_xy_m is not None:
-            same_goal = previous.snapped_goal or float(np.linalg.norm(np.array(previous.goal_xy_m) - goal)) < 1e-6
+        if previous is not None and previous.ok and previous.requested_goal_xy_m is not None:
+            same_goal = float(np.linalg.norm(np.array(previous.requested_goal_xy_m) - goal)) < 1e-6
             remaining = remaining_path(previous.path_xy_m, cur)
             if same_goal and self.path_still_valid(remaining):
                 return previous, False

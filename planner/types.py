@@ -38,7 +38,8 @@ class PlanResult:
     (0, 2)). ``length_m`` its length, ``cost`` its objective value (length plus the weighted
     integral of the map cost, metres). ``planning_time_s``: wall time of the whole request;
     ``first_solution_time_s``: time until the first valid path existed (NaN without one).
-    ``goal_xy_m`` is the goal actually planned to (differs from the request when snapped).
+    ``goal_xy_m`` is the goal actually planned to (differs from ``requested_goal_xy_m`` when
+    snapped).
     ``source`` names the stage that produced the final path (``grid``, ``ompl:<planner>``).
     """
 
@@ -53,6 +54,7 @@ class PlanResult:
     snapped_goal: bool = False
     source: str = ""
     map_version: int = 0
+    requested_goal_xy_m: tuple[float, float] | None = None
     stats: dict[str, float] = field(default_factory=dict)
 
     @property

@@ -204,3 +204,14 @@ def test_windowed_graph_update_equals_fresh_graph() -> None:
         fresh = GridGraph(pl.cspace, pl.config.cost_weight, factor)
         np.testing.assert_array_equal(graph.node_free, fresh.node_free)
         np.testing.assert_allclose(graph._weights, fresh._weights)
+
+
+def test_snapped_plan_is_kept_for_the_same_requested_goal() -> None:
+    pl = make(0.3, refine_with_ompl=False)
+    pl.set_base_map(base_map(pl), [COFFEE])
+    first = pl.plan((1.0, 1.5), (3.0, 1.5), snap_goal=True)
+    assert first.ok and first.snapped_goal and first.requested_goal_xy_m == (3.0, 1.5)
+    kept, replanned = pl.replan((1.0, 1.5), (3.0, 1.5), first)
+    assert not replanned and kept is first
+    _, replanned = pl.replan((1.0, 1.5), (4.5, 2.5), first)
+    assert replanned
