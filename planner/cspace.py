@@ -35,6 +35,7 @@ from scipy import ndimage
 from semmap.costmap import (
     INSCRIBED_INFLATED_OBSTACLE,
     LETHAL_OBSTACLE,
+    MAX_NON_OBSTACLE,
     NO_INFORMATION,
     Costmap,
     ObjectFootprint,
@@ -255,10 +256,14 @@ def _unit_steps(n: int) -> NDArray[np.float64]:
 
 
 def _blocked_mask(costmap: Costmap, params: CSpaceParams) -> NDArray[np.bool_]:
-    """Lethal cells, grown by each blocking object's margin; unknown too if forbidden."""
+    """Lethal and inscribed cells, lethal objects grown by their margin; unknown if forbidden.
+
+    INSCRIBED_INFLATED_OBSTACLE is blocked too: the semantic map writes it inside an object's
+    class margin (a keep-out zone, beyond which the vehicle radius is added here).
+    """
     spec = costmap.spec
     lethal = costmap.cost == LETHAL_OBSTACLE
-    blocked = lethal.copy()
+    blocked = lethal | (costmap.cost == INSCRIBED_INFLATED_OBSTACLE)
     if params.unknown_cost >= 1.0:
         blocked |= costmap.cost == NO_INFORMATION
     if params.geofence_xy_m is not None:
@@ -300,8 +305,8 @@ def _fields(
     free = clearance >= threshold
     proximity = np.exp(-(np.maximum(clearance - threshold, 0.0)) / params.clearance_decay_m)
     soft = np.zeros(blocked.shape, dtype=np.float32)
-    traversable = source_cost <= INSCRIBED_INFLATED_OBSTACLE
-    soft[traversable] = source_cost[traversable].astype(np.float32) / float(INSCRIBED_INFLATED_OBSTACLE)
+    traversable = source_cost <= MAX_NON_OBSTACLE
+    soft[traversable] = source_cost[traversable].astype(np.float32) / float(MAX_NON_OBSTACLE)
     soft[source_cost == NO_INFORMATION] = unknown_cost
     cost = np.maximum(proximity.astype(np.float32), soft)
     cost[~free] = 1.0

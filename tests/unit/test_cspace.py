@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -156,3 +157,15 @@ def test_lethal_cells_are_never_free() -> None:
     cost[40, 50] = LETHAL_OBSTACLE
     cs = build_cspace(Costmap(SPEC, cost, band), CSpaceParams(vehicle_radius_m=0.1))
     assert not cs.free[40, 50] and cs.free[40, 70]
+
+
+def test_inscribed_cells_are_blocked_and_soft_costs_scale() -> None:
+    from semmap.costmap import INSCRIBED_INFLATED_OBSTACLE, MAX_NON_OBSTACLE
+
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cost = np.zeros(SPEC.shape_rc, dtype=np.uint8)
+    cost[40, 20] = INSCRIBED_INFLATED_OBSTACLE
+    cost[40, 80] = MAX_NON_OBSTACLE
+    cs = build_cspace(Costmap(SPEC, cost, band), CSpaceParams(vehicle_radius_m=0.1, clearance_decay_m=0.05))
+    assert cs.blocked[40, 20] and not cs.free[40, 20]
+    assert not cs.blocked[40, 80] and cs.free[40, 80] and cs.cost[40, 80] == pytest.approx(1.0)
