@@ -82,7 +82,8 @@ async def flight() -> AsyncIterator[Flight]:
     async with MavlinkLink("udpin://127.0.0.1:0", heartbeat_rate_hz=2.0) as link:
         port = link.transport.local_address[1]  # type: ignore[attr-defined]
         # Brisk takeoff and landing keep the suite short; flight behaviour is unchanged.
-        params = {"MPC_TKO_SPEED": 3.0, "MPC_LAND_SPEED": 2.0, "COM_DISARM_LAND": 0.3}
+        params = {"MPC_TKO_SPEED": 3.0, "MPC_LAND_SPEED": 2.0, "COM_DISARM_LAND": 0.3,
+                  "MPC_ACC_HOR": 6.0}
         async with MockAutopilot(local_port=0, remote_ports=[port], params=params) as ap:
             tracker = VehicleStateTracker()
             tracker.attach(link)
@@ -217,7 +218,7 @@ async def test_pilot_switching_mode_is_not_fought(flight: Flight) -> None:
         await flight.wait(lambda s: s.flight_mode is FlightMode.POSCTL, "pilot mode")
         await flight.ap.wait_until(lambda: ctl.state is OffboardState.YIELDED, 3.0, "yield")
         sent = ctl.status().setpoints_sent
-        await asyncio.sleep(1.5)
+        await asyncio.sleep(1.0)
         assert ctl.status().setpoints_sent == sent  # we stopped streaming
         assert flight.ap.mode is FlightMode.POSCTL  # and never asked for OFFBOARD again
         assert len([r for r in flight.ap.commands.received(mavlink.MAV_CMD_DO_SET_MODE)
