@@ -295,7 +295,7 @@ def parse_plan_json(data: Any, source: str) -> MissionPlan:
         x = int(round(lat * 1e7)) if math.isfinite(lat) else 0
         y = int(round(lon * 1e7)) if math.isfinite(lon) else 0
         items.append(MissionItemInt(i, frame, cmd, 0, int(bool(raw.get("autoContinue", True))),
-                                    *params[:4], x, y, params[6]))
+                                    params[0], params[1], params[2], params[3], x, y, params[6]))
     return items_to_plan(items, home, source, label="mission.items[{i}]")
 
 

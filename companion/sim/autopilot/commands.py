@@ -78,10 +78,10 @@ class CommandHandler:
 
     def handle(self, msg: Any, now_s: float) -> None:
         cmd = int(msg.command)
-        params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y),
-                  msg.z) if msg.get_type() == "COMMAND_INT" else (
+        fields = (msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y, msg.z) \
+            if msg.get_type() == "COMMAND_INT" else (
             msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
-        params = tuple(float(p) for p in params)
+        params: tuple[float, ...] = tuple(float(p) for p in fields)
         src = (int(msg.get_srcSystem()), int(msg.get_srcComponent()))
         tc = int(getattr(msg, "target_component", 0))
         if tc not in (0, px4.MAV_COMP_ID_AUTOPILOT1):

@@ -126,7 +126,7 @@ class MissionServer:
         self._mav = mav
         self._send = send
         self._on_changed = on_mission_changed
-        self._on_set_current = on_set_current
+        self._set_current_cb = on_set_current
         self._plans: dict[int, list[MissionItem]] = {t: [] for t in MISSION_TYPES}
         self._upload: _Upload | None = None
         self._last_completed: tuple[tuple[int, int], int, int] | None = None
@@ -270,8 +270,8 @@ class MissionServer:
         self._ack(partner, mavlink.MAV_MISSION_ACCEPTED, mtype)
 
     def _on_set_current(self, msg: Any, now_s: float) -> None:
-        if self._on_set_current is not None:
-            self._on_set_current(int(msg.seq))
+        if self._set_current_cb is not None:
+            self._set_current_cb(int(msg.seq))
 
     def _on_ack(self, msg: Any, now_s: float) -> None:
         # The end of a download, or a client cancelling our upload.

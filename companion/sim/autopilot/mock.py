@@ -37,7 +37,12 @@ from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
 from companion.sim.autopilot.transport import Faults, UdpEndpoint
-from companion.sim.autopilot.vehicle import KinematicMulticopter, VehicleLimits, VehicleState
+from companion.sim.autopilot.vehicle import (
+    KinematicMulticopter,
+    Target,
+    VehicleLimits,
+    VehicleState,
+)
 from semmap.frames import Transform
 
 log = logging.getLogger(__name__)
@@ -120,7 +125,7 @@ class MockAutopilot:
         self.commands = CommandHandler(self)
         # offboard
         self._last_setpoint_s = -math.inf
-        self._offboard_target = None
+        self._offboard_target: Target | None = None
         self.setpoints: deque[offboard.ReceivedSetpoint] = deque(maxlen=2000)
         self.vision: deque[VisionSample] = deque(maxlen=2000)
         self.failsafes: list[FailsafeEvent] = []
