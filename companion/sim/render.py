@@ -97,6 +97,7 @@ class VisibleObject:
 
     @property
     def height_m(self) -> float:
+        """Top of the object above the floor, metres."""
         return self.z_range_m[1]
 
 
@@ -351,6 +352,7 @@ class RoomRenderer:
 
     @property
     def n_primitives(self) -> int:
+        """Number of primitive boxes in the scene (floor, ceiling, walls, furniture parts)."""
         return self._n_prims
 
     @staticmethod

@@ -79,10 +79,12 @@ class Trajectory:
 
     @property
     def duration_s(self) -> float:
+        """Seconds from the first keyframe to the last."""
         return float(self._t[-1] - self._t[0])
 
     @property
     def start_s(self) -> float:
+        """Time of the first keyframe, seconds."""
         return float(self._t[0])
 
     def state_at(self, t_s: float) -> tuple[NDArray[np.float64], float]:

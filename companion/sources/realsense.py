@@ -67,6 +67,7 @@ class RealSenseFrameSource(FrameSource):
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
+        """The colour stream's intrinsics (depth is aligned to it); starts the camera."""
         self.open()
         assert self._intrinsics is not None
         return self._intrinsics
@@ -111,6 +112,7 @@ class RealSenseFrameSource(FrameSource):
                  self.height_px, self.rate_hz, self.depth_scale_m, self._intrinsics.fx_px)
 
     def close(self) -> None:
+        """Stop the pipeline. Idempotent."""
         if not self._running:
             return
         self._running = False

@@ -363,12 +363,14 @@ class RecordedFrameSource(FrameSource):
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
+        """Intrinsics of the recording (indexes the folder on first use)."""
         self.open()
         assert self._intrinsics is not None
         return self._intrinsics
 
     @property
     def entries(self) -> list[RecordedEntry]:
+        """Every frame's files, stamp and pose, in playback order."""
         self.open()
         assert self._entries is not None
         return list(self._entries)
@@ -377,6 +379,7 @@ class RecordedFrameSource(FrameSource):
         return len(self.entries)
 
     def close(self) -> None:
+        """Rewind: the next :meth:`read` starts from the first frame again."""
         self._cursor = 0
 
     def frame_at(self, i: int) -> Frame:

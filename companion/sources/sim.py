@@ -63,10 +63,12 @@ class SimFrameSource(FrameSource):
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
+        """The simulated camera's intrinsics."""
         return self.renderer.intrinsics
 
     @property
     def room(self) -> Room:
+        """The room being rendered (the ground truth)."""
         return self.renderer.room
 
     def read(self) -> Frame | None:
