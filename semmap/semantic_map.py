@@ -19,6 +19,7 @@ import json
 import logging
 import os
 import tempfile
+import time
 import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -297,6 +298,19 @@ class SemanticMap:
     def stale_layers(self, now_s: float) -> list[str]:
         """Layers older than ``settings.stale_after_s`` at ``now_s`` (empty = fresh map)."""
         return self.layers.stale_layers(now_s, self.settings.stale_after_s)
+
+    def is_fresh(self, now_s: float | None = None) -> bool:
+        """True if the grid was updated within ``settings.stale_after_s`` of ``now_s`` and so
+        were the object layers, when this map has object input (an object map, or objects
+        set before). ``now_s`` defaults to ``time.monotonic()``: the frames' clock must then
+        be the monotonic clock (as a live camera source stamps them). A planner holds
+        position when this is False."""
+        now = time.monotonic() if now_s is None else float(now_s)
+        max_age = self.settings.stale_after_s
+        if not self.layers.occupancy.is_fresh(now, max_age):
+            return False
+        has_objects = self.object_map is not None or np.isfinite(self.layers.footprints.stamp_s)
+        return not has_objects or self.layers.footprints.is_fresh(now, max_age)
 
     def nbytes(self) -> int:
         """Bytes held by the grid, cached costmap and object rasters."""

@@ -56,6 +56,11 @@ def test_integrate_frame_maps_the_wall_and_grows() -> None:
     assert m.objects[0].margin_m == 0.15  # class margin filled in
     assert m.stale_layers(0.5) == []
     assert m.stale_layers(10.0) != []
+    assert m.is_fresh(0.5) and m.is_fresh(2.4) and not m.is_fresh(10.0)
+    grid_only = SemanticMap(settings())
+    grid_only.integrate_frame(wall_frame(0.0, 5.0, 0))
+    assert grid_only.is_fresh(6.0)  # no object input: the grid alone decides
+    assert not SemanticMap(settings()).is_fresh(0.0)  # never updated
 
 
 def test_integrate_frame_needs_a_pose() -> None:
