@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from companion.sim.world import Box, Room
 from semmap.costmap import (
     FREE_SPACE,
     LETHAL_OBSTACLE,
@@ -22,8 +23,6 @@ from semmap.costmap import (
     VerticalBand,
 )
 from semmap.grid import GridSpec, rasterize_polygon
-
-from companion.sim.world import Box, Room
 
 
 def room_grid_spec(room: Room, resolution_m: float = 0.05, pad_m: float = 0.5) -> GridSpec:
@@ -153,7 +152,7 @@ def densify(path_m: NDArray[np.floating], step_m: float) -> NDArray[np.float64]:
     if len(p) < 2:
         return p.copy()
     out = [p[:1]]
-    for a, b in zip(p[:-1], p[1:]):
+    for a, b in zip(p[:-1], p[1:], strict=True):
         n = max(1, int(np.ceil(np.linalg.norm(b - a) / step_m)))
         t = np.linspace(0.0, 1.0, n + 1)[1:, None]
         out.append(a + t * (b - a))
