@@ -42,7 +42,7 @@ from semmap.costmap import (
     VerticalBand,
 )
 from semmap.errors import PlanningError
-from semmap.grid import GridSpec
+from semmap.grid import GridSpec, rasterize_polygon
 
 #: A point (x, y) in the map frame, metres: a (2,) array or any pair of numbers.
 XYLike = NDArray[np.floating] | Sequence[float] | tuple[float, float]
@@ -270,21 +270,28 @@ def _blocked_mask(costmap: Costmap, params: CSpaceParams) -> NDArray[np.bool_]:
         x0, y0, x1, y1 = params.geofence_xy_m
         X, Y = spec.cell_centers_xy()
         blocked |= (X < x0) | (X > x1) | (Y < y0) | (Y > y1)
-    by_margin: dict[float, NDArray[np.bool_]] = {}
+    res = spec.resolution_m
     for fp in costmap.objects:
         margin = params.margin_for(fp)
         if margin <= 0.0 or not fp.blocks(costmap.band):
             continue
+        # Work in the object's window only: its bounding box grown by the margin.
+        poly = np.asarray(fp.polygon_xy_m, dtype=np.float64).reshape(-1, 2)
+        pad = int(math.ceil(margin / res)) + 2
+        lo = spec.cell_of(poly.min(axis=0, keepdims=True))[0] - pad
+        hi = spec.cell_of(poly.max(axis=0, keepdims=True))[0] + pad + 1
+        r0, c0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+        r1, c1 = min(int(hi[0]), spec.rows), min(int(hi[1]), spec.cols)
+        if r1 <= r0 or c1 <= c0:
+            continue
+        sub = GridSpec(res, (spec.origin_xy_m[0] + c0 * res, spec.origin_xy_m[1] + r0 * res), (r1 - r0, c1 - c0))
         # Only objects the costmap actually made lethal get a margin (an object the map
         # dropped for low existence must not come back through its margin).
-        m = fp.mask(spec) & lethal
+        m = rasterize_polygon(sub, poly) & lethal[r0:r1, c0:c1]
         if not m.any():
             continue
-        acc = by_margin.setdefault(round(margin, 4), np.zeros(spec.shape_rc, dtype=bool))
-        acc |= m
-    for margin, mask in by_margin.items():
-        dist = ndimage.distance_transform_edt(~mask, sampling=spec.resolution_m)
-        blocked |= dist <= margin
+        dist = ndimage.distance_transform_edt(~m, sampling=res)
+        blocked[r0:r1, c0:c1] |= dist <= margin
     return blocked
 
 

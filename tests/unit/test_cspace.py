@@ -136,7 +136,7 @@ def test_window_update_equals_full_rebuild(x: float, y: float, w: float, h: floa
     cs0 = build_cspace(before, params, version=1)
     updated, window = update_cspace(cs0, after, version=2)
     full = build_cspace(after, params, version=2)
-    assert window is not None
+    assert (window is None) == bool(np.array_equal(before.cost, after.cost))
     np.testing.assert_allclose(updated.clearance_m, full.clearance_m, atol=1e-5)
     np.testing.assert_array_equal(updated.free, full.free)
     np.testing.assert_allclose(updated.cost, full.cost, atol=1e-6)
@@ -169,3 +169,16 @@ def test_inscribed_cells_are_blocked_and_soft_costs_scale() -> None:
     cs = build_cspace(Costmap(SPEC, cost, band), CSpaceParams(vehicle_radius_m=0.1, clearance_decay_m=0.05))
     assert cs.blocked[40, 20] and not cs.free[40, 20]
     assert not cs.blocked[40, 80] and cs.free[40, 80] and cs.cost[40, 80] == pytest.approx(1.0)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.floats(0.3, 4.0), st.floats(0.3, 3.0), st.floats(0.05, 1.0), st.floats(0.0, 0.6))
+def test_object_margin_equals_distance_to_footprint(x: float, y: float, size: float, margin: float) -> None:
+    from scipy import ndimage
+
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    fp = ObjectFootprint(1, "chair", rect(x, y, x + size, y + size * 0.7), 0.0, 0.9, margin_m=margin)
+    cm = band_costmap(empty_costmap(band), [fp], band)
+    cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.2))
+    dist = ndimage.distance_transform_edt(~cm.lethal, sampling=SPEC.resolution_m)
+    np.testing.assert_array_equal(cs.blocked, dist <= margin)
