@@ -8,7 +8,8 @@ raises the :class:`~companion.errors.CommandError` subclass named after it, with
 set to the ``MAV_RESULT`` name (``"DENIED"``, ``"TIMEOUT"``...).
 
 :class:`VehicleCommands` adds the named helpers (``arm``, ``disarm``, ``takeoff``, ``land``,
-``hold``, ``return_to_launch``, ``set_mode``) for a PX4 autopilot.
+``hold``, ``return_to_launch``, ``set_mode``, ``request_message``, ``set_message_interval``)
+for a PX4 autopilot.
 """
 
 from __future__ import annotations
@@ -234,6 +235,17 @@ class VehicleCommands:
     async def hold(self) -> None:
         """Hold position (PX4 AUTO.LOITER)."""
         await self.set_mode(FlightMode.HOLD)
+
+    async def request_message(self, msg_id: int) -> None:
+        """Ask for one message now (``MAV_CMD_REQUEST_MESSAGE``), e.g. HOME_POSITION."""
+        await self.sender.command_long(mavlink.MAV_CMD_REQUEST_MESSAGE, float(msg_id))
+
+    async def set_message_interval(self, msg_id: int, rate_hz: float) -> None:
+        """Stream ``msg_id`` at ``rate_hz`` (0 stops it) with ``MAV_CMD_SET_MESSAGE_INTERVAL``."""
+        if rate_hz < 0:
+            raise ValueError(f"message rate must be >= 0 Hz (got {rate_hz})")
+        interval_us = -1.0 if rate_hz == 0 else 1e6 / rate_hz
+        await self.sender.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), interval_us)
 
     async def set_mode(self, mode: FlightMode) -> None:
         """Switch PX4 to ``mode`` with ``MAV_CMD_DO_SET_MODE`` (custom main/sub mode)."""

@@ -27,6 +27,9 @@ from collections.abc import Callable
 from types import TracebackType
 from typing import TYPE_CHECKING
 
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.errors import CommandError
 from companion.mavlink.commands import CommandSender, VehicleCommands
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.mission_download import MissionItem, download_mission
@@ -134,12 +137,22 @@ class Vehicle:
         return self.state.snapshot()
 
     async def wait_connected(self, timeout_s: float) -> VehicleState:
-        """Wait for the autopilot's heartbeat; raises ``StateTimeoutError`` naming the URL."""
-        return await self.state.wait_for(
+        """Wait for the autopilot's heartbeat; raises ``StateTimeoutError`` naming the URL.
+
+        Once connected, asks for HOME_POSITION if it has not arrived yet (PX4 streams it
+        slowly and takeoff altitudes are relative to it); a refusal is only logged.
+        """
+        state = await self.state.wait_for(
             lambda s: s.heartbeat_fresh(self.cfg.heartbeat_timeout_s), timeout_s,
             f"an autopilot heartbeat on {self.cfg.url} (system {self.cfg.target_system}, "
             f"component {self.cfg.target_component})",
         )
+        if state.home is None:
+            try:
+                await self.commands.request_message(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+            except CommandError as exc:
+                log.warning("autopilot did not send HOME_POSITION on request: %s", exc)
+        return state
 
     async def download_mission(self) -> tuple[MissionItem, ...]:
         """The autopilot's current mission (see :func:`download_mission`)."""

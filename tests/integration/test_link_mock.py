@@ -103,6 +103,10 @@ async def test_telemetry_and_our_identity(flight: Flight) -> None:
     assert s.home is not None and s.home.altitude_amsl_m == pytest.approx(flight.ap.home.alt_m)
     assert 0.0 < (s.battery_remaining or 0.0) <= 1.0
     await flight.ap.wait_until(lambda: (1, 191) in flight.ap.peer_heartbeats, 5.0, "our heartbeat")
+    async with flight.link.subscribe("AUTOPILOT_VERSION") as versions:
+        await flight.cmds.request_message(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+        assert (await versions.get(3.0)).get_srcComponent() == 1
+    await flight.cmds.set_message_interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, 2.0)
 
 
 @pytest.mark.asyncio

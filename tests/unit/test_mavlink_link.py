@@ -221,7 +221,14 @@ async def test_command_accepted_and_named_helpers(peer_and_link: tuple[Peer, Mav
     await cmds.land()
     await cmds.return_to_launch()
     await cmds.disarm(force=True)
+    await cmds.request_message(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+    await cmds.set_message_interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, 50.0)
+    await cmds.set_message_interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, 0.0)
     sent = peer.of_type("COMMAND_LONG")
+    assert (sent[6].command, sent[6].param1) == (mavlink.MAV_CMD_REQUEST_MESSAGE, 242.0)
+    assert (sent[7].param1, sent[7].param2) == (30.0, 20000.0)
+    assert sent[8].param2 == -1.0
+    sent = sent[:6]
     assert [m.command for m in sent] == [
         mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_CMD_DO_SET_MODE,
         mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
