@@ -34,6 +34,7 @@ from mavsdk.plugins.action import ActionError
 from mavsdk.plugins.mission_raw import MissionItem as RawItem
 from mavsdk.plugins.mission_raw import MissionPlan as RawPlan
 from mavsdk.plugins.mission_raw import MissionRawError, MissionRawResult
+from mavsdk.plugins.telemetry import TelemetryError
 
 from companion.errors import CommandError, LinkError, MissionError
 from companion.geo import GeoOrigin
@@ -140,6 +141,9 @@ class MavsdkClient:
             raise LinkError(f"no autopilot heard on {self.url} within "
                             f"{self.connect_timeout_s:g} s")
         self._system = system
+        # Telemetry caches what arrives only from its creation on: create it now so the home
+        # position MAVSDK asks for while connecting is there when an upload needs it.
+        _ = self.telemetry
         log.info("MAVSDK connected to autopilot on %s", self.url)
         return self
 
@@ -203,6 +207,11 @@ class MavsdkClient:
                 return _home(h)
         except Exception as exc:  # noqa: BLE001 - MAVSDK raises TelemetryError or returns NaN
             log.debug("no cached home position yet: %s", exc)
+        try:
+            # Ask for it now rather than wait for the next slow periodic HOME_POSITION.
+            await self.telemetry.set_rate_home(1.0)
+        except TelemetryError as exc:
+            log.debug("set_rate_home refused: %s", exc)
         gen = self.telemetry.subscribe_home()
         try:
             async with asyncio.timeout(timeout_s):
