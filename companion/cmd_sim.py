@@ -24,7 +24,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("sim-autopilot", help="run the mock PX4 autopilot (MAVLink over UDP)")
     p.add_argument("--config", default=None, help="config file (default: embedded default)")
     p.add_argument("--host", default="127.0.0.1",
-                   help="address to bind and to send to (default 127.0.0.1)")
+                   help="address to bind (default 127.0.0.1; 0.0.0.0 for other machines)")
+    p.add_argument("--remote-host", default=None,
+                   help="address of the API and ground-station peers (default: --host, or "
+                   "127.0.0.1 when binding 0.0.0.0)")
     p.add_argument("--local-port", type=int, default=None,
                    help="UDP port the mock binds (default sim.autopilot_local_port, 14580)")
     p.add_argument("--offboard-port", type=int, default=None,
@@ -64,12 +67,13 @@ def _run(args: argparse.Namespace) -> int:
     remotes = [p for p in (offboard, gcs) if p]
     home = GeoOrigin(cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m)
     params = _parse_params(args.param)
-    asyncio.run(_serve(args.host, local, remotes, home, params))
+    remote_host = args.remote_host or ("127.0.0.1" if args.host == "0.0.0.0" else args.host)
+    asyncio.run(_serve(args.host, local, remote_host, remotes, home, params))
     return 0
 
 
-async def _serve(host: str, local: int, remotes: list[int], home: GeoOrigin,
-                 params: dict[str, float]) -> None:
+async def _serve(host: str, local: int, remote_host: str, remotes: list[int],
+                 home: GeoOrigin, params: dict[str, float]) -> None:
     from companion.sim.autopilot import MockAutopilot  # pymavlink's dialect is slow to import
 
     loop = asyncio.get_running_loop()
@@ -78,6 +82,6 @@ async def _serve(host: str, local: int, remotes: list[int], home: GeoOrigin,
         with contextlib.suppress(NotImplementedError):
             loop.add_signal_handler(sig, stop.set)
     async with MockAutopilot(host=host, local_port=local, remote_ports=remotes,
-                             remote_host=host, home=home, params=params):
+                             remote_host=remote_host, home=home, params=params):
         await stop.wait()
         log.info("stopping mock autopilot")
