@@ -49,6 +49,7 @@ from planner.gridsearch import GridGraph, refine_vertices, shortcut  # noqa: E40
 from planner.ompl_backend import set_ompl_seed  # noqa: E402
 from planner.planner import Planner  # noqa: E402
 from planner.types import path_length_m  # noqa: E402
+from semmap.grid import rasterize_polygon  # noqa: E402
 
 HOLLOW_CLASSES = ("chair", "coffee_table", "conference_table", "desk", "whiteboard")
 
@@ -83,7 +84,7 @@ def pick_queries(room: Room, cs: CSpace, rng: np.random.Generator) -> list[Query
     hollow = [o.footprint_xy_m() for o in room.objects if o.class_name in HOLLOW_CLASSES]
     masks = np.zeros(cs.spec.shape_rc, dtype=bool)
     for poly in hollow:
-        masks |= gt.rasterize_polygon(cs.spec, poly)
+        masks |= rasterize_polygon(cs.spec, poly)
     min_dist = 0.45 * min(room.width_m, room.depth_m)
     for _ in range(400):
         pts = rng.uniform([0.3, 0.3], [room.width_m - 0.3, room.depth_m - 0.3], size=(2, 2))
