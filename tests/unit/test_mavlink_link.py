@@ -617,3 +617,21 @@ async def test_replay_of_a_missing_log_is_a_link_error(tmp_path: Path) -> None:
     with pytest.raises(LinkError, match="no such telemetry log"):
         async with MavlinkLink(f"tlog://{tmp_path}/missing.tlog"):
             pass
+
+
+@pytest.mark.asyncio
+async def test_closing_the_link_wakes_subscribers() -> None:
+    async with MavlinkLink("udpin://127.0.0.1:0") as link:
+        waiting = link.subscribe("HEARTBEAT")
+        iterating = link.subscribe("ATTITUDE")
+
+        async def consume() -> int:
+            return len([m async for m in iterating])
+
+        getter = asyncio.create_task(waiting.get())
+        consumer = asyncio.create_task(consume())
+        await asyncio.sleep(0.05)
+    with pytest.raises(LinkError, match="link closed"):
+        await asyncio.wait_for(getter, 2.0)
+    assert await asyncio.wait_for(consumer, 2.0) == 0
+    assert waiting.get_nowait() is None
