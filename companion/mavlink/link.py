@@ -262,8 +262,9 @@ class MavlinkLink:
             self._setup_signing(signing)
 
     @classmethod
-    def from_config(cls, cfg: LinkConfig) -> "MavlinkLink":
-        """Build from a :class:`companion.config.LinkConfig` (reads the signing key file)."""
+    def from_config(cls, cfg: LinkConfig, record_path: str | Path | None = None) -> "MavlinkLink":
+        """Build from a :class:`companion.config.LinkConfig` (reads the signing key file);
+        ``record_path``: a ``.tlog`` to record into (e.g. in the run's output folder)."""
         signing = None
         if cfg.signing_key_path:
             signing = SigningConfig(key=load_signing_key(cfg.signing_key_path))
@@ -273,6 +274,7 @@ class MavlinkLink:
             component_id=cfg.component_id,
             heartbeat_rate_hz=cfg.heartbeat_rate_hz,
             signing=signing,
+            record_path=record_path,
         )
 
     # --- lifecycle -------------------------------------------------------------------

@@ -24,6 +24,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Callable
+from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING
 
@@ -53,6 +54,7 @@ class Vehicle:
     ``is_pose_fresh``/``is_map_fresh``: freshness of our localisation and map (see
     :class:`OffboardController`). ``obstacle_source``: the OBSTACLE_DISTANCE input, or None
     for no feed (the feed also stays off when ``cfg.obstacle_distance_rate_hz`` is 0).
+    ``record_path``: record the autopilot's telemetry to this ``.tlog``.
     """
 
     def __init__(
@@ -62,9 +64,10 @@ class Vehicle:
         is_pose_fresh: Callable[[], bool] | None = None,
         is_map_fresh: Callable[[], bool] | None = None,
         obstacle_source: Callable[[], ObstacleDistanceInput | None] | None = None,
+        record_path: str | Path | None = None,
     ) -> None:
         self.cfg = cfg
-        self.link = MavlinkLink.from_config(cfg)
+        self.link = MavlinkLink.from_config(cfg, record_path=record_path)
         self.state = VehicleStateTracker(cfg.target_system, cfg.target_component)
         self.commands = VehicleCommands(
             CommandSender(self.link, cfg.target_system, cfg.target_component,

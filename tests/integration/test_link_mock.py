@@ -37,6 +37,7 @@ from companion.mavlink.obstacle_distance import (
 )
 from companion.mavlink.offboard import OffboardController
 from companion.mavlink.state import LandedState, VehicleState, VehicleStateTracker
+from companion.mavlink.tlog import iter_tlog
 from companion.mavlink.vehicle import Vehicle
 from companion.mavlink.vision import vision_odometry_message
 from companion.px4 import FlightMode
@@ -367,13 +368,14 @@ async def test_obstacle_distance_feed_reaches_the_autopilot(flight: Flight) -> N
 
 
 @pytest.mark.asyncio
-async def test_vehicle_stack_from_config(caplog: pytest.LogCaptureFixture) -> None:
+async def test_vehicle_stack_from_config(caplog: pytest.LogCaptureFixture, tmp_path: Path) -> None:
     cfg = LinkConfig(url="udpin://127.0.0.1:0", heartbeat_timeout_s=HB_TIMEOUT_S, setpoint_rate_hz=20.0,
                      obstacle_distance_rate_hz=10.0)
     spec = GridSpec(0.1, (-10.0, -10.0), (200, 200))  # clear beyond the 8 m range
     costmap = Costmap(spec, np.zeros(spec.shape_rc, dtype=np.uint8), VerticalBand(0.5, 2.0))
     caplog.set_level(logging.INFO, logger="companion.mavlink.vehicle")
-    async with Vehicle(cfg, obstacle_source=lambda: ObstacleDistanceInput(costmap, (0.0, 0.0), 0.0)) as vehicle:
+    source = lambda: ObstacleDistanceInput(costmap, (0.0, 0.0), 0.0)  # noqa: E731
+    async with Vehicle(cfg, obstacle_source=source, record_path=tmp_path / "run.tlog") as vehicle:
         port = vehicle.link.transport.local_address[1]  # type: ignore[attr-defined]
         async with MockAutopilot(local_port=0, remote_ports=[port]) as ap:
             s = await vehicle.wait_connected(10.0)
@@ -391,6 +393,7 @@ async def test_vehicle_stack_from_config(caplog: pytest.LogCaptureFixture) -> No
             await ap.wait_until(lambda: "autopilot heartbeat lost" in caplog.text, 3.0, "watchdog log")
             assert not vehicle.connected
     assert not vehicle.link.is_open
+    assert any(r.packet for r in iter_tlog(tmp_path / "run.tlog"))
 
 
 @pytest.mark.asyncio
