@@ -13,6 +13,9 @@ from typing import Protocol
 from semmap.config import DetectorConfig
 from semmap.types import Detection, Frame
 
+#: The models shipped in the package (``builtin:furniture``; see semmap/models/MODEL_CARD.md).
+BUILTIN_MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+
 
 class Detector(Protocol):
     """Anything that turns a frame into detections (original-image pixels, our classes)."""
@@ -32,7 +35,8 @@ def detector_from_config(
 ) -> Detector:
     """The detector ``cfg.kind`` names. ``class_names``: our classes in config order.
 
-    ``builtin_dir`` resolves ``builtin:NAME`` model paths (ONNX); ``object_classes`` and
+    ``builtin_dir`` resolves ``builtin:NAME`` model paths (ONNX; default: the models shipped
+    in the package, :data:`BUILTIN_MODELS_DIR`); ``object_classes`` and
     ``seed`` are for the oracle (see :class:`semmap.detection.oracle.OracleDetector`). Raises
     :class:`semmap.errors.PerceptionError` if the ONNX model cannot be used.
     """
@@ -42,4 +46,6 @@ def detector_from_config(
         return OracleDetector.from_config(cfg, class_names, object_classes=object_classes, seed=seed)
     from semmap.detection.onnx_detector import OnnxDetector
 
-    return OnnxDetector.from_config(cfg, class_names, builtin_dir=builtin_dir)
+    return OnnxDetector.from_config(
+        cfg, class_names, builtin_dir=BUILTIN_MODELS_DIR if builtin_dir is None else builtin_dir
+    )

@@ -84,6 +84,15 @@ def _provider_entries(
     return out
 
 
+def builtin_model_file(folder: Path, name: str) -> Path:
+    """The file ``builtin:NAME`` names in ``folder``: ``NAME.onnx``, else the only
+    ``NAME_*.onnx`` (a shipped model's file name also states its architecture and input size,
+    e.g. ``furniture_yolov8n_320.onnx``). A missing file is reported when it is loaded."""
+    exact = folder / f"{name}.onnx"
+    variants = sorted(folder.glob(f"{name}_*.onnx"))
+    return exact if exact.exists() or len(variants) != 1 else variants[0]
+
+
 def _static_dim(dim: Any) -> int | None:
     return dim if isinstance(dim, int) and dim > 0 else None
 
@@ -218,7 +227,8 @@ class OnnxDetector:
         semantic_classes: Sequence[str],
         builtin_dir: str | Path | None = None,
     ) -> OnnxDetector:
-        """Build from :class:`DetectorConfig`. ``builtin:NAME`` resolves to ``builtin_dir/NAME.onnx``."""
+        """Build from :class:`DetectorConfig`. ``builtin:NAME`` resolves in ``builtin_dir`` (see
+        :func:`builtin_model_file`)."""
         if cfg.model_path is None:
             raise PerceptionError("detector.kind is 'onnx' but detector.model_path is not set")
         path = Path(cfg.model_path)
@@ -226,7 +236,7 @@ class OnnxDetector:
             name = cfg.model_path[len(BUILTIN_PREFIX):]
             if builtin_dir is None:
                 raise PerceptionError(f"detector.model_path {cfg.model_path!r}: no built-in model folder given")
-            path = Path(builtin_dir) / f"{name}.onnx"
+            path = builtin_model_file(Path(builtin_dir), name)
         return cls(
             path,
             semantic_classes,
