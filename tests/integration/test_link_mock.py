@@ -374,7 +374,10 @@ async def test_vehicle_stack_from_config(caplog: pytest.LogCaptureFixture, tmp_p
     spec = GridSpec(0.1, (-10.0, -10.0), (200, 200))  # clear beyond the 8 m range
     costmap = Costmap(spec, np.zeros(spec.shape_rc, dtype=np.uint8), VerticalBand(0.5, 2.0))
     caplog.set_level(logging.INFO, logger="companion.mavlink.vehicle")
-    source = lambda: ObstacleDistanceInput(costmap, (0.0, 0.0), 0.0)  # noqa: E731
+
+    def source() -> ObstacleDistanceInput:
+        return ObstacleDistanceInput(costmap, (0.0, 0.0), 0.0)
+
     async with Vehicle(cfg, obstacle_source=source, record_path=tmp_path / "run.tlog") as vehicle:
         port = vehicle.link.transport.local_address[1]  # type: ignore[attr-defined]
         async with MockAutopilot(local_port=0, remote_ports=[port]) as ap:
