@@ -103,9 +103,7 @@ def compute_obstacle_distances(
     bearings_deg = angle_offset_deg + np.arange(N_SECTORS)[:, None] * increment_deg + offsets[None, :]
     # Clockwise in the body frame is clockwise in the (z-up) map frame too.
     theta = yaw_map_rad - np.radians(bearings_deg).reshape(-1)  # (S*R,)
-    dirs = np.stack([np.cos(theta), np.sin(theta)], axis=1)  # (S*R, 2)
-    pts = np.asarray(xy_map_m, dtype=np.float64)[None, None, :] + dirs[:, None, :] * ranges_m[None, :, None]
-    cost = costmap.cost_at_xy(pts.reshape(-1, 2)).reshape(len(dirs), len(ranges_m))  # (S*R, K)
+    cost = _ray_costs(costmap, xy_map_m, theta, ranges_m)  # (S*R, K)
 
     lethal = cost == LETHAL_OBSTACLE
     unknown = cost == NO_INFORMATION
@@ -130,6 +128,27 @@ def compute_obstacle_distances(
         increment_deg=increment_deg,
         angle_offset_deg=angle_offset_deg,
     )
+
+
+def _ray_costs(
+    costmap: Costmap, xy_map_m: tuple[float, float], theta_rad: NDArray[np.float64],
+    ranges_m: NDArray[np.float64],
+) -> NDArray[np.uint8]:
+    """(M, K) cost under each sample of M rays (map-frame angles) at K ranges; off-grid
+    samples read NO_INFORMATION. Works in cell units with one flat gather (the hot path)."""
+    spec = costmap.spec
+    rows_n, cols_n = spec.shape_rc
+    res = spec.resolution_m
+    x0 = (xy_map_m[0] - spec.origin_xy_m[0]) / res
+    y0 = (xy_map_m[1] - spec.origin_xy_m[1]) / res
+    steps = (ranges_m / res).astype(np.float32)[None, :]  # (1, K) in cells
+    cols = np.floor(x0 + np.cos(theta_rad).astype(np.float32)[:, None] * steps).astype(np.int32)
+    rows = np.floor(y0 + np.sin(theta_rad).astype(np.float32)[:, None] * steps).astype(np.int32)
+    inside = (cols >= 0) & (cols < cols_n) & (rows >= 0) & (rows < rows_n)
+    flat = np.where(inside, rows * cols_n + cols, 0)
+    cost = costmap.cost.reshape(-1)[flat]
+    cost[~inside] = NO_INFORMATION
+    return cost
 
 
 def _first_true_range(mask: NDArray[np.bool_], ranges_m: NDArray[np.float64]) -> NDArray[np.float64]:
