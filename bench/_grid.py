@@ -11,8 +11,9 @@ for the object map.
 Figures:
 
 * agreement: fraction of observed cells (grid value known) whose occupancy (p > 0.5) equals
-  ``occupancy_at_band`` at the scan band; target >= 0.95. The grid origin is offset by a
-  fraction of a cell so walls do not sit on cell boundaries (the real world does not align);
+  ``occupancy_at_band`` at the scan band, pooled over all rooms (target >= 0.95; the worst
+  room is reported too). The grid origin is offset by a random fraction of a cell so walls
+  do not sit on cell boundaries (the real world does not align);
 * coverage of the room interior, false-occupied and false-free fractions;
 * per-frame time of scan extraction, grid update and layer update (10 objects), p50/p99;
 * memory of a 50 m x 50 m map at 5 cm with every layer materialised; target <= 150 MB.
@@ -120,6 +121,8 @@ def map_room(seed: int, n_frames: int) -> dict[str, Any]:
     n_known = int(known.sum())
     inside = gt.interior_mask(room, spec)
     return {
+        "n_known": n_known,
+        "n_agree": int(((occ == truth) & known).sum()),
         "agreement": float(((occ == truth) & known).sum() / max(1, n_known)),
         "coverage": float((known & inside).sum() / max(1, inside.sum())),
         "false_occupied": float((known & occ & ~truth).sum() / max(1, n_known)),
@@ -179,6 +182,8 @@ def grid_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]]:
     agreements = [r["agreement"] for r in rooms]
     figures: dict[str, Any] = {
         "rooms": n_rooms,
+        # Pooled over every observed cell of every room: "agrees on >= 95 % of observed cells".
+        "agreement_pooled": round(sum(r["n_agree"] for r in rooms) / max(1, sum(r["n_known"] for r in rooms)), 4),
         "agreement_mean": round(float(np.mean(agreements)), 4),
         "agreement_min": round(float(np.min(agreements)), 4),
         "coverage_mean": round(float(np.mean([r["coverage"] for r in rooms])), 4),
@@ -197,7 +202,7 @@ def grid_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]]:
     lines.append(f"  memory, 50 m x 50 m at 5 cm, all layers: held {mem['held_mb']:.1f} MB, "
                  f"peak {mem['peak_mb']:.1f} MB")
     targets = {
-        "agreement_min": (figures["agreement_min"] >= 0.95, ">= 0.95"),
+        "agreement_pooled": (figures["agreement_pooled"] >= 0.95, ">= 0.95"),
         "memory_50m_5cm_peak_mb": (mem["peak_mb"] <= 150.0, "<= 150"),
     }
     lines.append("")

@@ -99,7 +99,7 @@ def extract_band_scan(
     ``min_hit_points``: a column's nearest in-band point is an obstacle only with this many
     points (itself included) within the range tolerance among the column's next point and the
     two neighbouring columns' nearest, so a single flying pixel is not a wall.
-    The obstacle is placed at the median range of the column's nearest cluster, the points
+    The obstacle is placed at the mean range of the column's nearest cluster, the points
     within ``cluster_tol * tol`` of it with ``tol = range_tolerance_m +
     range_tolerance_per_m2 * r**2`` (about three sigma of a D455-like depth noise): the
     nearest point alone is biased towards the sensor. Free space ends ``free_sigma`` noise
@@ -168,14 +168,19 @@ def extract_band_scan(
     is_hit = np.isfinite(r_near)
     hit_row = np.argmin(np.abs(hit_rng - np.where(is_hit, r_near, 0)[None, :]), axis=0)
     # The nearest minimum of noisy ranges is biased towards the sensor (by ~2 sigma for a
-    # wall seen by 50 pixels), so the obstacle is placed at the median of the nearest
-    # cluster, [r_near, r_near + cluster_tol * tol] (1 tol measured best on simulated rooms:
-    # wider windows reach through thin parts to what lies behind them).
+    # wall seen by 50 pixels), so the obstacle is placed at the mean of the nearest cluster,
+    # [r_near, r_near + cluster_tol * tol] (1 tol measured best on simulated rooms: wider
+    # windows reach through thin parts to what lies behind them).
     r_near_f = np.where(is_hit, r_near, np.float32(0.0))
     tol = np.float32(range_tolerance_m) + np.float32(range_tolerance_per_m2) * r_near_f**2
     n_cluster = np.sum(r_sorted <= (r_near_f + cluster_tol * tol)[None, :], axis=0)
     med_idx = np.clip((k_idx + n_cluster - 1) // 2, k_idx, h - 1)
-    r_hit = np.where(is_hit, r_sorted[med_idx, cols], np.float32(0.0))
+    r_med = np.where(is_hit, r_sorted[med_idx, cols], np.float32(0.0))
+    in_cluster = (r_sorted <= (r_near_f + cluster_tol * tol)[None, :]) & (
+        np.arange(h)[:, None] >= k_idx[None, :]
+    )
+    n_in = np.maximum(in_cluster.sum(axis=0), 1)
+    r_hit = np.where(is_hit, np.where(in_cluster, r_sorted, 0.0).sum(axis=0) / n_in, np.float32(0.0))
 
     # Far end of the free part: near the obstacle, or the nearest in-band point when there is
     # no confirmed obstacle (an unconfirmed point still blocks), else the farthest band exit
@@ -187,7 +192,7 @@ def extract_band_scan(
     far_row = np.where(blocked, first_row, exit_row)
     # The pixel at the cluster's median range (its own bearing: columns of a tilted camera
     # are not vertical planes).
-    med_row = np.argmin(np.abs(hit_rng - r_hit[None, :]), axis=0)
+    med_row = np.argmin(np.abs(hit_rng - r_med[None, :]), axis=0)
     # Free space reaches to one noise sigma (tol / 3) before the obstacle, not just to the
     # nearest (most negatively noisy) point, so cells in front of a surface that a noisy
     # hit once marked get cleared again by later scans.
@@ -206,7 +211,12 @@ def extract_band_scan(
     origin = np.array([tx, ty])
     dxy_far = np.stack([ox[far_row, cols], oy[far_row, cols]], axis=1).astype(np.float64)
     far = origin + dxy_far * far_s[:, None]
-    hit_xy = origin + np.stack([ox[med_row, cols], oy[med_row, cols]], axis=1).astype(np.float64)
+    # The median pixel's bearing at the cluster's mean range (the mean is the more precise
+    # estimate of a surface's range; the median pixel lies on that surface).
+    dxy_med = np.stack([ox[med_row, cols], oy[med_row, cols]], axis=1).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(is_hit, r_hit / rng[med_row, cols], 1.0)
+    hit_xy = origin + dxy_med * np.nan_to_num(scale, nan=1.0, posinf=1.0)[:, None]
     near = origin + np.stack([ox[near_row, cols], oy[near_row, cols]], axis=1) * near_s[:, None]
     hit_z = np.where(is_hit, z[hit_row, cols], np.nan)
     return BandScan(
