@@ -510,7 +510,8 @@ class LayeredCostmap:
     def spec(self) -> GridSpec:
         return self.grid.spec
 
-    def _sync_spec(self) -> None:
+    def sync_spec(self) -> None:
+        """Follow the grid after it grew or was replaced (object rasters redrawn, cache dropped)."""
         grew = self.rasters.set_spec(self.grid.spec)
         if not grew.is_empty:
             self._cached = None
@@ -519,7 +520,7 @@ class LayeredCostmap:
     def update_scan(self, scan: BandScan) -> Bounds:
         """Insert a band scan (the grid may grow); returns the touched window."""
         bounds = self.occupancy.update(scan)
-        self._sync_spec()
+        self.sync_spec()
         self._dirty = self._dirty.union(bounds)
         return bounds
 
@@ -528,7 +529,7 @@ class LayeredCostmap:
         class_probs: Mapping[int, NDArray[np.floating]] | None = None,
     ) -> Bounds:
         """Replace the object set of every object layer at once; returns the touched window."""
-        self._sync_spec()
+        self.sync_spec()
         bounds = self.rasters.update(objects, class_probs)
         for layer in self._object_layers:
             layer.mark_updated(stamp_s, bounds)
@@ -547,7 +548,7 @@ class LayeredCostmap:
     def costmap(self, band: VerticalBand) -> Costmap:
         """The combined :class:`Costmap` for a vehicle band; its ``stamp_s`` is the oldest
         layer stamp, so a consumer judging freshness by it is conservative."""
-        self._sync_spec()
+        self.sync_spec()
         spec = self.spec
         c = self._cached
         if c is None or c[0] != spec or c[1] != band:

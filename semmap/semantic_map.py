@@ -381,7 +381,7 @@ class SemanticMap:
                             "saved objects stay until it sees them again", path)
             out.grid.spec = spec
             out.grid.set_values(arrays["grid_values"])
-            out.layers._sync_spec()
+            out.layers.sync_spec()
             stamps = meta.get("stamps_s", {})
             objects = [_footprint_from_dict(d) for d in meta["objects"]]
             probs = {int(d["object_id"]): np.asarray(d["class_probs"], np.float32)
