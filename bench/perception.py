@@ -23,8 +23,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+# The repo root goes first: bench/ (this script's folder, on the path already) holds modules
+# named like packages (bench/planner.py); our helpers are imported as bench._name.
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "bench"))
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -82,7 +83,7 @@ def _realistic_yolov8_output(rng: np.random.Generator, n_objects: int = 20, n_cl
 
 def bench_detector(quick: bool) -> dict[str, object]:
     """Letterbox and post-processing of a 640x480 frame, and YOLOv8n inference at 320x320."""
-    from _yolov8n_graph import build_yolov8n
+    from bench._yolov8n_graph import build_yolov8n
 
     from semmap.detection.onnx_detector import OnnxDetector
 

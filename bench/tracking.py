@@ -21,8 +21,9 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+# The repo root goes first: bench/ (this script's folder, on the path already) holds modules
+# named like packages (bench/planner.py); our helpers are imported as bench._name.
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "bench"))
 
 import numpy as np  # noqa: E402
 
@@ -106,7 +107,7 @@ def bench_mot() -> dict[str, dict[str, dict[str, float]]]:
 
 def bench_sim(quick: bool) -> dict[str, object]:
     """Identity switches per 100 frames on simulated flights with 60 deg/s yaw turns."""
-    from _sim_flight import fly, scripted_flight
+    from bench._sim_flight import fly, scripted_flight
 
     from companion.config import CompanionConfig
     from companion.sim.world import generate_room

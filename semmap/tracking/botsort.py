@@ -7,7 +7,8 @@ Per frame (:meth:`BoTSORT.update`):
 2. Confirmed and lost tracks are predicted one frame by the Kalman filter
    (:mod:`semmap.tracking.kalman`); lost tracks with their size velocity zeroed.
 3. Camera-motion compensation (:mod:`semmap.tracking.cmc`) warps every track's state by the
-   frame-to-frame image affine, so a yawing drone does not tear its tracks apart.
+   frame-to-frame image motion (BoT-SORT's affine, or a homography applied through its local
+   affine at each track), so a yawing drone does not tear its tracks apart.
 4. First association: confirmed + lost tracks against high-score detections. Cost is
    ``1 - IoU``, fused with the detection score, optionally min-fused with an appearance cost
    (cosine distance / 2 of embeddings, accepted only below ``appearance_thresh`` and for
@@ -186,13 +187,15 @@ class BoTSORT:
         self._ids = itertools.count(1)
         self._tracked: list[_STrack] = []
         self._lost: list[_STrack] = []
-        #: The camera-motion affine used in the last update, (2, 3).
+        #: The camera motion used in the last update, (3, 3).
         self.last_warp = IDENTITY.copy()
 
     @classmethod
     def from_config(cls, cfg: TrackerConfig, appearance: AppearanceEncoder | None = None) -> BoTSORT:
         """Build from :class:`TrackerConfig` (CMC per ``cmc_method``)."""
-        cmc = SparseFlowCMC(downscale=cfg.cmc_downscale) if cfg.cmc_method == "sparse_optflow" else None
+        cmc = None
+        if cfg.cmc_method == "sparse_optflow":
+            cmc = SparseFlowCMC(downscale=cfg.cmc_downscale, model=cfg.cmc_model)
         return cls(
             track_high_thresh=cfg.track_high_thresh,
             track_low_thresh=cfg.track_low_thresh,
@@ -251,7 +254,8 @@ class BoTSORT:
 
         ``detections``: this frame's detections (original-image pixels). ``image_rgb``:
         (H, W, 3) uint8, needed when CMC or the appearance hook is on. ``warp``: a known
-        (2, 3) previous->current image affine, used instead of estimating one.
+        previous->current image motion, (3, 3) or a (2, 3) affine, used instead of estimating
+        one.
         """
         self.frame_id += 1
         fid = self.frame_id
@@ -287,7 +291,8 @@ class BoTSORT:
                 warp = self.cmc.apply(image_rgb, boxes)
             else:
                 warp = IDENTITY
-        self.last_warp = np.asarray(warp, dtype=np.float64)
+        warp = np.asarray(warp, dtype=np.float64)
+        self.last_warp = np.vstack([warp, [0.0, 0.0, 1.0]]) if warp.shape == (2, 3) else warp
         if not np.array_equal(self.last_warp, IDENTITY):
             self._warp(pool + unconfirmed, self.last_warp)
 
@@ -357,7 +362,7 @@ class BoTSORT:
     def _warp(tracks: Sequence[_STrack], warp: NDArray[np.float64]) -> None:
         if not tracks:
             return
-        means, covs = kalman.apply_affine(
+        means, covs = kalman.apply_warp(
             np.stack([t.mean for t in tracks]), np.stack([t.cov for t in tracks]), warp
         )
         for t, m, c in zip(tracks, means, covs, strict=True):

@@ -100,19 +100,40 @@ def gating_distance(
     return np.sum(y * y, axis=0)
 
 
-def apply_affine(
+def apply_warp(
     means: NDArray[np.float64], covs: NDArray[np.float64], warp: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Camera-motion compensation of states by a (2, 3) image affine (BoT-SORT ``multi_gmc``).
+    """Camera-motion compensation of states by a (3, 3) image motion (or a (2, 3) affine).
 
-    The 2x2 part is applied to every (x, y), (w, h), (vx, vy) and (vw, vh) pair, the
-    translation to the centre only, exactly as the reference implementation does.
+    Each centre is mapped through ``warp``; the (w, h), (vx, vy) and (vw, vh) pairs and the
+    covariance are transformed by the motion's 2x2 Jacobian at that centre. For an affine
+    motion the Jacobian is its 2x2 part everywhere and this is exactly BoT-SORT's
+    ``multi_gmc``; for a homography it is the local affine approximation around each track.
+    States whose centre the homography maps to or beyond the horizon (a lost track far
+    outside the image) are left unchanged.
     """
     if means.shape[0] == 0:
         return means.copy(), covs.copy()
-    R = warp[:2, :2]
-    R8 = np.kron(np.eye(4), R)
-    new_means = means @ R8.T
-    new_means[:, :2] += warp[:2, 2]
-    new_covs = R8 @ covs @ R8.T
+    H = np.asarray(warp, dtype=np.float64)
+    if H.shape == (2, 3):
+        H = np.vstack([H, [0.0, 0.0, 1.0]])
+    x, y = means[:, 0], means[:, 1]
+    den = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    ok = den > 1e-3
+    den = np.where(ok, den, 1.0)
+    u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / den
+    v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / den
+    J = np.empty((means.shape[0], 2, 2))  # d(u, v) / d(x, y) at each centre
+    J[:, 0, 0] = (H[0, 0] - u * H[2, 0]) / den
+    J[:, 0, 1] = (H[0, 1] - u * H[2, 1]) / den
+    J[:, 1, 0] = (H[1, 0] - v * H[2, 0]) / den
+    J[:, 1, 1] = (H[1, 1] - v * H[2, 1]) / den
+    J[~ok] = np.eye(2)
+    J8 = np.zeros((means.shape[0], 8, 8))
+    for k in range(4):
+        J8[:, 2 * k:2 * k + 2, 2 * k:2 * k + 2] = J
+    new_means = np.einsum("mij,mj->mi", J8, means)
+    new_means[:, 0] = np.where(ok, u, x)
+    new_means[:, 1] = np.where(ok, v, y)
+    new_covs = J8 @ covs @ J8.transpose(0, 2, 1)
     return new_means, new_covs

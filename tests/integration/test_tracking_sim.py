@@ -77,8 +77,9 @@ def test_objects_keep_their_ids_through_60_deg_per_s_turns() -> None:
     for i, (x, y, yaw) in enumerate(poses):
         frame = renderer.render(pose_from_xyz_rpy(x, y, ALT_M, yaw_rad=yaw) @ T_body_camera, index=i)
         tracks = tracker.update(oracle.detect_frame(frame), frame.rgb)
-        if 0 < i < 30:  # the first turn: pure yaw, the image shifts sideways
-            turn_shift_px.append(tracker.last_warp[0, 2])
+        if 0 < i < 30:  # the first turn: pure yaw, the image centre shifts sideways
+            c = tracker.last_warp @ [INTR.cx_px, INTR.cy_px, 1.0]
+            turn_shift_px.append(c[0] / c[2] - INTR.cx_px)
         gt = {oid: box for oid, (box, _) in oracle.ground_truth_boxes(frame).items()}
         visible += len(gt)
         if not gt or not tracks:

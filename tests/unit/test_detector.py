@@ -299,3 +299,16 @@ def test_fp16_model_gets_a_half_precision_input(tmp_path: Path) -> None:
     onnx.save(model, str(tmp_path / "h.onnx"))
     dets = OnnxDetector(tmp_path / "h.onnx", OURS, model_class_names=OURS).detect(image())
     np.testing.assert_allclose(dets[0].xyxy_px, (200.0, 200.0, 400.0, 280.0), atol=1e-3)
+
+
+def test_tensorrt_gets_engine_cache_and_precision_options() -> None:
+    from semmap.detection.onnx_detector import _provider_entries
+
+    entries = _provider_entries(["TensorrtExecutionProvider", "CPUExecutionProvider"], True, "/var/cache/trt")
+    assert entries[1] == "CPUExecutionProvider"
+    name, opts = entries[0]
+    assert name == "TensorrtExecutionProvider"
+    assert opts == {"trt_fp16_enable": True, "trt_engine_cache_enable": True,
+                    "trt_engine_cache_path": "/var/cache/trt"}
+    assert _provider_entries(["TensorrtExecutionProvider"], False, None) == [
+        ("TensorrtExecutionProvider", {"trt_fp16_enable": False})]

@@ -77,14 +77,40 @@ def test_affine_moves_centre_and_rotates_pairs() -> None:
     m, P = kalman.initiate(np.array([[100.0, 50.0, 40.0, 80.0]]))
     m[0, 4:6] = (3.0, 1.0)
     warp = np.array([[1.0, 0.0, 12.0], [0.0, 1.0, -5.0]])
-    m2, P2 = kalman.apply_affine(m, P, warp)
+    m2, P2 = kalman.apply_warp(m, P, warp)
     np.testing.assert_allclose(m2[0], [112.0, 45.0, 40.0, 80.0, 3.0, 1.0, 0.0, 0.0])
     np.testing.assert_allclose(P2, P)
     c, s = np.cos(0.1), np.sin(0.1)
     rot = np.array([[c, -s, 0.0], [s, c, 0.0]])
-    m3, _ = kalman.apply_affine(m, P, rot)
+    m3, _ = kalman.apply_warp(m, P, rot)
     np.testing.assert_allclose(m3[0, :2], rot[:, :2] @ [100.0, 50.0])
     np.testing.assert_allclose(m3[0, 4:6], rot[:, :2] @ [3.0, 1.0])
+
+
+def test_homography_warp_uses_the_local_jacobian() -> None:
+    # A yaw-like homography: the centre moves exactly, sizes scale by the local derivative.
+    K = np.array([[383.0, 0.0, 320.0], [0.0, 383.0, 240.0], [0.0, 0.0, 1.0]])
+    a = np.deg2rad(4.0)
+    R = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    H = K @ R @ np.linalg.inv(K)
+    m, P = kalman.initiate(np.array([[550.0, 300.0, 40.0, 80.0], [100.0, 100.0, 30.0, 30.0]]))
+    m2, P2 = kalman.apply_warp(m, P, H)
+
+    def f(x, y):
+        p = H @ [x, y, 1.0]
+        return p[:2] / p[2]
+
+    for i in range(2):
+        x, y = m[i, :2]
+        np.testing.assert_allclose(m2[i, :2], f(x, y), rtol=1e-12)
+        eps = 1e-4
+        J = np.column_stack([(f(x + eps, y) - f(x - eps, y)) / (2 * eps),
+                             (f(x, y + eps) - f(x, y - eps)) / (2 * eps)])
+        np.testing.assert_allclose(m2[i, 2:4], J @ m[i, 2:4], rtol=1e-6)
+        np.testing.assert_allclose(P2[i, :2, :2], J @ P[i, :2, :2] @ J.T, rtol=1e-6)
+    # An affine given as (3, 3) behaves exactly like the (2, 3) form (BoT-SORT's multi_gmc).
+    A = np.array([[0.99, -0.02, 5.0], [0.02, 0.99, -3.0]])
+    np.testing.assert_allclose(kalman.apply_warp(m, P, A)[0], kalman.apply_warp(m, P, np.vstack([A, [0, 0, 1]]))[0])
 
 
 # --- matching ----------------------------------------------------------------------------
