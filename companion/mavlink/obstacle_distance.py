@@ -193,6 +193,7 @@ class ObstacleDistanceFeed:
         self.max_distance_m = max_distance_m
         self.unknown_is_obstacle = unknown_is_obstacle
         self.sent = 0
+        self.errors = 0
         self.last_scan: ObstacleDistanceScan | None = None
         self._boot_s = time.monotonic()
         self._tg: asyncio.TaskGroup | None = None
@@ -239,8 +240,12 @@ class ObstacleDistanceFeed:
                 min_distance_m=self.min_distance_m, max_distance_m=self.max_distance_m,
                 unknown_is_obstacle=self.unknown_is_obstacle,
             )
-        except (ValueError, IndexError) as exc:
-            log.warning("obstacle distance: cannot compute from this input (%s); skipped", exc)
+        except Exception:
+            # A bad map or pose must not stop the feed (or, through the task group, the
+            # service): skip this scan, log the first failure and every 50th.
+            self.errors += 1
+            if self.errors == 1 or self.errors % 50 == 0:
+                log.exception("obstacle distance: no scan from this input (%d failures)", self.errors)
             return
         if not self.link.is_open:
             return

@@ -117,6 +117,7 @@ class SetpointStreamer:
         self._skipped = 0
         self._first_sent_s: float | None = None
         self._last_sent_s: float | None = None
+        self.source_errors = 0
         #: Optional hook called with the send time of each setpoint (benchmarks, tests).
         self.on_sent: Callable[[float], None] | None = None
 
@@ -168,7 +169,12 @@ class SetpointStreamer:
         try:
             sp = self.source()
         except Exception:
-            log.exception("setpoint source failed; nothing sent this tick")
+            # Nothing is sent (PX4's offboard-loss failsafe acts if this persists); log the
+            # first failure with its traceback and then every 100th, not 50 a second.
+            self.source_errors += 1
+            if self.source_errors == 1 or self.source_errors % 100 == 0:
+                log.exception("setpoint source failed (%d times); nothing sent this tick",
+                              self.source_errors)
             return
         if sp is None or not self.link.is_open:
             return

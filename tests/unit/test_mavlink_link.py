@@ -13,6 +13,7 @@ from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import pytest_asyncio
 from pymavlink.dialects.v20 import common as mavlink
@@ -28,10 +29,13 @@ from companion.mavlink.commands import (
 from companion.mavlink.failsafe import PositionSetpoint
 from companion.mavlink.link import MavlinkLink, SigningConfig, load_signing_key
 from companion.mavlink.mission_download import MissionItem, download_mission, waypoint_ned_m
+from companion.mavlink.obstacle_distance import ObstacleDistanceFeed, ObstacleDistanceInput
 from companion.mavlink.offboard import SetpointStreamer
 from companion.mavlink.state import HomePosition, LandedState, VehicleStateTracker
 from companion.mavlink.tlog import TlogWriter, iter_tlog
 from companion.px4 import FlightMode, encode_heartbeat_base_mode
+from semmap.costmap import Costmap, VerticalBand
+from semmap.grid import GridSpec
 
 Handler = Callable[["Peer", Any], None]
 
@@ -635,3 +639,23 @@ async def test_closing_the_link_wakes_subscribers() -> None:
         await asyncio.wait_for(getter, 2.0)
     assert await asyncio.wait_for(consumer, 2.0) == 0
     assert waiting.get_nowait() is None
+
+
+@pytest.mark.asyncio
+async def test_obstacle_feed_survives_a_failing_source(peer_and_link: tuple[Peer, MavlinkLink]) -> None:
+    peer, link = peer_and_link
+    spec = GridSpec(0.1, (-10.0, -10.0), (200, 200))
+    good = ObstacleDistanceInput(Costmap(spec, np.zeros(spec.shape_rc, np.uint8), VerticalBand(0.0, 1.0)),
+                                 (0.0, 0.0), 0.0)
+    calls = [0]
+
+    def flaky() -> ObstacleDistanceInput | None:
+        calls[0] += 1
+        if calls[0] % 2:
+            raise RuntimeError("map being rebuilt")
+        return good
+
+    async with ObstacleDistanceFeed(link, flaky, rate_hz=50.0) as feed:
+        await _until(lambda: len(peer.of_type("OBSTACLE_DISTANCE")) >= 3)
+    assert feed.errors >= 2 and feed.sent >= 3
+    assert list(peer.of_type("OBSTACLE_DISTANCE")[-1].distances) == [801] * 72
