@@ -33,7 +33,9 @@ from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.mavlink.link import MavlinkLink
+from companion.mavlink.state import VehicleState
 from semmap.costmap import LETHAL_OBSTACLE, NO_INFORMATION, Costmap
+from semmap.frames import ned_to_enu, yaw_ned_to_enu
 
 log = logging.getLogger(__name__)
 
@@ -165,6 +167,15 @@ class ObstacleDistanceInput:
     costmap: Costmap
     xy_map_m: tuple[float, float]
     yaw_map_rad: float
+
+    @classmethod
+    def from_vehicle_state(cls, costmap: Costmap, state: VehicleState) -> "ObstacleDistanceInput | None":
+        """Pose from PX4's telemetry, for a map whose origin is PX4's local NED origin
+        (ENU axes); None until both position and attitude have been reported."""
+        if state.position_ned_m is None or state.yaw_ned_rad is None:
+            return None
+        x_east, y_north, _ = ned_to_enu(*state.position_ned_m)
+        return cls(costmap, (x_east, y_north), yaw_ned_to_enu(state.yaw_ned_rad))
 
 
 class ObstacleDistanceFeed:

@@ -149,3 +149,27 @@ def test_bad_ranges_are_rejected() -> None:
     with pytest.raises(ValueError, match="min_distance_m < max_distance_m"):
         compute_obstacle_distances(_costmap(spec, cost), (0.0, 0.0), 0.0, min_distance_m=5.0, max_distance_m=2.0)
     assert isinstance(ObstacleDistanceScan((0,) * 72, 0, 1, 5.0, 0.0).frame, int)
+
+
+def test_input_from_px4_telemetry_uses_the_map_frame() -> None:
+    import dataclasses
+
+    from companion.mavlink.obstacle_distance import ObstacleDistanceInput
+    from companion.mavlink.state import LandedState, VehicleState
+
+    spec, cost = _room()
+    _put_block(spec, cost, 2.0, 2.3, 0.9, 1.1)  # a post 2 m east of the vehicle at y = 1
+    cm = _costmap(spec, cost)
+    state = VehicleState(
+        heartbeat_age_s=0.1, armed=True, flight_mode=None, landed_state=LandedState.IN_AIR,
+        position_ned_m=(1.0, 0.0, -1.0), velocity_ned_m_s=None, position_age_s=0.0,
+        attitude_rpy_rad=(0.0, 0.0, 0.0),  # NED yaw 0: facing north
+        battery_v=None, battery_remaining=None, home=None, global_position=None,
+        autopilot_system_status=None,
+    )
+    inp = ObstacleDistanceInput.from_vehicle_state(cm, state)
+    assert inp is not None
+    assert inp.xy_map_m == pytest.approx((0.0, 1.0)) and inp.yaw_map_rad == pytest.approx(math.pi / 2)
+    scan = compute_obstacle_distances(inp.costmap, inp.xy_map_m, inp.yaw_map_rad, max_distance_m=5.0)
+    assert scan.distances_cm[18] == pytest.approx(200, abs=5)  # east = 90 deg right of north
+    assert ObstacleDistanceInput.from_vehicle_state(cm, dataclasses.replace(state, attitude_rpy_rad=None)) is None
