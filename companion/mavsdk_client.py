@@ -151,11 +151,16 @@ class MavsdkClient:
         self._close()
 
     def _close(self) -> None:
-        self._plugins.clear()
-        self._system = None
+        # Destroy plugins here, on this thread, before the core. Left to the garbage collector
+        # their __del__ can run on an executor thread (the last reference is often a finished
+        # run_in_executor call) while Mavsdk.destroy() runs here, and the native core aborts.
+        for plugin in self._plugins.values():
+            plugin.destroy()
         if self._sdk is not None:
             self._sdk.destroy()
             self._sdk = None
+        self._plugins.clear()
+        self._system = None
 
     # --- plugins -------------------------------------------------------------------------
 
