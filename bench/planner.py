@@ -74,14 +74,17 @@ def reference_path(cs: CSpace, start: np.ndarray, goal: np.ndarray) -> tuple[np.
 
 
 def pick_queries(room: Room, cs: CSpace, rng: np.random.Generator) -> list[Query]:
-    """Doorway to doorway, plus free points far apart whose chord crosses hollow furniture."""
+    """Doorway to doorway, plus free points far apart whose chord crosses hollow furniture
+    that blocks the flight band."""
     out: list[Query] = []
     if len(room.doorways) >= 2:
         s = np.array(room.doorways[0].inside_point_m(0.7))
         g = np.array(room.doorways[1].inside_point_m(0.7))
         if cs.is_free(np.array([s, g])).all():
             out.append(Query(room.seed, "doorways", s, g))
-    hollow = [o.footprint_xy_m() for o in room.objects if o.class_name in HOLLOW_CLASSES]
+    # Hollow-bottom objects that block the vehicle's band: a metric slice sees only their legs.
+    hollow = [fp.polygon_xy_m for fp in gt.object_footprints(room)
+              if fp.class_name in HOLLOW_CLASSES and fp.blocks(cs.band)]
     masks = np.zeros(cs.spec.shape_rc, dtype=bool)
     for poly in hollow:
         masks |= rasterize_polygon(cs.spec, poly)
@@ -160,6 +163,26 @@ def altitude_sweep(room: Room, spec: Any, cfg: PlannerConfig, queries: list[Quer
                 t[f"{name}_margin_violations"] += int(gt.path_collides(room, xyz, r, h_band))
 
 
+def save_picture(path: Path, planner: Planner, costmap: Any, res: Any, metric: Any, q: Query) -> None:
+    """The semantic plan (blue) and the metric-only plan (orange) over the semantic costmap."""
+    import cv2
+
+    from companion.cmd_plan import draw_plan
+
+    img = draw_plan(planner, costmap, res, (float(q.start[0]), float(q.start[1])),
+                    (float(q.goal[0]), float(q.goal[1])))
+    if metric.ok:
+        spec = costmap.spec
+        scale = max(1, int(np.ceil(700 / max(spec.shape_rc))))
+        xy = metric.path_xy_m
+        col = (xy[:, 0] - spec.origin_xy_m[0]) / spec.resolution_m * scale
+        row = 26 + spec.rows * scale - (xy[:, 1] - spec.origin_xy_m[1]) / spec.resolution_m * scale
+        pts = np.round(np.stack([col, row], axis=1)).astype(np.int32)
+        cv2.polylines(img, [pts], False, (0, 140, 255), 2, cv2.LINE_AA)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), img)
+
+
 def pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
@@ -180,6 +203,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
               "metric_ok": 0, "metric_collide": 0, "metric_collide_objects": 0, "metric_margin": 0, "ref_missing": 0}
     replan_ms: list[float] = []
     sweep: dict[float, dict[str, int]] = {}
+    n_pictures = 0
     rows: list[str] = []
     t_start = time.perf_counter()
     for i in range(args.rooms):
@@ -219,6 +243,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 counts["ref_missing"] += 1
             # Metric-only map: same query.
             m = metric.plan(q.start, q.goal)
+            if args.pictures and n_pictures < 6:
+                n_pictures += 1
+                save_picture(Path(args.pictures) / f"room{seed}_{q.kind}.png", planner, semantic, res, m, q)
             m_collide = False
             if m.ok:
                 counts["metric_ok"] += 1
@@ -328,6 +355,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--altitude-m", type=float, default=None, help="flight altitude (default: config)")
     ap.add_argument("--altitudes", type=lambda v: [float(x) for x in v.split(",")],
                     default=[0.45, 0.6, 0.75], help="altitudes of the semantic vs metric comparison")
+    ap.add_argument("--pictures", default=None, metavar="DIR",
+                    help="save pictures of the first cases (semantic path blue, metric-only orange)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a PlannerConfig field (repeatable)")
     args = ap.parse_args(argv)
