@@ -68,7 +68,6 @@ class MapCostObjective(ob.OptimizationObjective):  # type: ignore[misc]
     def __init__(self, si: Any, cs: CSpace, weight: float) -> None:
         super().__init__(si)
         self._cost = cs.cost.ravel()
-        self._free_cost = 1.0
         self._ox, self._oy = cs.spec.origin_xy_m
         self._res = cs.spec.resolution_m
         self._rows, self._cols = cs.spec.shape_rc
