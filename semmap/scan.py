@@ -148,51 +148,47 @@ def extract_band_scan(
     crosses = valid & (s_hi > s_lo)
     in_band = valid & (z >= z0) & (z <= z1)
 
-    h = dep.shape[0]
     cols = np.arange(dep.shape[1])
     hit_rng = np.where(in_band, rng, np.float32(np.inf))
-    r_sorted = np.sort(hit_rng, axis=0)  # (h, w)
+    # The nearest and second-nearest in-band point of each column (no full sort needed).
+    first_row = np.argmin(hit_rng, axis=0)  # (w,)
+    r1 = hit_rng[first_row, cols]
+    rest = hit_rng.copy()
+    rest[first_row, cols] = np.inf
+    second_row = np.argmin(rest, axis=0)
+    r2 = rest[second_row, cols]
     # A column's nearest in-band point counts if enough points back it up within the range
     # tolerance: the column's next point or the neighbouring columns' nearest. A thin table
     # edge spans columns; a flying pixel is alone.
-    r1 = r_sorted[0]
-    r2 = r_sorted[1] if h > 1 else np.full_like(r1, np.inf)
     with np.errstate(invalid="ignore"):
         tol1 = np.float32(range_tolerance_m) + np.float32(range_tolerance_per_m2) * r1**2
         left = np.concatenate([[np.inf], r1[:-1]]).astype(np.float32)
         right = np.concatenate([r1[1:], [np.inf]]).astype(np.float32)
         support = sum((np.abs(o - r1) <= tol1).astype(np.int32) for o in (r2, left, right))
     confirmed = support >= max(0, int(min_hit_points) - 1)
-    k_idx = np.where(confirmed, 0, 1).astype(np.intp)
     r_near = np.where(confirmed, r1, r2)
     is_hit = np.isfinite(r_near)
-    hit_row = np.argmin(np.abs(hit_rng - np.where(is_hit, r_near, 0)[None, :]), axis=0)
+    hit_row = np.where(confirmed, first_row, second_row)
     # The nearest minimum of noisy ranges is biased towards the sensor (by ~2 sigma for a
     # wall seen by 50 pixels), so the obstacle is placed at the mean of the nearest cluster,
     # [r_near, r_near + cluster_tol * tol] (1 tol measured best on simulated rooms: wider
     # windows reach through thin parts to what lies behind them).
     r_near_f = np.where(is_hit, r_near, np.float32(0.0))
     tol = np.float32(range_tolerance_m) + np.float32(range_tolerance_per_m2) * r_near_f**2
-    n_cluster = np.sum(r_sorted <= (r_near_f + cluster_tol * tol)[None, :], axis=0)
-    med_idx = np.clip((k_idx + n_cluster - 1) // 2, k_idx, h - 1)
-    r_med = np.where(is_hit, r_sorted[med_idx, cols], np.float32(0.0))
-    in_cluster = (r_sorted <= (r_near_f + cluster_tol * tol)[None, :]) & (
-        np.arange(h)[:, None] >= k_idx[None, :]
-    )
+    in_cluster = (hit_rng >= r_near_f[None, :]) & (hit_rng <= (r_near_f + cluster_tol * tol)[None, :])
     n_in = np.maximum(in_cluster.sum(axis=0), 1)
-    r_hit = np.where(is_hit, np.where(in_cluster, r_sorted, 0.0).sum(axis=0) / n_in, np.float32(0.0))
+    r_hit = np.where(is_hit, np.where(in_cluster, hit_rng, 0.0).sum(axis=0) / n_in, np.float32(0.0))
 
     # Far end of the free part: near the obstacle, or the nearest in-band point when there is
     # no confirmed obstacle (an unconfirmed point still blocks), else the farthest band exit
     # of the column's rays.
     blocked = np.isfinite(r1)
-    first_row = np.argmin(hit_rng, axis=0)
     far_rng = np.where(crosses, s_hi * rng, np.float32(-1.0))
     exit_row = np.argmax(far_rng, axis=0)
     far_row = np.where(blocked, first_row, exit_row)
-    # The pixel at the cluster's median range (its own bearing: columns of a tilted camera
-    # are not vertical planes).
-    med_row = np.argmin(np.abs(hit_rng - r_med[None, :]), axis=0)
+    # The cluster pixel nearest the mean range gives the obstacle's bearing (columns of a
+    # tilted camera are not vertical planes).
+    med_row = np.argmin(np.abs(hit_rng - r_hit[None, :]), axis=0)
     # Free space reaches to one noise sigma (tol / 3) before the obstacle, not just to the
     # nearest (most negatively noisy) point, so cells in front of a surface that a noisy
     # hit once marked get cleared again by later scans.
@@ -211,8 +207,7 @@ def extract_band_scan(
     origin = np.array([tx, ty])
     dxy_far = np.stack([ox[far_row, cols], oy[far_row, cols]], axis=1).astype(np.float64)
     far = origin + dxy_far * far_s[:, None]
-    # The median pixel's bearing at the cluster's mean range (the mean is the more precise
-    # estimate of a surface's range; the median pixel lies on that surface).
+    # That pixel's bearing at the cluster's mean range (the more precise estimate).
     dxy_med = np.stack([ox[med_row, cols], oy[med_row, cols]], axis=1).astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(is_hit, r_hit / rng[med_row, cols], 1.0)
