@@ -48,6 +48,8 @@ from semmap.frames import Transform
 log = logging.getLogger(__name__)
 
 _LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
+#: MISSION_ITEM_REACHED is sent again this long after the first time.
+REACHED_RESEND_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -134,6 +136,7 @@ class MockAutopilot:
         self.peer_heartbeats: dict[tuple[int, int], float] = {}
         self.status_texts: deque[str] = deque(maxlen=200)
         self.reached_items: list[int] = []
+        self._reached_resend: tuple[int, float] | None = None
         # telemetry schedule: name -> [interval_s or 0, next_due_s]
         rates = {name: rate for name, (_id, _enc, rate) in telemetry.STREAMS.items()}
         rates.update(stream_rates_hz or {})
@@ -319,6 +322,9 @@ class MockAutopilot:
         self._check_offboard(now)
         self._update_landed(now)
         self.missions.tick(now)
+        if self._reached_resend is not None and now >= self._reached_resend[1]:
+            self.send(self._mav.mission_item_reached_encode(self._reached_resend[0]))
+            self._reached_resend = None
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
         self._stream(now)
@@ -579,4 +585,7 @@ class MockAutopilot:
         log.info("mission item %d reached", seq)
         self.reached_items.append(seq)
         self.send(self._mav.mission_item_reached_encode(seq))
+        # PX4 sends MISSION_ITEM_REACHED more than once: one lost packet must not leave a
+        # client waiting forever for the end of a mission.
+        self._reached_resend = (seq, self.now_s() + REACHED_RESEND_S)
         self._send_now("MISSION_CURRENT")
