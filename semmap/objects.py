@@ -42,7 +42,6 @@ from semmap.geometry import (
     ObjectObservation,
     convex_footprint,
     convex_intersection,
-    convex_iou,
     min_area_rectangle,
     polygon_area_m2,
     simplify_polygon,
@@ -91,12 +90,26 @@ def _sigmoid(x: float) -> float:
     return 1.0 / (1.0 + math.exp(-x))
 
 
+def _overlaps(a_xy_m: NDArray[np.float64], b_xy_m: NDArray[np.float64]) -> tuple[float, float]:
+    """(IoU, containment) of two convex footprints; containment is the intersection over the
+    smaller area, high when one is a partial view of the other."""
+    inter = polygon_area_m2(convex_intersection(a_xy_m, b_xy_m))
+    if inter <= 0.0:
+        return 0.0, 0.0
+    aa, ab = polygon_area_m2(a_xy_m), polygon_area_m2(b_xy_m)
+    return inter / (aa + ab - inter), inter / min(aa, ab)
+
+
 def _consistent(a_xy_m: NDArray[np.float64], b_xy_m: NDArray[np.float64]) -> bool:
     """Two footprints of one object overlap: the intersection covers at least a fifth of the
     smaller one. A view of something else (an occluder's points) is kept out of the hull."""
-    inter = polygon_area_m2(convex_intersection(a_xy_m, b_xy_m))
-    smaller = min(polygon_area_m2(a_xy_m), polygon_area_m2(b_xy_m))
-    return smaller > 0 and inter >= 0.2 * smaller
+    return _overlaps(a_xy_m, b_xy_m)[1] >= 0.2
+
+
+#: Position variance factor of views cut by the image border.
+_EDGE_VARIANCE_FACTOR = 9.0
+#: A same-class footprint mostly inside an object's is a partial view of it.
+_CONTAINED = 0.6
 
 
 @dataclass(frozen=True, eq=False)
@@ -342,12 +355,12 @@ class ObjectMap:
         dist = float(np.linalg.norm(a.position_m[:2] - b.position_m[:2]))
         if dist > reach:
             return False
-        iou = convex_iou(a.hull_xy_m, b.hull_xy_m)
+        iou, contained = _overlaps(a.hull_xy_m, b.hull_xy_m)
         if iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
             return True
         same_class = int(np.argmax(a.class_probs)) == int(np.argmax(b.class_probs))
         return same_class and not both_seen_now and (
-            iou >= cfg.reassociate_iou or dist <= cfg.reassociate_distance_m
+            iou >= cfg.reassociate_iou or contained >= _CONTAINED or dist <= cfg.reassociate_distance_m
         )
 
     def _merge_duplicates(self, touched: set[int], seen_now: set[int]) -> dict[int, int]:
@@ -422,14 +435,16 @@ class ObjectMap:
             if cand in used:
                 continue
             s = self._objects[cand]
-            iou = convex_iou(s.hull_xy_m, o.footprint_xy_m)
+            iou, contained = _overlaps(s.hull_xy_m, fp)
             dist = float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m))
             same_class = int(np.argmax(s.class_probs)) == k
-            ok = (same_class and (iou >= cfg.reassociate_iou or dist <= cfg.reassociate_distance_m)) or (
+            ok = (same_class and (iou >= cfg.reassociate_iou or contained >= _CONTAINED
+                                  or dist <= cfg.reassociate_distance_m)) or (
                 iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou)
             )
-            if ok and (best is None or (iou, -dist) > (best[0], best[1])):
-                best = (iou, -dist, cand)
+            score = max(iou, contained if same_class else 0.0)
+            if ok and (best is None or (score, -dist) > (best[0], best[1])):
+                best = (score, -dist, cand)
         return None if best is None else best[2]
 
     def _class_likelihood(self, class_name: str, score: float) -> NDArray[np.float64]:
@@ -479,6 +494,8 @@ class ObjectMap:
             return
         if not first:
             r2 = self._sigma2(o)
+            if o.at_image_edge:
+                r2 *= _EDGE_VARIANCE_FACTOR  # a cut view's centroid is biased towards the image
             x = np.asarray(o.centroid_map_m, dtype=np.float64)
             w = s.position_var_m2 / (s.position_var_m2 + r2)
             s.position_m = s.position_m + w * (x - s.position_m)

@@ -118,7 +118,9 @@ def test_objects_seen_in_several_frames_agree_within_15_cm(scene) -> None:
     omap = scene["omap"]
     alive = {o.object_id: o for o in omap.objects()}
     multi = 0
-    for oid, observations in scene["per_object"].items():
+    for oid, all_obs in scene["per_object"].items():
+        # Views cut by the image border see part of the object: their centroid is elsewhere.
+        observations = [o for o in all_obs if not o.at_image_edge]
         if oid not in alive or len({o.stamp_s for o in observations}) < 2:
             continue
         multi += 1
