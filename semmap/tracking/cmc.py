@@ -46,6 +46,9 @@ MIN_INLIERS = 8
 #: [1 / MAX_AREA_CHANGE, MAX_AREA_CHANGE] is a bad fit, not camera motion.
 MAX_AREA_CHANGE = 1.5
 
+#: Fraction of the image (bounding box of the inliers) a homography's inliers must span.
+MIN_HOMOGRAPHY_SPREAD = 0.2
+
 MotionModel = Literal["homography", "affine"]
 
 
@@ -130,7 +133,11 @@ class SparseFlowCMC:
         if self.model == "homography":
             H, inliers = cv2.findHomography(p0, p1, cv2.RANSAC, self.ransac_reproj_px)
             n_in = int(inliers.sum()) if inliers is not None else 0
-            if H is not None and n_in >= MIN_INLIERS and _plausible(np.asarray(H, np.float64), size_hw):
+            # Perspective terms fitted to features in one corner extrapolate wildly: a
+            # homography needs inliers spread over the image, else the similarity is safer.
+            if (H is not None and n_in >= MIN_INLIERS
+                    and _spread(p0[inliers.ravel().astype(bool)], size_hw) >= MIN_HOMOGRAPHY_SPREAD
+                    and _plausible(np.asarray(H, np.float64), size_hw)):
                 self.last_inliers = n_in
                 return H.astype(np.float64)
         A, inliers = cv2.estimateAffinePartial2D(
@@ -192,3 +199,11 @@ def _plausible(H: NDArray[np.float64], size_hw: tuple[int, int]) -> bool:
     area = 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
     ratio = area / float(w * h)
     return 1.0 / MAX_AREA_CHANGE < ratio < MAX_AREA_CHANGE
+
+
+def _spread(points: NDArray[np.float32], size_hw: tuple[int, int]) -> float:
+    """Area of the (N, 2) points' bounding box as a fraction of the image."""
+    if len(points) == 0:
+        return 0.0
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    return float((hi[0] - lo[0]) * (hi[1] - lo[1])) / float(size_hw[0] * size_hw[1])

@@ -115,3 +115,18 @@ def test_bad_image_is_a_frame_error() -> None:
 def test_unknown_model_is_rejected() -> None:
     with pytest.raises(ValueError, match="homography"):
         SparseFlowCMC(model="similarity")  # type: ignore[arg-type]
+
+
+def test_features_in_one_corner_fall_back_to_the_similarity() -> None:
+    # Texture only in a 120x90 corner: a homography fitted there would extrapolate its
+    # perspective terms over the whole image, so the constrained similarity is used.
+    rng = np.random.default_rng(1)
+    f1 = np.full((480, 640, 3), 128, np.uint8)
+    f1[20:110, 20:140] = cv2.resize(rng.integers(0, 255, (30, 40, 3), dtype=np.uint8), (120, 90),
+                                    interpolation=cv2.INTER_NEAREST)
+    A = np.array([[1.0, 0.0, 6.0], [0.0, 1.0, 4.0]])
+    cmc = SparseFlowCMC(model="homography")
+    cmc.apply(f1)
+    W = cmc.apply(warp(f1, A))
+    np.testing.assert_array_equal(W[2], [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(moved(W), moved(A), atol=0.5)
