@@ -296,7 +296,8 @@ class BoTSORT:
         if not np.array_equal(self.last_warp, IDENTITY):
             self._warp(pool + unconfirmed, self.last_warp)
 
-        # (track, measurement xyxy, score, feature index into a _Dets, dets) to update at the end.
+        # (track, measured xyxy box, score, embedding or None): applied in one batch after the
+        # three stages, which only read the predicted states.
         updates: list[tuple[_STrack, NDArray[np.float64], float, NDArray[np.float32] | None]] = []
         refound: list[_STrack] = []
 
