@@ -88,12 +88,14 @@ def extract_band_scan(
     free_sigma: float = 1.0,
     cluster_tol: float = 1.0,
     stamp_s: float = 0.0,
+    column_stride_px: int | None = None,
 ) -> BandScan:
     """Extract the band scan of one depth image.
 
     ``depth_m``: (H, W) metres along the optical axis. ``T_map_camera``: (4, 4) optical camera
     to map (z up, floor at z = 0); ``band`` in map-frame metres above the floor.
-    ``stride_px`` subsamples rows and columns. Invalid pixels with valid depth within
+    ``stride_px`` subsamples rows, ``column_stride_px`` columns (default: the same), so
+    there is one ray per used column. Invalid pixels with valid depth within
     ``fill_px`` rows above and below take the nearer: sensors drop pixels at depth edges, and
     a dropped table edge must not let the rays under the table clear its footprint.
     ``min_hit_points``: a column's nearest in-band point is an obstacle only with this many
@@ -117,12 +119,13 @@ def extract_band_scan(
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise FrameError(f"T_map_camera must be a finite (4, 4) transform, got shape {T.shape}")
     s = max(1, int(stride_px))
-    sub = d[::s, ::s].astype(np.float32, copy=False)  # (h, w)
+    sc = max(1, int(column_stride_px)) if column_stride_px is not None else s
+    sub = d[::s, ::sc].astype(np.float32, copy=False)  # (h, w)
     valid = valid_depth_mask(sub, min_depth_m, max_depth_m)
     dep = np.where(valid, sub, np.float32(0.0))
     if fill_px > 0:
         dep, valid = fill_dropouts(dep, valid, max(1, int(round(fill_px / s))))
-    us = np.arange(0, W, s, dtype=np.float32)
+    us = np.arange(0, W, sc, dtype=np.float32)
     vs = np.arange(0, H, s, dtype=np.float32)
     xn = (us - np.float32(intrinsics.cx_px)) / np.float32(intrinsics.fx_px)  # (w,)
     yn = (vs - np.float32(intrinsics.cy_px)) / np.float32(intrinsics.fy_px)  # (h,)

@@ -64,6 +64,9 @@ class SemanticMapSettings:
     depth_min_m: float = 0.3
     depth_max_m: float = 6.0
     scan_stride_px: int = 2
+    #: One ray per 4th column: 0.6 degrees apart with a D455, as accurate on simulated rooms
+    #: as every 2nd column (fewer stray hits beside surfaces) at half the cost.
+    scan_column_stride_px: int = 4
     scan_min_hit_points: int = 2
     #: Grid cells at or above this probability are lethal, at or below ``free_threshold`` free.
     occupied_threshold: float = 0.6
@@ -195,6 +198,7 @@ class SemanticMap:
             frame.depth_m, frame.intrinsics, np.asarray(T, np.float64), s.scan_band,
             min_depth_m=s.depth_min_m, max_depth_m=s.depth_max_m, stride_px=s.scan_stride_px,
             min_hit_points=s.scan_min_hit_points, stamp_s=frame.stamp_s,
+            column_stride_px=s.scan_column_stride_px,
         )
         grid_bounds = self.layers.update_scan(scan)
         pose = T_map_body if T_map_body is not None else T
