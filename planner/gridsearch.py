@@ -25,6 +25,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from planner.cspace import CSpace
+from semmap.errors import PlanningError
 
 _OFFSETS = np.array(
     [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)], dtype=np.int64
@@ -33,18 +34,23 @@ _STEP = np.hypot(_OFFSETS[:, 0], _OFFSETS[:, 1])
 
 
 @functools.lru_cache(maxsize=4)
-def _structure(rows: int, cols: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
-    """Neighbour indices (rows*cols, 8) (self where outside), CSR indptr, and an outside mask."""
+def _structure(rows: int, cols: int) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.bool_]]:
+    """Neighbour indices (rows*cols, 8) (self where outside), CSR indptr, and an outside mask.
+
+    int32 indices: SciPy's csgraph works on int32 and would convert int64 on every search.
+    """
     n = rows * cols
+    if 8 * n >= 2**31:
+        raise PlanningError(f"grid of {rows} x {cols} nodes is too large for the search graph")
     r, c = np.divmod(np.arange(n, dtype=np.int64), cols)
-    nbr = np.empty((n, 8), dtype=np.int64)
+    nbr = np.empty((n, 8), dtype=np.int32)
     outside = np.zeros((n, 8), dtype=bool)
     for k, (dr, dc) in enumerate(_OFFSETS):
         r2, c2 = r + dr, c + dc
         ok = (r2 >= 0) & (r2 < rows) & (c2 >= 0) & (c2 < cols)
         nbr[:, k] = np.where(ok, r2 * cols + c2, np.arange(n))
         outside[:, k] = ~ok
-    indptr = np.arange(0, 8 * n + 1, 8, dtype=np.int64)
+    indptr = np.arange(0, 8 * n + 1, 8, dtype=np.int32)
     for a in (nbr, indptr, outside):
         a.setflags(write=False)
     return nbr, indptr, outside
