@@ -71,3 +71,21 @@ def test_bad_coordinates_exit_2(map_dir: Path) -> None:
 
 def test_missing_map_folder_exit_2(tmp_path: Path) -> None:
     assert main(["plan", "--map", str(tmp_path / "nope"), "--start", "1,1", "--goal", "5,1"]) == 2
+
+
+def test_plans_on_a_saved_semantic_map(tmp_path: Path) -> None:
+    from semmap.costmap import ObjectFootprint, VerticalBand
+    from semmap.semantic_map import SemanticMap, SemanticMapSettings
+
+    settings = SemanticMapSettings(
+        class_names=("desk",), scan_band=VerticalBand(0.4, 0.6), origin_xy_m=(0.0, 0.0),
+        size_xy_m=(6.0, 3.0), fixed_size=True,
+    )
+    smap = SemanticMap(settings)
+    desk = np.array([[2.6, -0.5], [3.4, -0.5], [3.4, 3.5], [2.6, 3.5]])
+    smap.set_objects([ObjectFootprint(1, "desk", desk, 0.0, 0.75, existence=0.95)], stamp_s=0.0)
+    smap.save(tmp_path / "semantic_map.npz")
+    rc, res = _plan(tmp_path, "--altitude", "0.5")
+    assert rc == 1 and res["status"] == "disconnected"
+    rc, res = _plan(tmp_path, "--altitude", "1.5")
+    assert rc == 0 and res["status"] == "ok"
