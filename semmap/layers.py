@@ -164,19 +164,37 @@ class ObjectRaster:
         )
 
 
-def _geometry_key(fp: ObjectFootprint) -> tuple[object, ...]:
-    return (np.asarray(fp.polygon_xy_m, np.float64).tobytes(), fp.margin_m)
+def _geometry_key(fp: ObjectFootprint) -> tuple[NDArray[np.float64], float]:
+    return np.asarray(fp.polygon_xy_m, np.float64).reshape(-1, 2).copy(), float(fp.margin_m)
+
+
+def _same_geometry(drawn: tuple[NDArray[np.float64], float] | None, fp: ObjectFootprint, tol_m: float) -> bool:
+    """The footprint is within ``tol_m`` (every vertex) of the one drawn, same margin."""
+    if drawn is None:
+        return False
+    poly = np.asarray(fp.polygon_xy_m, np.float64).reshape(-1, 2)
+    return (drawn[1] == fp.margin_m and drawn[0].shape == poly.shape
+            and bool(np.all(np.abs(drawn[0] - poly) <= tol_m)))
 
 
 class ObjectRasters:
-    """Per-object rasters on the current grid, recomputed only for objects that changed."""
+    """Per-object rasters on the current grid, recomputed only for objects that changed.
 
-    def __init__(self, class_names: Sequence[str], margin_decay_m: float = 0.3) -> None:
+    A footprint that moved by at most ``redraw_fraction`` of a cell (every vertex) since it
+    was drawn keeps its raster: the object map refines footprints by millimetres each
+    frame, which would not change the cells but would cost a redraw.
+    """
+
+    def __init__(
+        self, class_names: Sequence[str], margin_decay_m: float = 0.3, redraw_fraction: float = 0.25,
+    ) -> None:
         self.class_names = list(class_names)
         self.margin_decay_m = margin_decay_m
+        self.redraw_fraction = redraw_fraction
         self.spec: GridSpec | None = None
         self.rasters: dict[int, ObjectRaster] = {}
-        self._geometry: dict[int, tuple[object, ...]] = {}
+        #: The polygon and margin each raster was drawn from.
+        self._geometry: dict[int, tuple[NDArray[np.float64], float]] = {}
 
     def reach_m(self, fp: ObjectFootprint) -> float:
         """How far beyond the footprint the margin layer may put cost."""
@@ -223,16 +241,15 @@ class ObjectRasters:
                     f"object {oid}: {len(cp)} class probabilities for {len(self.class_names)} classes"
                 )
             old = self.rasters.get(oid)
-            key = _geometry_key(fp)
-            if old is not None and self._geometry.get(oid) == key:
-                if _same_semantics(old, fp, cp):
-                    continue
+            tol = self.redraw_fraction * self.spec.resolution_m
+            if old is not None and _same_geometry(self._geometry.get(oid), fp, tol):
+                if not _same_semantics(old, fp, cp):
+                    touched = touched.union(old.window)
                 self.rasters[oid] = ObjectRaster(fp, cp, old.window, old.mask, old.dist_m)
-                touched = touched.union(old.window)
                 continue
             new = self._draw(fp, cp)
             self.rasters[oid] = new
-            self._geometry[oid] = key
+            self._geometry[oid] = _geometry_key(fp)
             touched = touched.union(new.window)
             if old is not None:
                 touched = touched.union(old.window)

@@ -178,3 +178,13 @@ def test_grid_growth_redraws_objects() -> None:
     assert grid.spec.origin_xy_m == pytest.approx((-2.0, -2.0))
     assert cost_at(lc, band, 1.5, 1.3) == LETHAL_OBSTACLE
     assert Bounds(0, 0, 2, 2).union(Bounds.empty()) == Bounds(0, 0, 2, 2)
+
+
+def test_sub_cell_footprint_refinements_do_not_redraw() -> None:
+    lc = stack()
+    lc.update_objects([coffee_table()], stamp_s=1.0)
+    nudged = ObjectFootprint(1, "coffee_table", TABLE + 0.005, 0.0, 0.45, existence=0.9, margin_m=0.2)
+    assert lc.update_objects([nudged], stamp_s=2.0).is_empty  # 5 mm < a quarter of 5 cm
+    assert np.allclose(lc.costmap(band_at(0.4)).objects[0].polygon_xy_m, TABLE + 0.005)
+    moved = ObjectFootprint(1, "coffee_table", TABLE + 0.03, 0.0, 0.45, existence=0.9, margin_m=0.2)
+    assert not lc.update_objects([moved], stamp_s=3.0).is_empty
