@@ -50,9 +50,10 @@ from semmap.types import Frame, Track  # noqa: E402
 DEPTH_RANGE_M = (0.3, 6.0)
 
 
-def _frames(n_frames: int, seed: int) -> list[tuple[Frame, list[Track]]]:
-    """Rendered frames holding 4..10 whole-enough objects, with their (noise-free) boxes."""
-    out: list[tuple[Frame, list[Track]]] = []
+def _frames(n_frames: int, seed: int) -> list[tuple[Frame, list[Track], int]]:
+    """Rendered frames holding 4..10 whole-enough objects, with their (noise-free) boxes and
+    the index of their room."""
+    out: list[tuple[Frame, list[Track], int]] = []
     classes = default_classes()
     k = 0
     while len(out) < n_frames and k < 20:
@@ -66,7 +67,7 @@ def _frames(n_frames: int, seed: int) -> list[tuple[Frame, list[Track]]]:
             frame = renderer.render(T, stamp_s=i / 15.0, index=i)
             tracks = sorted(oracle.tracks(frame), key=lambda t: -t.score)[:10]
             if len(tracks) >= 4:
-                out.append((frame, tracks))
+                out.append((frame, tracks, k))
             if len(out) >= n_frames:
                 break
         k += 1
@@ -120,11 +121,14 @@ def bench_geometry(quick: bool) -> dict[str, Any]:
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    frames = _frames(12 if quick else 60, seed=500)
+    triples = _frames(12 if quick else 60, seed=500)
+    frames = [(f, t) for f, t, _ in triples]
+    rooms = [r for _, _, r in triples]
     classes = default_classes()
     by_name = {c.name: c for c in classes}
     g = GeometryConfig()
-    omap = ObjectMap(classes, MapConfig())
+    # One object map per room and repetition (frames of different rooms share coordinates).
+    maps: dict[tuple[int, int], ObjectMap] = {}
     smap = _semantic_map()
     n = len(frames)
     reps = 2 if quick else 3
@@ -139,6 +143,7 @@ def bench_geometry(quick: bool) -> dict[str, Any]:
     rng = np.random.default_rng(0)
     for rep in range(reps):
         for k, (frame, tracks) in enumerate(frames):
+            omap = maps.setdefault((rep, rooms[k]), ObjectMap(classes, MapConfig()))
             T = frame.T_map_camera
             assert T is not None
             t0 = time.perf_counter()

@@ -69,6 +69,15 @@ def _cell_keys(xy_m: NDArray[np.float64]) -> NDArray[np.int64]:
     return ij[:, 0] * _KEY_SHIFT + ij[:, 1]
 
 
+def _quantile(values: Iterable[float], q: float) -> float:
+    """Linear-interpolated quantile of a short sequence (plain Python: a few dozen values)."""
+    v = sorted(values)
+    pos = q * (len(v) - 1)
+    i = int(pos)
+    j = min(i + 1, len(v) - 1)
+    return float(v[i] + (pos - i) * (v[j] - v[i]))
+
+
 def _inside_convex(poly: NDArray[np.float64], xy: NDArray[np.float64]) -> NDArray[np.bool_]:
     """(N,) True where points (N, 2) lie inside a convex polygon (M, 2), either winding."""
     e = np.roll(poly, -1, axis=0) - poly  # (M, 2)
@@ -198,6 +207,8 @@ class _State:
     cell_keys: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     cell_w: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     footprint_cache: NDArray[np.float64] | None = None
+    #: Last snapshot; dropped whenever the state changes (most objects do not, each frame).
+    snapshot_cache: MappedObject | None = None
 
     @property
     def bbox_xy_m(self) -> tuple[float, float, float, float]:
@@ -409,6 +420,7 @@ class ObjectMap:
         keep.cell_w = np.bincount(inv.reshape(-1), weights=np.concatenate([keep.cell_w, drop.cell_w]),
                                   minlength=len(keep.cell_keys)).astype(np.float64)
         keep.footprint_cache = None
+        keep.snapshot_cache = None
         keep.top_hist.extend(drop.top_hist)
         keep.n_observations += drop.n_observations
         keep.first_seen_s = min(keep.first_seen_s, drop.first_seen_s)
@@ -478,6 +490,7 @@ class ObjectMap:
 
     def _fuse(self, s: _State, o: ObjectObservation, first: bool = False) -> None:
         cfg = self.config
+        s.snapshot_cache = None
         p = s.class_probs * self._class_likelihood(o.class_name, o.score)
         p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
         s.class_probs = p / p.sum()
@@ -531,6 +544,7 @@ class ObjectMap:
         s.cell_keys = uk
         s.cell_w = np.bincount(inv.reshape(-1), weights=allw, minlength=len(uk)).astype(np.float64)
         s.footprint_cache = None
+        s.snapshot_cache = None
 
     def _evidence_footprint(self, s: _State) -> NDArray[np.float64]:
         """Footprint from the evidence cells holding at least ``footprint_evidence_frac`` of
@@ -541,7 +555,9 @@ class ObjectMap:
         if len(s.cell_w) == 0:
             poly = s.hull_xy_m
         else:
-            keep = s.cell_w >= cfg.footprint_evidence_frac * float(np.quantile(s.cell_w, 0.9))
+            k90 = int(0.9 * (len(s.cell_w) - 1))
+            p90 = float(np.partition(s.cell_w, k90)[k90])
+            keep = s.cell_w >= cfg.footprint_evidence_frac * p90
             c = _cell_centres(s.cell_keys[keep])
             h = _CELL_M / 2
             hull = convex_footprint(c)  # of centres; each cell's half-width is added back
@@ -565,6 +581,7 @@ class ObjectMap:
                 s = self._objects[oid]
                 decay = self.classes[int(np.argmax(s.class_probs))].miss_decay
                 s.logodds -= decay
+                s.snapshot_cache = None
 
     def _prune(self, stamp_s: float) -> None:
         cfg = self.config
@@ -579,14 +596,16 @@ class ObjectMap:
             del self._track_to_object[tid]
 
     def _snapshot(self, s: _State) -> MappedObject:
+        if s.snapshot_cache is not None:
+            return s.snapshot_cache
         cfg = self.config
         p = _sigmoid(s.logodds)
         footprint = self._evidence_footprint(s)
-        z_max = float(np.quantile(np.asarray(s.z_max_hist), 0.8))
-        z_min = float(np.quantile(np.asarray(s.z_min_hist), 0.2))
-        top = float(np.median(np.asarray(s.top_hist))) if s.top_hist else None
+        z_max = _quantile(s.z_max_hist, 0.8)
+        z_min = _quantile(s.z_min_hist, 0.2)
+        top = _quantile(s.top_hist, 0.5) if s.top_hist else None
         k = int(np.argmax(s.class_probs))
-        return MappedObject(
+        s.snapshot_cache = MappedObject(
             object_id=s.object_id,
             class_name=self.class_names[k],
             class_probs={n: float(v) for n, v in zip(self.class_names, s.class_probs, strict=True)},
@@ -602,3 +621,4 @@ class ObjectMap:
             n_observations=s.n_observations,
             confirmed=p >= cfg.existence_confirm,
         )
+        return s.snapshot_cache
