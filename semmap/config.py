@@ -287,3 +287,64 @@ class MapConfig(StageConfig):
         if self.min_probability >= self.max_probability:
             raise ValueError("min_probability must be < max_probability")
         return self
+
+
+class SlamConfig(StageConfig):
+    """Cartographer-style 2D SLAM (:mod:`semmap.slam`): local scan-to-submap matching and
+    background loop closure over a pose graph."""
+
+    #: ``slam``: the SLAM pose drives mapping and planning; ``odometry``: trust the autopilot.
+    mode: Literal["slam", "odometry"] = "slam"
+    resolution_m: float = Field(default=0.05, gt=0.0, le=0.5)
+    #: Scans each submap receives (consecutive submaps overlap by half of them).
+    scans_per_submap: int = Field(default=60, ge=2)
+    #: Hits closer than this to each other are merged before matching (voxel filter).
+    voxel_filter_m: float = Field(default=0.05, ge=0.0)
+    #: Smoothing of the submap's probability for the least-squares matcher, in cells.
+    blur_sigma_cells: float = Field(default=1.0, ge=0.0)
+    # Motion filter: a scan is inserted when one of these is exceeded since the last insert.
+    motion_filter_distance_m: float = Field(default=0.1, ge=0.0)
+    motion_filter_angle_deg: float = Field(default=2.0, ge=0.0)
+    motion_filter_time_s: float = Field(default=2.0, ge=0.0)
+    # Real-time correlative search window around the odometry prediction.
+    correlative_linear_window_m: float = Field(default=0.1, ge=0.0)
+    correlative_angular_window_deg: float = Field(default=5.0, ge=0.0)
+    correlative_translation_cost: float = Field(default=1.0, ge=0.0)
+    correlative_rotation_cost: float = Field(default=1.0, ge=0.0)
+    # Least-squares refinement weights (Cartographer's ceres_scan_matcher).
+    occupied_space_weight: float = Field(default=1.0, gt=0.0)
+    translation_weight: float = Field(default=10.0, ge=0.0)
+    rotation_weight: float = Field(default=2.0, ge=0.0)
+    # Degeneracy: fall back to odometry when the scan does not constrain the pose.
+    min_scan_points: int = Field(default=20, ge=3)
+    #: Smallest eigenvalue of the translational information (mean squared probability
+    #: gradient, 1/m^2) a scan needs; below it the fit slides (a featureless corridor).
+    min_translation_information: float = Field(default=20.0, ge=0.0)
+    #: ... and its ratio to the largest one.
+    min_information_ratio: float = Field(default=0.1, ge=0.0, le=1.0)
+    #: Mean probability under the matched hits below which the match is not trusted.
+    min_match_score: float = Field(default=0.3, ge=0.0, le=1.0)
+    # Loop closure (background).
+    loop_closure_every_n_nodes: int = Field(default=3, ge=1)
+    loop_closure_linear_window_m: float = Field(default=0.5, gt=0.0)
+    loop_closure_angular_window_deg: float = Field(default=8.0, gt=0.0)
+    #: Mean likelihood-field value under the node's hits a closure needs.
+    loop_closure_min_score: float = Field(default=0.85, gt=0.0, lt=1.0)
+    #: Finished submaps whose global centre is farther than this from the node are skipped.
+    loop_closure_max_distance_m: float = Field(default=4.0, gt=0.0)
+    branch_and_bound_depth: int = Field(default=6, ge=1, le=10)
+    loop_closure_queue_size: int = Field(default=64, ge=1)
+    # Pose graph.
+    constraint_translation_weight: float = Field(default=100.0, gt=0.0)
+    constraint_rotation_weight: float = Field(default=100.0, gt=0.0)
+    #: Consecutive nodes (local SLAM's relative motion): stiff, so loop closures bend the
+    #: trajectory over long spans instead of jolting single nodes.
+    local_translation_weight: float = Field(default=1000.0, gt=0.0)
+    local_rotation_weight: float = Field(default=1000.0, gt=0.0)
+    loop_translation_weight: float = Field(default=100.0, gt=0.0)
+    loop_rotation_weight: float = Field(default=100.0, gt=0.0)
+    #: Huber scale of the pose graph's robust loss (in weighted residual units).
+    huber_scale: float = Field(default=1.0, gt=0.0)
+    optimize_every_n_constraints: int = Field(default=3, ge=1)
+    #: Pose-graph iterations per optimisation.
+    optimization_iterations: int = Field(default=20, ge=1)

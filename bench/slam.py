@@ -1,0 +1,171 @@
+"""2D SLAM on simulated flights with a drifting autopilot: trajectory error, loops, map, speed.
+
+Each seeded room is flown twice around its perimeter (a loop, revisited) with a camera yaw
+sweep; the mock autopilot's odometry drifts (3 % scale error, 0.5 deg/s heading drift, random
+walk noise: :class:`companion.sim.odometry.OdometryDriftModel`). Every frame is rendered,
+its altitude-band scan extracted in the gravity-aligned body frame and fed to
+:class:`semmap.slam.Slam2D` with the drifting odometry as the prior.
+
+Figures per room and overall:
+
+* ATE RMSE (absolute trajectory error, metres, no alignment: both start at the true pose) of
+  the drifting odometry, of SLAM's live poses and of SLAM's final re-anchored trajectory;
+* loop closures found, odometry fallbacks;
+* map agreement with ground truth (observed cells whose occupancy equals
+  ``occupancy_at_band``), for the grid rebuilt at SLAM poses and at odometry poses;
+* local SLAM time per scan (the live path), p50 / p95, milliseconds.
+
+``python bench/slam.py [--quick]``; the last line is a JSON object with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from companion.sim import groundtruth as gt  # noqa: E402
+from companion.sim.odometry import OdometryDriftModel  # noqa: E402
+from companion.sim.render import RoomRenderer  # noqa: E402
+from companion.sim.trajectory import fly_route, plan_route  # noqa: E402
+from companion.sim.world import generate_room  # noqa: E402
+from semmap.config import ExtrinsicsConfig, SlamConfig, default_classes  # noqa: E402
+from semmap.costmap import VerticalBand  # noqa: E402
+from semmap.grid import GridSpec  # noqa: E402
+from semmap.occupancy import ProbabilityGrid  # noqa: E402
+from semmap.slam import LevelScan, Slam2D, SlamStatus, level_scan_from_depth  # noqa: E402
+from semmap.types import CameraIntrinsics  # noqa: E402
+
+ALTITUDE_M = 0.6
+BAND = VerticalBand.for_altitude(ALTITUDE_M, 0.3, 0.1)
+
+
+def loop_trajectory(room: Any, laps: int, speed_m_s: float, inset_m: float = 1.0) -> Any:
+    """``laps`` counter-clockwise laps inset from the walls, sweeping the camera +-40 deg."""
+    w, d = room.width_m, room.depth_m
+    corners = [(inset_m, inset_m), (w - inset_m, inset_m), (w - inset_m, d - inset_m), (inset_m, d - inset_m)]
+    wps = corners * laps + [corners[0]]
+    route = plan_route(room, wps, ALTITUDE_M, 0.4, largest_component_only=True)
+    return fly_route(route, ALTITUDE_M, speed_m_s, yaw_rate_max_rad_s=math.radians(90.0),
+                     yaw_sweep_rad=math.radians(40.0), sweep_period_s=6.0)
+
+
+def ate_rmse(est_xy: np.ndarray, true_xy: np.ndarray) -> float:
+    """RMS of the position errors (metres) of (N, 2) estimates against (N, 2) truth."""
+    return float(np.sqrt(np.mean(np.sum((est_xy - true_xy) ** 2, axis=1))))
+
+
+def agreement(grid: ProbabilityGrid, truth: np.ndarray) -> float:
+    """Fraction of observed cells whose occupancy (p > 0.5) equals the ground truth."""
+    known = grid.known
+    occ = grid.probability() > 0.5
+    return float(((occ == truth) & known).sum() / max(1, int(known.sum())))
+
+
+def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float = 10.0,
+               width_px: int = 320, cfg: SlamConfig | None = None,
+               drift: OdometryDriftModel | None = None, max_duration_s: float | None = None,
+               max_range_m: float = 6.0) -> dict[str, Any]:
+    """Fly one seeded room with SLAM; returns its figures (see the module docstring)."""
+    room = generate_room(seed, n_objects=8)
+    traj = loop_trajectory(room, laps, speed_m_s)
+    scale = width_px / 640.0
+    intr = CameraIntrinsics(383.0 * scale, 383.0 * scale, 320.0 * scale, 240.0 * scale, width_px, int(480 * scale))
+    renderer = RoomRenderer(room, [c.name for c in default_classes()], intr, seed=seed)
+    T_body_camera = ExtrinsicsConfig().T_body_camera()
+    drift = drift or OdometryDriftModel(0.03, 0.5, seed=seed)
+    duration = traj.duration_s if max_duration_s is None else min(traj.duration_s, max_duration_s)
+    n = int(duration * rate_hz)
+    truth, odom, live, times, scans = [], [], [], [], []
+    n_fallback = 0
+    with Slam2D(cfg or SlamConfig()) as slam:
+        for i in range(n):
+            t = traj.start_s + i / rate_hz
+            xyz, yaw = traj.state_at(t)
+            T = traj.T_map_body(t) @ T_body_camera
+            frame = renderer.render(T, stamp_s=t, index=i)
+            scan = level_scan_from_depth(frame.depth_m, intr, T_body_camera, 0.0, 0.0, float(xyz[2]), BAND,
+                                         max_depth_m=max_range_m,
+                                         stride_px=2 if width_px > 200 else 1, stamp_s=t)
+            o = drift.update(t, (xyz[0], xyz[1], yaw))
+            t0 = time.perf_counter()
+            est = slam.add_scan(t, scan, o)
+            times.append((time.perf_counter() - t0) * 1e3)
+            n_fallback += est.status is not SlamStatus.OK
+            truth.append((xyz[0], xyz[1], yaw))
+            odom.append(o)
+            live.append(est.pose_map)
+            scans.append(scan)
+        slam.drain(timeout_s=300.0)
+        slam.optimize()
+        final = slam.trajectory()
+        spec = gt.room_grid_spec(room, 0.05)
+        spec = GridSpec(spec.resolution_m, (spec.origin_xy_m[0] + 0.013, spec.origin_xy_m[1] + 0.021), spec.shape_rc)
+        true_occ = gt.occupancy_at_band(room, spec, BAND)
+        slam_grid = slam.rebuild_grid(spec)
+        loops = slam.loop_closures
+    truth_a, odom_a, live_a = np.array(truth), np.array(odom), np.array(live)
+    odom_grid = ProbabilityGrid(spec, fixed_size=True)
+    for sc, p in zip(scans[::3], odom_a[::3], strict=True):
+        r: LevelScan = sc.transformed(p)
+        odom_grid.insert_scan(r.origin_xy_m, r.near_xy_m, r.far_xy_m, r.hit_xy_m, r.is_hit, r.valid)
+    return {
+        "seed": seed, "duration_s": duration, "scans": n,
+        "ate_odometry_m": ate_rmse(odom_a[:, :2], truth_a[:, :2]),
+        "ate_slam_live_m": ate_rmse(live_a[:, :2], truth_a[:, :2]),
+        "ate_slam_m": ate_rmse(final[:, 1:3], truth_a[:, :2]),
+        "yaw_err_slam_deg_rms": float(np.degrees(np.sqrt(np.mean(
+            ((final[:, 3] - truth_a[:, 2] + np.pi) % (2 * np.pi) - np.pi) ** 2)))),
+        "loop_closures": loops, "fallbacks": n_fallback,
+        "agreement_slam": agreement(slam_grid, true_occ), "agreement_odometry": agreement(odom_grid, true_occ),
+        "local_ms": times,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="one room, one short loop, small images (< 1 min)")
+    ap.add_argument("--seeds", type=int, nargs="*", default=None)
+    args = ap.parse_args(argv)
+    seeds = args.seeds or ([3] if args.quick else [1, 2, 3])
+    results = []
+    for seed in seeds:
+        if args.quick:
+            r = run_flight(seed, laps=1, speed_m_s=0.5, rate_hz=8.0, width_px=160)
+        else:
+            r = run_flight(seed)
+        results.append(r)
+    print(f"{'seed':>4} {'dur s':>6} {'scans':>5} {'ATE odom m':>10} {'ATE live m':>10} {'ATE SLAM m':>10} "
+          f"{'loops':>5} {'fallb':>5} {'agree slam':>10} {'agree odom':>10} {'local p50 ms':>12}")
+    for r in results:
+        print(f"{r['seed']:>4} {r['duration_s']:6.1f} {r['scans']:5d} {r['ate_odometry_m']:10.3f} "
+              f"{r['ate_slam_live_m']:10.3f} {r['ate_slam_m']:10.3f} {r['loop_closures']:5d} {r['fallbacks']:5d} "
+              f"{r['agreement_slam']:10.3f} {r['agreement_odometry']:10.3f} {np.percentile(r['local_ms'], 50):12.2f}")
+    all_ms = np.concatenate([r["local_ms"] for r in results])
+    summary = {
+        "rooms": {str(r["seed"]): {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()
+                                   if k != "local_ms"} for r in results},
+        "ate_odometry_m_mean": round(float(np.mean([r["ate_odometry_m"] for r in results])), 4),
+        "ate_slam_m_mean": round(float(np.mean([r["ate_slam_m"] for r in results])), 4),
+        "ate_slam_m_max": round(float(np.max([r["ate_slam_m"] for r in results])), 4),
+        "ate_slam_live_m_mean": round(float(np.mean([r["ate_slam_live_m"] for r in results])), 4),
+        "loop_closures_min": int(min(r["loop_closures"] for r in results)),
+        "agreement_slam_mean": round(float(np.mean([r["agreement_slam"] for r in results])), 4),
+        "agreement_odometry_mean": round(float(np.mean([r["agreement_odometry"] for r in results])), 4),
+        "local_slam_ms_p50": round(float(np.percentile(all_ms, 50)), 3),
+        "local_slam_ms_p95": round(float(np.percentile(all_ms, 95)), 3),
+    }
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,171 @@
+"""Local SLAM: odometry prediction, scan-to-submap matching, motion filter, submaps.
+
+For each scan (gravity-aligned body frame, :class:`~semmap.slam.scan2d.LevelScan`):
+
+1. predict the pose from the previous estimate and the autopilot's odometry increment;
+2. match the voxel-filtered hits against the matching submap: a real-time correlative
+   search over a small window, then the least-squares refinement with the prediction as prior;
+3. check the fit: too few hits, a low score, or information that leaves a direction free
+   (a corridor) -> the odometry prediction is used and the status says so;
+4. insert the scan into the active submaps if the motion filter lets it through (moved far
+   enough, turned enough or waited long enough since the last insertion).
+
+Poses are in the *local* frame: it starts at the first odometry pose and is corrected by the
+global SLAM (:mod:`semmap.slam.global_`) as loops close.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semmap.config import SlamConfig
+from semmap.occupancy import ProbabilityTables
+from semmap.slam.correlative import real_time_correlative_match
+from semmap.slam.pose2d import Pose2, compose, relative, wrap
+from semmap.slam.refine import refine_pose
+from semmap.slam.scan2d import LevelScan
+from semmap.slam.submaps import ActiveSubmaps, Submap
+
+log = logging.getLogger(__name__)
+
+
+class SlamStatus(enum.Enum):
+    """How a pose was obtained."""
+
+    #: Matched against the submap.
+    OK = "ok"
+    #: The scan did not constrain the pose (degenerate or no overlap): odometry used.
+    DEGENERATE_FALLBACK_ODOMETRY = "degenerate_fallback_odometry"
+    #: Pure-odometry mode (configured): the autopilot's pose is trusted.
+    ODOMETRY = "odometry"
+
+
+@dataclass(frozen=True)
+class LocalResult:
+    """One scan through local SLAM.
+
+    ``pose_local`` (3,) x_m, y_m, yaw_rad in the local frame; ``prediction_local`` the odometry
+    prediction; ``inserted``: the motion filter let it into the submaps (it became a node);
+    ``submaps``: indices of the submaps it went into; ``finished``: submaps it finished;
+    ``score``: mean probability under the matched hits; ``min_information``: smallest
+    translational eigenvalue of the fit (1/m^2); ``reason``: why a fallback happened ('').
+    """
+
+    stamp_s: float
+    pose_local: Pose2
+    prediction_local: Pose2
+    status: SlamStatus
+    inserted: bool
+    submaps: tuple[int, ...]
+    finished: tuple[int, ...]
+    score: float
+    min_information: float
+    n_points: int
+    reason: str = ""
+
+
+def voxel_filter_xy(points_xy_m: NDArray[np.floating], voxel_m: float) -> NDArray[np.float64]:
+    """(M, 2) centroids of the (N, 2) points in each ``voxel_m`` square (unchanged if 0)."""
+    pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+    if voxel_m <= 0.0 or len(pts) == 0:
+        return pts
+    keys = np.floor(pts / voxel_m).astype(np.int64)
+    _, inv, cnt = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    out = np.zeros((len(cnt), 2))
+    np.add.at(out, inv, pts)
+    return out / cnt[:, None]
+
+
+class LocalSlam:
+    """The local trajectory builder. Not thread-safe: one caller (the live pipeline)."""
+
+    def __init__(self, cfg: SlamConfig, tables: ProbabilityTables | None = None) -> None:
+        self.cfg = cfg
+        self.submaps = ActiveSubmaps(cfg.scans_per_submap, cfg.resolution_m,
+                                     tables or ProbabilityTables(), cfg.blur_sigma_cells)
+        self._last_pose: Pose2 | None = None
+        self._last_odom: Pose2 | None = None
+        self._last_insert: tuple[float, Pose2] | None = None
+
+    @property
+    def last_pose(self) -> Pose2 | None:
+        """The latest local pose (3,), None before the first scan."""
+        return None if self._last_pose is None else self._last_pose.copy()
+
+    def predict(self, odometry_pose: Pose2) -> Pose2:
+        """The local pose the odometry increment since the previous scan predicts."""
+        if self._last_pose is None or self._last_odom is None:
+            return np.asarray(odometry_pose, dtype=np.float64).copy()
+        return compose(self._last_pose, relative(self._last_odom, odometry_pose))
+
+    def add_scan(self, stamp_s: float, scan: LevelScan, odometry_pose: Pose2) -> LocalResult:
+        """Estimate the pose of one scan; ``odometry_pose`` (3,) is the autopilot's (x, y, yaw)
+        in its own (drifting) frame at the scan's time."""
+        cfg = self.cfg
+        odom = np.asarray(odometry_pose, dtype=np.float64).reshape(3)
+        pred = self.predict(odom)
+        pts = voxel_filter_xy(scan.hits_xy_m, cfg.voxel_filter_m)
+        target = self.submaps.matching_submap
+        status, reason, score, min_info = SlamStatus.OK, "", 0.0, 0.0
+        pose = pred
+        if target is not None and target.n_scans > 0:
+            pose, status, reason, score, min_info = self._match(target, pts, pred)
+        self._last_pose, self._last_odom = pose, odom
+        inserted = False
+        into: tuple[int, ...] = ()
+        finished: tuple[int, ...] = ()
+        if self._motion_filter_passes(stamp_s, pose):
+            ins, fin = self.submaps.insert(scan, pose)
+            into = tuple(s.index for s in ins)
+            finished = tuple(s.index for s in fin)
+            inserted = True
+            self._last_insert = (stamp_s, pose.copy())
+        if status is not SlamStatus.OK:
+            log.debug("scan at %.3f s: odometry fallback (%s)", stamp_s, reason)
+        return LocalResult(stamp_s, pose, pred, status, inserted, into, finished, score, min_info,
+                           len(pts), reason)
+
+    def _match(self, target: Submap, pts: NDArray[np.float64], pred: Pose2) -> tuple[
+            Pose2, SlamStatus, str, float, float]:
+        cfg = self.cfg
+        fallback = SlamStatus.DEGENERATE_FALLBACK_ODOMETRY
+        if len(pts) < cfg.min_scan_points:
+            return pred, fallback, f"{len(pts)} scan points < {cfg.min_scan_points}", 0.0, 0.0
+        grid = target.match_grid()
+        init = relative(target.local_pose, pred)  # the submap frame has no rotation
+        rt_pose, _ = real_time_correlative_match(
+            grid, pts, init, cfg.correlative_linear_window_m,
+            math.radians(cfg.correlative_angular_window_deg),
+            cfg.correlative_translation_cost, cfg.correlative_rotation_cost,
+        )
+        ref = refine_pose(grid, pts, rt_pose, prior_xy_m=init[:2], prior_yaw_rad=float(init[2]),
+                          occupied_space_weight=cfg.occupied_space_weight,
+                          translation_weight=cfg.translation_weight, rotation_weight=cfg.rotation_weight)
+        lo, hi = ref.translation_eigenvalues()
+        score = ref.mean_probability
+        if score < cfg.min_match_score:
+            return pred, fallback, f"match score {score:.2f} < {cfg.min_match_score:.2f}", score, lo
+        if lo < cfg.min_translation_information or lo < cfg.min_information_ratio * hi:
+            return pred, fallback, (f"degenerate fit: translational information {lo:.2f} "
+                                    f"(largest {hi:.2f}) 1/m^2"), score, lo
+        pose = compose(target.local_pose, ref.pose)
+        pose[2] = float(wrap(pose[2]))
+        return pose, SlamStatus.OK, "", score, lo
+
+    def _motion_filter_passes(self, stamp_s: float, pose: Pose2) -> bool:
+        if self._last_insert is None:
+            return True
+        t0, p0 = self._last_insert
+        cfg = self.cfg
+        return bool(
+            stamp_s - t0 >= cfg.motion_filter_time_s
+            or float(np.hypot(pose[0] - p0[0], pose[1] - p0[1])) >= cfg.motion_filter_distance_m
+            or abs(float(wrap(pose[2] - p0[2]))) >= math.radians(cfg.motion_filter_angle_deg)
+        )
