@@ -412,16 +412,17 @@ class ObjectMap:
             keep.shape_tier = drop.shape_tier
             keep.hull_xy_m = drop.hull_xy_m
             keep.z_max_hist, keep.z_min_hist = drop.z_max_hist, drop.z_min_hist
+            keep.top_hist = drop.top_hist
         elif drop.shape_tier == keep.shape_tier:
             keep.hull_xy_m = convex_footprint(np.concatenate([keep.hull_xy_m, drop.hull_xy_m]))
             keep.z_max_hist.extend(drop.z_max_hist)
             keep.z_min_hist.extend(drop.z_min_hist)
+            keep.top_hist.extend(drop.top_hist)
         keep.cell_keys, inv = np.unique(np.concatenate([keep.cell_keys, drop.cell_keys]), return_inverse=True)
         keep.cell_w = np.bincount(inv.reshape(-1), weights=np.concatenate([keep.cell_w, drop.cell_w]),
                                   minlength=len(keep.cell_keys)).astype(np.float64)
         keep.footprint_cache = None
         keep.snapshot_cache = None
-        keep.top_hist.extend(drop.top_hist)
         keep.n_observations += drop.n_observations
         keep.first_seen_s = min(keep.first_seen_s, drop.first_seen_s)
         keep.last_seen_s = max(keep.last_seen_s, drop.last_seen_s)
@@ -523,18 +524,19 @@ class ObjectMap:
             s.hull_xy_m = fp
             s.z_max_hist.clear()
             s.z_min_hist.clear()
+            s.top_hist.clear()
         elif tier == s.shape_tier:
             s.hull_xy_m = simplify_polygon(convex_footprint(np.concatenate([s.hull_xy_m, fp])), 0.01)
         if tier == s.shape_tier:
             s.z_max_hist.append(o.z_max_m)
             s.z_min_hist.append(o.z_min_m)
+            if o.top_height_m is not None:
+                s.top_hist.append(o.top_height_m)
         # Every view adds evidence where it saw the object (partial views are incomplete,
         # not wrong); each cell counts once per view.
         pts = o.points_xy_m if len(o.points_xy_m) else fp
         near = o.range_m <= cfg.footprint_max_range_m
         self._add_evidence(s, np.unique(_cell_keys(pts)), 1.0 if near else _FAR_WEIGHT)
-        if o.top_height_m is not None:
-            s.top_hist.append(o.top_height_m)
 
     @staticmethod
     def _add_evidence(s: _State, keys: NDArray[np.int64], weight: float) -> None:
