@@ -54,9 +54,9 @@ class GridSpec:
 
     def center_of(self, rc: NDArray[np.integer]) -> NDArray[np.float64]:
         """(N, 2) (row, col) -> (N, 2) map-frame xy of the cell centres."""
-        rc = np.asarray(rc, dtype=np.float64).reshape(-1, 2)
-        x = self.origin_xy_m[0] + (rc[:, 1] + 0.5) * self.resolution_m
-        y = self.origin_xy_m[1] + (rc[:, 0] + 0.5) * self.resolution_m
+        rc_f = np.asarray(rc, dtype=np.float64).reshape(-1, 2)
+        x = self.origin_xy_m[0] + (rc_f[:, 1] + 0.5) * self.resolution_m
+        y = self.origin_xy_m[1] + (rc_f[:, 0] + 0.5) * self.resolution_m
         return np.stack([x, y], axis=1)
 
     def contains_rc(self, rc: NDArray[np.integer]) -> NDArray[np.bool_]:
