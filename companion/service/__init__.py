@@ -1,0 +1,1 @@
+"""The companion service: the asyncio pipeline from camera to setpoints (see app.py)."""

@@ -1,0 +1,331 @@
+"""The companion service: camera -> perception -> semantic map -> planner -> setpoints.
+
+:class:`CompanionService` has an explicit lifecycle:
+
+* ``configure()`` builds everything from the config without touching the world: the semantic
+  map (restored from the last checkpoint), the perception pipeline and the planning service;
+* ``activate()`` (inside :meth:`run`) opens every long-lived part as an async context manager
+  under one exit stack and a TaskGroup: the planner process, the MAVLink vehicle (setpoint
+  stream, telemetry, OBSTACLE_DISTANCE), the frame stream and perception worker, map
+  checkpointing, the flight log, the MQTT bridge and the systemd watchdog;
+* ``deactivate()`` (when ``stop`` is set, e.g. on SIGTERM) holds or lands first
+  (``service.on_sigterm``), then stops streaming, and the checkpointer saves the map.
+
+With ``fly_mission`` the autopilot's mission is downloaded and flown leg by leg with the
+semantic planner (:mod:`companion.service.mission_runner`); goals and mission commands also
+come over MQTT.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.config import CompanionConfig
+from companion.ground import MqttBridge
+from companion.ground.schema import GoalCommand, MissionCommand, VehicleCommand
+from companion.mavlink.vehicle import Vehicle
+from companion.px4 import FlightMode
+from companion.service.checkpoint import Checkpointer, checkpoint_path, restore_map
+from companion.service.flight_log import FlightLog
+from companion.service.mission_runner import (
+    Leg,
+    LegReport,
+    MissionRunner,
+    mission_legs,
+    position_enu,
+)
+from companion.service.perception_worker import (
+    PerceptionPipeline,
+    PerceptionWorker,
+    flight_band,
+    new_semantic_map,
+)
+from companion.sources.base import FrameSource
+from companion.systemd_notify import SystemdNotifier, Watchdog
+from planner.worker import PlanningService
+from semmap.errors import CompanionError, MissionError
+from semmap.frames import yaw_ned_to_enu
+from semmap.semantic_map import SemanticMap
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ServiceReport:
+    """What a run did (for summaries and tests)."""
+
+    legs: list[LegReport] = field(default_factory=list)
+    mission_error: str | None = None
+    frames_processed: int = 0
+    frames_dropped: int = 0
+    frames_failed: int = 0
+    stage_timings: dict[str, dict[str, float]] = field(default_factory=dict)
+    plan_ms: list[float] = field(default_factory=list)
+    checkpoints: int = 0
+    flight_log_rows: int = 0
+
+
+class CompanionService:
+    """The whole onboard pipeline for one vehicle.
+
+    ``frame_source``: the camera (a simulated one when the simulated world runs in-process).
+    ``object_classes``: object id -> class for the simulator's oracle detector.
+    ``fly_mission``: download and fly the autopilot's mission once connected.
+    ``land_after_mission``: land at the end of the mission (else hold in OFFBOARD).
+    """
+
+    def __init__(self, cfg: CompanionConfig, frame_source: FrameSource, *, out_dir: str | Path | None = None,
+                 object_classes: Mapping[int, str] | None = None, fly_mission: bool = False,
+                 land_after_mission: bool = True, notifier: SystemdNotifier | None = None) -> None:
+        self.cfg = cfg
+        self.frame_source = frame_source
+        self.out_dir = Path(out_dir if out_dir is not None else cfg.service.output_dir)
+        self.object_classes = object_classes
+        self.fly_mission = fly_mission
+        self.land_after_mission = land_after_mission
+        self.notifier = notifier or SystemdNotifier.from_env()
+        self.state = "created"
+        self.report = ServiceReport()
+        self.smap: SemanticMap | None = None
+        self.pipeline: PerceptionPipeline | None = None
+        self.vehicle: Vehicle | None = None
+        self.worker: PerceptionWorker | None = None
+        self.runner: MissionRunner | None = None
+        self.ground: MqttBridge | None = None
+        self.checkpointer: Checkpointer | None = None
+        self.restored = False
+        self.mission_done = asyncio.Event()
+        self._mission_task: asyncio.Task[None] | None = None
+        self._t0 = time.monotonic()
+        self._path_xy: NDArray[np.float64] = np.zeros((0, 2))
+        #: Called once the service is active (tests inject faults from here).
+        self.on_active: Callable[[CompanionService], Any] | None = None
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    def configure(self) -> None:
+        """Build the map (restored from the checkpoint when there is one) and the pipeline."""
+        restored = restore_map(self.cfg, checkpoint_path(self.cfg))
+        self.restored = restored is not None
+        self.smap = restored if restored is not None else new_semantic_map(self.cfg)
+        self.pipeline = PerceptionPipeline.from_config(self.cfg, self.smap, self.object_classes)
+        self.state = "configured"
+        log.info("service configured (%s map)", "restored" if self.restored else "new")
+
+    async def run(self, stop: asyncio.Event) -> ServiceReport:
+        """Activate, run until ``stop`` is set (or the mission ends when ``fly_mission``),
+        deactivate. Returns the run's report."""
+        if self.state != "configured":
+            self.configure()
+        assert self.smap is not None and self.pipeline is not None
+        cfg = self.cfg
+        band = flight_band(cfg)
+        pipeline = self.pipeline
+        async with contextlib.AsyncExitStack() as stack:
+            planning = PlanningService(cfg.planner)
+            await asyncio.to_thread(planning.start)
+            stack.callback(planning.close)
+            self.worker = PerceptionWorker(pipeline, self.frame_source, rate_hz=cfg.camera.rate_hz,
+                                           queue_size=cfg.service.frame_queue_size,
+                                           stale_after_s=cfg.map.stale_after_s)
+            self.vehicle = await stack.enter_async_context(
+                Vehicle(cfg.link, is_map_fresh=self.worker.is_fresh))
+            await stack.enter_async_context(self.worker)
+            self.checkpointer = await stack.enter_async_context(
+                Checkpointer(self.smap, checkpoint_path(cfg), cfg.service.checkpoint_interval_s, pipeline.lock))
+            flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
+            self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
+            watchdog = await stack.enter_async_context(Watchdog(self.notifier))
+            watchdog.register("status-loop", 5.0)
+            self.runner = MissionRunner(self.vehicle, planning, lambda: pipeline.costmap(band), cfg.planner,
+                                        on_path=self._on_path)
+            self.state = "active"
+            self.notifier.ready("active")
+            log.info("service active")
+            try:
+                async with asyncio.TaskGroup() as tg:
+                    loops = [tg.create_task(self._status_loop(watchdog), name="status"),
+                             tg.create_task(self._command_loop(), name="ground-commands")]
+                    if self.fly_mission:
+                        self._mission_task = tg.create_task(self._mission(), name="mission")
+                    if self.on_active is not None:
+                        res = self.on_active(self)
+                        if asyncio.iscoroutine(res):
+                            loops.append(tg.create_task(res, name="on-active"))
+                    await stop.wait()
+                    self.state = "stopping"
+                    self.notifier.stopping("stopping")
+                    await self.deactivate()
+                    for t in loops:
+                        t.cancel()
+            finally:
+                self.state = "stopped"
+                self.report.frames_processed = pipeline.frames_done
+                self.report.frames_failed = pipeline.frames_failed
+                self.report.frames_dropped = self.worker.dropped_frames
+                self.report.stage_timings = pipeline.timings.summary()
+                self.report.flight_log_rows = flight_log.rows
+                if self.runner is not None:
+                    self.report.legs = list(self.runner.reports)
+                    self.report.plan_ms = [ms for r in self.runner.reports for ms in r.plan_ms]
+        if self.checkpointer is not None:
+            self.report.checkpoints = self.checkpointer.saves
+        log.info("service stopped")
+        return self.report
+
+    async def deactivate(self) -> None:
+        """Stop flying: cancel the mission, then hold or land (``service.on_sigterm``) while
+        setpoints still stream, then stop streaming. The map is saved on the way out."""
+        if self._mission_task is not None and not self._mission_task.done():
+            self._mission_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._mission_task
+        v = self.vehicle
+        if v is not None and v.offboard.state.streams:
+            then = FlightMode.LAND if self.cfg.service.on_sigterm == "land" else FlightMode.HOLD
+            try:
+                await v.offboard.release(then)
+                log.info("stopping: vehicle handed to %s", then.name)
+            except CompanionError as exc:
+                log.error("stopping: could not switch to %s (%s); streaming ends, PX4's offboard-loss "
+                          "failsafe takes over", then.name, exc)
+                await v.offboard.release(None)
+
+    # --- the mission --------------------------------------------------------------------
+
+    async def _mission(self) -> None:
+        v, runner = self.vehicle, self.runner
+        assert v is not None and runner is not None
+        try:
+            await v.wait_connected(timeout_s=30.0)
+            state = await v.state.wait_for(lambda s: s.home is not None and s.position_ned_m is not None,
+                                           15.0, "the home position")
+            assert state.home is not None
+            items = await v.download_mission()
+            legs = mission_legs(items, state.home, self.cfg.planner.flight_altitude_m)
+            log.info("mission: %d legs at %.2f m", len(legs), self.cfg.planner.flight_altitude_m)
+            await runner.take_off(self.cfg.planner.flight_altitude_m)
+            await runner.fly(legs)
+            if self.land_after_mission:
+                await runner.finish(FlightMode.LAND)
+                await v.state.wait_for(lambda s: not s.armed, 60.0, "the vehicle to land and disarm")
+        except CompanionError as exc:
+            self.report.mission_error = str(exc)
+            log.error("mission: %s", exc)
+        finally:
+            self.mission_done.set()
+
+    async def _fly_goal(self, cmd: GoalCommand) -> None:
+        v, runner, ground = self.vehicle, self.runner, self.ground
+        assert v is not None and runner is not None and ground is not None
+        altitude = cmd.altitude_m or self.cfg.planner.flight_altitude_m
+        try:
+            if not v.offboard.state.streams:
+                await runner.take_off(altitude)
+            rep = await runner.fly_leg(Leg(-1, (cmd.x_m, cmd.y_m), altitude))
+            ground.publish_reply("goal", rep.reached, cmd.request_id,
+                                 None if rep.reached else f"goal not reached ({rep.failed_plans} failed plans)")
+        except CompanionError as exc:
+            ground.publish_reply("goal", False, cmd.request_id, str(exc))
+
+    def _on_path(self, path_xy_m: NDArray[np.float64]) -> None:
+        self._path_xy = path_xy_m
+        if self.ground is not None:
+            z = np.full((len(path_xy_m), 1), self.cfg.planner.flight_altitude_m)
+            self.ground.publish_path(np.hstack([path_xy_m, z]))
+
+    # --- ground link and status ---------------------------------------------------------
+
+    async def _command_loop(self) -> None:
+        ground, v = self.ground, self.vehicle
+        assert ground is not None and v is not None
+        async for cmd in ground.commands():
+            log.info("ground command: %s", type(cmd).__name__)
+            try:
+                await self._handle(cmd)
+            except CompanionError as exc:
+                ground.publish_reply(type(cmd).__name__, False, cmd.request_id, str(exc))
+
+    async def _handle(self, cmd: GoalCommand | MissionCommand | VehicleCommand) -> None:
+        v = self.vehicle
+        assert v is not None
+        busy = self._mission_task is not None and not self._mission_task.done()
+        if isinstance(cmd, GoalCommand):
+            if busy:
+                raise MissionError("a mission or goal is being flown; abort it first")
+            self._mission_task = asyncio.create_task(self._fly_goal(cmd), name="goal")
+        elif isinstance(cmd, MissionCommand):
+            if cmd.action == "start" and not busy:
+                self.mission_done.clear()
+                self._mission_task = asyncio.create_task(self._mission(), name="mission")
+            elif cmd.action in ("abort", "pause") and busy:
+                assert self._mission_task is not None
+                self._mission_task.cancel()
+                pos = position_enu(v.snapshot())
+                if pos is not None and v.offboard.state.streams and self.runner is not None:
+                    self.runner._hold_at(pos[:2], float(pos[2]))  # noqa: SLF001 - same package
+        elif isinstance(cmd, VehicleCommand):
+            if busy:
+                assert self._mission_task is not None
+                self._mission_task.cancel()
+            if v.offboard.state.streams:
+                await v.offboard.release(FlightMode.LAND if cmd.action == "land" else FlightMode.HOLD)
+            elif cmd.action == "land":
+                await v.commands.land()
+            else:
+                await v.commands.hold()
+
+    async def _status_loop(self, watchdog: Watchdog) -> None:
+        v, ground, pipeline = self.vehicle, self.ground, self.pipeline
+        assert v is not None and ground is not None and pipeline is not None
+        period = 1.0 / self.cfg.service.telemetry_rate_hz
+        status_every = max(1, round(self.cfg.service.telemetry_rate_hz / self.cfg.service.status_rate_hz))
+        n_objects = -1
+        k = 0
+        while True:
+            watchdog.alive("status-loop")
+            s = v.snapshot()
+            pos = position_enu(s)
+            if pos is not None:
+                vel = s.velocity_ned_m_s or (0.0, 0.0, 0.0)
+                yaw = yaw_ned_to_enu(s.yaw_ned_rad) if s.yaw_ned_rad is not None else 0.0
+                ground.publish_telemetry(pos, (vel[1], vel[0], -vel[2]), yaw, s.armed, s.in_air,
+                                         s.flight_mode.name if s.flight_mode else "UNKNOWN",
+                                         None if s.battery_remaining is None else 100.0 * s.battery_remaining)
+            if k % status_every == 0:
+                timings = dict(pipeline.timings.latest_ms)
+                if self.runner is not None and self.runner.last_plan_ms is not None:
+                    timings["plan"] = self.runner.last_plan_ms
+                health = {"mavlink": v.connected, "camera": self.worker is not None and self.worker.is_fresh(),
+                          "map_fresh": self.worker is not None and self.worker.is_fresh(),
+                          "ground": ground.connected}
+                detail = f"offboard {v.offboard.state.value}, {pipeline.frames_done} frames"
+                ground.publish_status(self.state, time.monotonic() - self._t0,
+                                      {n: round(t, 2) for n, t in timings.items() if math.isfinite(t)},
+                                      health, detail)
+                self.notifier.status(f"{self.state}: {detail}")
+                with pipeline.lock:
+                    objects = pipeline.smap.objects
+                if len(objects) != n_objects:
+                    n_objects = len(objects)
+                    ground.publish_objects(objects)
+                with contextlib.suppress(CompanionError):
+                    ground.publish_map(await asyncio.to_thread(pipeline.costmap, flight_band(self.cfg)))
+            k += 1
+            await asyncio.sleep(period)
+
+    @property
+    def path_xy_m(self) -> NDArray[np.float64]:
+        """The latest planned path (K, 2), map frame."""
+        return self._path_xy

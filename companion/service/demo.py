@@ -1,0 +1,327 @@
+"""The end-to-end demo: the whole service flying a MAVSDK-uploaded mission through a simulated room.
+
+In one process: the mock autopilot and the simulated RealSense in the seeded furnished room
+(:class:`~companion.service.sim_world.SimWorld`), a real Mosquitto broker when the binary is
+installed, and the full :class:`~companion.service.app.CompanionService` (detector, tracker,
+semantic map, planner process, offboard). A mission that crosses the room - waypoints only,
+knowing nothing of the furniture - is uploaded with MAVSDK; the service downloads it and flies
+it leg by leg with the semantic planner, then lands. Everything is judged against the
+simulator's ground truth (:mod:`companion.sim.groundtruth`) and written into the output folder.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import csv
+import json
+import logging
+import math
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.config import CompanionConfig, write_effective_config
+from companion.mavsdk_client import MavsdkClient
+from companion.missions import MissionPlan, Waypoint
+from companion.service.app import CompanionService, ServiceReport
+from companion.service.sim_world import SimPlacement, SimWorld
+from companion.sim.groundtruth import clearance_m, collides, densify
+from semmap.errors import SimulationError
+from semmap.export import export_all, render_picture
+
+log = logging.getLogger(__name__)
+
+MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+
+
+@dataclass
+class E2EResult:
+    """What an end-to-end run produced."""
+
+    out_dir: Path
+    summary: dict[str, Any] = field(default_factory=dict)
+    files: dict[str, Path] = field(default_factory=dict)
+    report: ServiceReport | None = None
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that is free right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextlib.contextmanager
+def local_broker(workdir: Path) -> Any:
+    """A Mosquitto broker on a free loopback port (yields the port), or None without the binary."""
+    if not Path(MOSQUITTO).exists():
+        log.warning("mosquitto not installed: the demo runs without the ground link")
+        yield None
+        return
+    port = _free_tcp_port()
+    conf = workdir / "mosquitto.conf"
+    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n", encoding="utf-8")
+    with (workdir / "mosquitto.log").open("w") as out:
+        proc = subprocess.Popen([MOSQUITTO, "-c", str(conf)], stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.05)
+        yield port
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(3.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(1.0)
+
+
+def crossing_waypoints_room(placement: SimPlacement, cfg: CompanionConfig) -> list[tuple[float, float]]:
+    """Mission waypoints (room frame) across the room: the middle of the room (the free point
+    nearest to it) and just inside the far doorway. They keep clear of everything in the
+    ground truth, but the straight legs between them cross furniture freely: the mission
+    author knows the room's doorways, not its furniture."""
+    room = placement.room
+    start = placement.offset_xy_m
+    if len(room.doorways) >= 2:
+        goal = room.doorways[1].inside_point_m(0.6)
+    else:
+        goal = (room.width_m - start[0], room.depth_m - start[1])
+    p = cfg.planner
+    margins = {c.name: c.margin_m for c in cfg.classes}
+    xs, ys = np.meshgrid(np.arange(0.5, room.width_m - 0.5, 0.1), np.arange(0.5, room.depth_m - 0.5, 0.1))
+    cand = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, p.flight_altitude_m)])
+    # Clear of walls and of every object's whole footprint (with its class margin), as the
+    # semantic map will see them; a waypoint under a table would be unreachable.
+    ok = clearance_m(placement.room, cand, 2.0 * p.flight_altitude_m) >= p.vehicle_radius_m + 0.3
+    for o in room.objects:
+        poly = o.footprint_xy_m().astype(np.float32)
+        need = p.vehicle_radius_m + margins.get(o.class_name, 0.0) + 0.3
+        d = np.array([-cv2.pointPolygonTest(poly, (float(x), float(y)), True) for x, y in cand[:, :2]])
+        ok &= d >= need
+    if not np.any(ok):
+        raise SimulationError(f"room seed {room.seed}: no free point for a mission waypoint")
+    mid_target = np.array([room.width_m / 2.0, room.depth_m / 2.0])
+    free = cand[ok, :2]
+    mid = free[int(np.argmin(np.linalg.norm(free - mid_target, axis=1)))]
+    return [(float(mid[0]), float(mid[1])), (float(goal[0]), float(goal[1]))]
+
+
+async def upload_mission_mavsdk(port: int, waypoints_map_xy: list[tuple[float, float]], altitude_m: float,
+                                acceptance_m: float) -> None:
+    """Upload a waypoint mission (map-frame points) with MAVSDK listening on UDP ``port``."""
+    plan = MissionPlan(tuple(Waypoint(xyz_map_m=(x, y, altitude_m), acceptance_radius_m=acceptance_m)
+                             for x, y in waypoints_map_xy), None, "demo crossing")
+    async with MavsdkClient(f"udpin://127.0.0.1:{port}", connect_timeout_s=20.0) as client:
+        home = await client.home()
+        await client.upload_mission(plan.resolved(home))
+    log.info("mission of %d waypoints uploaded with MAVSDK", len(waypoints_map_xy))
+
+
+def setpoint_gaps_s(stamps_s: list[float]) -> float:
+    """The longest gap between consecutive received setpoints (0 for fewer than two)."""
+    if len(stamps_s) < 2:
+        return 0.0
+    return float(np.max(np.diff(np.asarray(sorted(stamps_s)))))
+
+
+async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool = True,
+                  timeout_s: float = 170.0, inject: Any = None) -> E2EResult:
+    """Fly the demo mission with the whole service; write outputs into ``out_dir``.
+
+    ``inject``: optional ``async (world, service) -> None`` run once the service is active
+    (fault tests). Returns the summary (also written as ``summary.json``)."""
+    out = Path(out_dir)
+    await asyncio.to_thread(out.mkdir, parents=True, exist_ok=True)
+    result = E2EResult(out)
+    t_start = time.monotonic()
+    link_port, mavsdk_port = free_udp_port(), free_udp_port()
+    with tempfile.TemporaryDirectory(prefix="companion-demo-") as tmp, \
+            (local_broker(Path(tmp)) if use_broker else contextlib.nullcontext(None)) as broker_port:
+        mqtt = cfg.mqtt.model_copy(update={"enabled": broker_port is not None, "port": broker_port or 1883})
+        link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
+        service_cfg = cfg.service.model_copy(update={"output_dir": str(out), "map_dir": str(out / "checkpoint")})
+        cfg = cfg.model_copy(update={"mqtt": mqtt, "link": link, "service": service_cfg})
+        result.files["config"] = write_effective_config(cfg, out)
+        world = SimWorld(cfg, autopilot_port=0, remote_ports=(link_port, mavsdk_port))
+        async with world:
+            placement = world.placement
+            wps_room = crossing_waypoints_room(placement, cfg)
+            wps_map = [placement.room_to_map_xy(w) for w in wps_room]
+            acceptance = 0.3
+            await upload_mission_mavsdk(mavsdk_port, wps_map, cfg.planner.flight_altitude_m, acceptance)
+            service = CompanionService(
+                cfg, world.frame_source(), out_dir=out, fly_mission=True,
+                object_classes={o.object_id: o.class_name for o in placement.room.objects},
+            )
+            stamps: list[float] = []
+            flown: list[NDArray[np.float64]] = []
+            stop = asyncio.Event()
+
+            async def watch() -> None:
+                last = -math.inf
+                ap = world.autopilot
+                while not stop.is_set():
+                    for sp in list(ap.setpoints):
+                        if sp.stamp_s > last:
+                            stamps.append(sp.stamp_s)
+                    if ap.setpoints:
+                        last = ap.setpoints[-1].stamp_s
+                    n, e, d = ap.position_ned_m
+                    flown.append(np.array([e, n, -d]))
+                    await asyncio.sleep(0.05)
+
+            async def stopper() -> None:
+                try:
+                    await asyncio.wait_for(service.mission_done.wait(), timeout_s)
+                except TimeoutError:
+                    log.error("demo: the mission did not finish within %.0f s", timeout_s)
+                stop.set()
+
+            if inject is not None:
+                service.on_active = lambda svc: inject(world, svc)
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(watch())
+                tg.create_task(stopper())
+                report = await service.run(stop)
+                stop.set()
+    result.report = report
+    assert service.smap is not None
+    colours = {c.name: c.color_rgb for c in cfg.classes}
+    result.files.update({f"map_{k}": v for k, v in export_all(out / "map", service.smap, colours).items()})
+    path_map = np.array(flown) if flown else np.zeros((0, 3))
+    result.files["picture"] = _write_picture(out / "map_with_path.png", service, placement, path_map, wps_map)
+    result.summary = _summary(cfg, placement, report, path_map, wps_map, stamps, service, time.monotonic() - t_start)
+    result.summary["mqtt"] = broker_port is not None
+    path = out / "summary.json"
+    result.files["summary"] = path
+    result.summary["files"] = {k: str(p.relative_to(out)) if p.is_relative_to(out) else str(p)
+                               for k, p in sorted(result.files.items())}
+    path.write_text(json.dumps(result.summary, indent=2) + "\n", encoding="utf-8")
+    return result
+
+
+def _summary(cfg: CompanionConfig, placement: SimPlacement, report: ServiceReport, path_map: NDArray[np.float64],
+             wps_map: list[tuple[float, float]], stamps: list[float], service: CompanionService,
+             elapsed_s: float) -> dict[str, Any]:
+    p = cfg.planner
+    airborne = path_map[path_map[:, 2] > 0.3] if len(path_map) else path_map
+    room_path = placement.map_to_room(airborne) if len(airborne) else airborne
+    dense = densify(room_path, 0.02) if len(room_path) >= 2 else room_path
+    coll = collides(placement.room, dense, p.vehicle_radius_m, p.vehicle_height_m) if len(dense) else np.zeros(0, bool)
+    clear = clearance_m(placement.room, dense, p.vehicle_height_m) if len(dense) else np.zeros(0)
+    true_ids = {o.object_id: o.class_name for o in placement.room.objects}
+    found = []
+    assert service.smap is not None
+    for fp in service.smap.objects:
+        c = np.asarray(fp.polygon_xy_m).mean(axis=0) if len(fp.polygon_xy_m) else np.zeros(2)
+        found.append({"id": fp.object_id, "class": fp.class_name,
+                      "center_xy_m": [round(float(v), 3) for v in c]})
+    return {
+        "seed": placement.room.seed,
+        "room_m": {"width": placement.room.width_m, "depth": placement.room.depth_m},
+        "room_offset_xy_m": list(placement.offset_xy_m),
+        "waypoints_xy_m": [[round(x, 3), round(y, 3)] for x, y in wps_map],
+        "waypoints_reached": sum(1 for r in report.legs if r.reached),
+        "waypoints_total": len(wps_map),
+        "legs": [{"seq": r.seq, "reached": r.reached, "plans": r.plans, "replans_on_new_obstacle": r.replans_invalid,
+                  "failed_plans": r.failed_plans, "duration_s": round(r.duration_s, 2),
+                  "final_error_m": None if math.isnan(r.final_error_m) else round(r.final_error_m, 3)}
+                 for r in report.legs],
+        "mission_error": report.mission_error,
+        "collisions": int(np.count_nonzero(coll)),
+        "min_clearance_m": None if len(clear) == 0 else round(float(np.min(clear)), 3),
+        "collision_points_room_xy_m": [[round(float(v), 2) for v in q[:2]] for q in dense[coll][:: max(1, int(np.count_nonzero(coll)) // 5)]][:5],
+        "objects_true": len(true_ids),
+        "objects_found": found,
+        "max_setpoint_gap_ms": round(1e3 * setpoint_gaps_s(stamps), 1),
+        "setpoints_received": len(stamps),
+        "stage_timings_ms": report.stage_timings,
+        "plan_ms": {"mean": round(float(np.mean(report.plan_ms)), 1) if report.plan_ms else None,
+                    "max": round(float(np.max(report.plan_ms)), 1) if report.plan_ms else None,
+                    "count": len(report.plan_ms)},
+        "frames": {"processed": report.frames_processed, "dropped": report.frames_dropped,
+                   "failed": report.frames_failed},
+        "checkpoints": report.checkpoints,
+        "elapsed_s": round(elapsed_s, 1),
+    }
+
+
+def _write_picture(path: Path, service: CompanionService, placement: SimPlacement,
+                   path_map: NDArray[np.float64], wps_map: list[tuple[float, float]]) -> Path:
+    """The semantic map picture (objects) with the flown path, true footprints and waypoints."""
+    assert service.smap is not None
+    smap = service.smap
+    img = render_picture(smap, {c.name: c.color_rgb for c in service.cfg.classes})
+    h = img.shape[0]
+    # A second panel in the room's own extent: the room, true footprints, mapped objects, path.
+    room = placement.room
+    pad = 0.5
+    px_per_m = 80
+    W = int((room.width_m + 2 * pad) * px_per_m)
+    H = int((room.depth_m + 2 * pad) * px_per_m)
+    panel = np.full((H, W, 3), 255, np.uint8)
+
+    def to_px(xy_map: NDArray[np.floating]) -> NDArray[np.int32]:
+        xy = np.asarray(xy_map, np.float64).reshape(-1, 2) + np.array(placement.offset_xy_m)
+        return np.column_stack([(xy[:, 0] + pad) * px_per_m, H - (xy[:, 1] + pad) * px_per_m]).round().astype(np.int32)
+
+    def room_px(xy_room: NDArray[np.floating]) -> NDArray[np.int32]:
+        return to_px(np.asarray(xy_room, np.float64).reshape(-1, 2) - np.array(placement.offset_xy_m))
+
+    cv2.rectangle(panel, tuple(room_px(np.array([0.0, 0.0]))[0]),
+                  tuple(room_px(np.array([room.width_m, room.depth_m]))[0]), (0, 0, 0), 2)
+    for o in room.objects:
+        cv2.polylines(panel, [room_px(o.footprint_xy_m())], True, (150, 150, 150), 1, cv2.LINE_AA)
+    colours = {c.name: c.color_rgb for c in service.cfg.classes}
+    for fp in smap.objects:
+        col = colours.get(fp.class_name, (200, 0, 200))
+        poly = to_px(np.asarray(fp.polygon_xy_m))
+        cv2.polylines(panel, [poly], True, (int(col[2]), int(col[1]), int(col[0])), 2, cv2.LINE_AA)
+        c = poly.mean(axis=0).astype(int)
+        cv2.putText(panel, f"{fp.class_name} #{fp.object_id}", (int(c[0]) - 30, int(c[1])),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    if len(path_map) >= 2:
+        cv2.polylines(panel, [to_px(path_map[:, :2])], False, (0, 140, 255), 2, cv2.LINE_AA)
+    for i, wp in enumerate([(0.0, 0.0), *wps_map]):
+        q = to_px(np.array(wp))[0]
+        cv2.circle(panel, (int(q[0]), int(q[1])), 6, (0, 0, 255), 2)
+        cv2.putText(panel, "start" if i == 0 else f"wp{i}", (int(q[0]) + 8, int(q[1]) - 8),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 255), 1, cv2.LINE_AA)
+    cv2.putText(panel, "grey: true footprints, colour: mapped objects, orange: flown path", (8, 18),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    # Side by side with the map picture (same height).
+    ph = h
+    pw = int(W * ph / H)
+    panel = cv2.resize(panel, (pw, ph), interpolation=cv2.INTER_AREA)
+    both = np.hstack([img, np.full((h, 8, 3), 255, np.uint8), panel])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), both):
+        raise SimulationError(f"{path}: cannot write picture")
+    return path
+
+
+def read_flight_log(path: Path) -> list[dict[str, str]]:
+    """Rows of a flight log CSV (for tests and tools)."""
+    with path.open(newline="", encoding="utf-8") as f:
+        return list(csv.DictReader(f))

@@ -1,0 +1,340 @@
+"""Fly a mission leg by leg in OFFBOARD with the semantic planner between waypoints.
+
+The mission uploaded to the autopilot (by MAVSDK or a ground station) is downloaded through our
+link and turned into :class:`Leg` s (map-frame goals). Each leg is planned by the planning
+worker process on the semantic map's costmap at the flight band, time-parametrised, and flown
+by feeding the offboard controller's setpoint slot. While flying, the remaining path is
+re-checked against every new costmap; when it has become invalid (an object appeared on it)
+the leg is re-planned from where the vehicle is. A failed plan holds position and retries.
+So every leg avoids hollow-bottom furniture the mission author never knew about.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.mavlink.failsafe import OffboardState, PositionSetpoint
+from companion.mavlink.mission_download import MissionItem, waypoint_ned_m
+from companion.mavlink.state import HomePosition, VehicleState
+from companion.mavlink.vehicle import Vehicle
+from companion.px4 import FlightMode
+from planner.config import PlannerConfig
+from planner.trajectory import Trajectory, TrajectoryLimits, time_parametrize
+from planner.types import PlanResult, PlanStatus
+from planner.worker import PlanningService
+from semmap.costmap import LETHAL_OBSTACLE, Costmap
+from semmap.errors import MissionError
+from semmap.frames import enu_to_ned, ned_to_enu, yaw_enu_to_ned, yaw_ned_to_enu
+
+log = logging.getLogger(__name__)
+
+#: Default distance at which a waypoint counts as reached (metres).
+DEFAULT_ACCEPTANCE_M = 0.3
+#: How often the setpoint slot is refreshed from the trajectory.
+FEED_PERIOD_S = 0.05
+#: How often the remaining path is checked against the newest costmap.
+CHECK_PERIOD_S = 0.5
+#: Hold this long after a failed plan before trying again.
+RETRY_HOLD_S = 1.0
+
+
+@dataclass(frozen=True)
+class Leg:
+    """One mission leg: fly to ``goal_xy_m`` (map frame ENU) at ``altitude_m``."""
+
+    seq: int
+    goal_xy_m: tuple[float, float]
+    altitude_m: float
+    acceptance_m: float = DEFAULT_ACCEPTANCE_M
+
+
+def mission_legs(items: Sequence[MissionItem], home: HomePosition, altitude_m: float) -> list[Leg]:
+    """The waypoint items of a downloaded mission as legs at ``altitude_m`` (the planner's
+    flight altitude: the semantic map's band is built for it). Takeoff, land and RTL items
+    are flown by the service itself; other items are skipped with a log line."""
+    legs = []
+    for it in items:
+        if it.command != mavlink.MAV_CMD_NAV_WAYPOINT:
+            if it.command not in (mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
+                                  mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH):
+                log.info("mission item %d (%s) is not flown by the companion", it.seq, it.command_name)
+            continue
+        n, e, d = waypoint_ned_m(it, home)
+        x, y, _z = ned_to_enu(n, e, d)
+        acc = it.param2 if it.param2 > 0 else DEFAULT_ACCEPTANCE_M
+        legs.append(Leg(it.seq, (x, y), altitude_m, acc))
+    if not legs:
+        raise MissionError("the autopilot's mission has no waypoint to fly")
+    return legs
+
+
+def position_enu(state: VehicleState) -> NDArray[np.float64] | None:
+    """(3,) the vehicle's map-frame position from LOCAL_POSITION_NED, or None."""
+    if state.position_ned_m is None:
+        return None
+    return np.array(ned_to_enu(*state.position_ned_m))
+
+
+def clearance_field_m(costmap: Costmap) -> NDArray[np.float32]:
+    """(rows, cols) distance in metres from each cell to the nearest lethal cell."""
+    free = (costmap.cost != LETHAL_OBSTACLE).astype(np.uint8)
+    return np.asarray(cv2.distanceTransform(free, cv2.DIST_L2, 5) * costmap.spec.resolution_m, np.float32)
+
+
+def escape_point(costmap: Costmap, xy_m: NDArray[np.floating], radius_m: float) -> NDArray[np.float64] | None:
+    """The nearest point to ``xy_m`` (map frame) that keeps ``radius_m`` from lethal cells,
+    or None when there is none (a vehicle too close to an obstacle moves there first)."""
+    dist = clearance_field_m(costmap)
+    rows, cols = np.nonzero(dist >= radius_m)
+    if len(rows) == 0:
+        return None
+    spec = costmap.spec
+    cx = spec.origin_xy_m[0] + (cols + 0.5) * spec.resolution_m
+    cy = spec.origin_xy_m[1] + (rows + 0.5) * spec.resolution_m
+    k = int(np.argmin((cx - xy_m[0]) ** 2 + (cy - xy_m[1]) ** 2))
+    return np.array([cx[k], cy[k]])
+
+
+def path_clear(costmap: Costmap, path_xy_m: NDArray[np.floating], radius_m: float, step_m: float = 0.05) -> bool:
+    """True if every point of the (K, 2) polyline keeps ``radius_m`` from lethal cells."""
+    p = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
+    if len(p) == 0:
+        return True
+    pts = [p[:1]]
+    for a, b in zip(p[:-1], p[1:], strict=True):
+        n = max(1, int(math.ceil(float(np.linalg.norm(b - a)) / step_m)))
+        pts.append(a + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b - a))
+    xy = np.concatenate(pts)
+    dist_m = clearance_field_m(costmap)
+    spec = costmap.spec
+    col = np.floor((xy[:, 0] - spec.origin_xy_m[0]) / spec.resolution_m).astype(np.int64)
+    row = np.floor((xy[:, 1] - spec.origin_xy_m[1]) / spec.resolution_m).astype(np.int64)
+    inside = (row >= 0) & (row < spec.rows) & (col >= 0) & (col < spec.cols)
+    return bool(np.all(dist_m[row[inside], col[inside]] >= radius_m))
+
+
+@dataclass
+class LegReport:
+    """How one leg went."""
+
+    seq: int
+    goal_xy_m: tuple[float, float]
+    reached: bool = False
+    plans: int = 0
+    replans_invalid: int = 0
+    failed_plans: int = 0
+    plan_ms: list[float] = field(default_factory=list)
+    duration_s: float = 0.0
+    final_error_m: float = math.nan
+
+
+class MissionRunner:
+    """Flies legs with ``vehicle`` (already connected) using ``planning`` on the costmaps
+    from ``costmap_source`` (callable returning the current costmap at the flight band;
+    called in a worker thread). ``on_path`` is told each new planned path (MQTT, logs)."""
+
+    def __init__(self, vehicle: Vehicle, planning: PlanningService, costmap_source: Callable[[], Costmap],
+                 planner_cfg: PlannerConfig, *, on_path: Callable[[NDArray[np.float64]], None] | None = None,
+                 max_failed_plans: int = 20, leg_timeout_s: float = 120.0) -> None:
+        self.vehicle = vehicle
+        self.planning = planning
+        self.costmap_source = costmap_source
+        self.cfg = planner_cfg
+        self.limits = TrajectoryLimits.from_config(planner_cfg)
+        self.on_path = on_path
+        self.max_failed_plans = max_failed_plans
+        self.leg_timeout_s = leg_timeout_s
+        self._map_version = 0
+        #: Latest plan duration (ms), for the per-stage timings.
+        self.last_plan_ms: float | None = None
+        self.reports: list[LegReport] = []
+
+    # --- vehicle steps ------------------------------------------------------------------
+
+    async def take_off(self, altitude_m: float, timeout_s: float = 30.0) -> None:
+        """Arm, take off to ``altitude_m`` above home and engage OFFBOARD holding there."""
+        v = self.vehicle
+        state = v.snapshot()
+        if not state.in_air:
+            await v.commands.arm()
+            await v.commands.takeoff(altitude_m)
+            await v.state.wait_for(
+                lambda s: s.position_ned_m is not None and -s.position_ned_m[2] >= altitude_m - 0.1,
+                timeout_s, f"the vehicle to climb to {altitude_m:.2f} m",
+            )
+        await self.engage_here(altitude_m)
+
+    async def engage_here(self, altitude_m: float) -> None:
+        """Hold the current horizontal position at ``altitude_m`` and engage OFFBOARD."""
+        pos = position_enu(self.vehicle.snapshot())
+        if pos is None:
+            raise MissionError("no vehicle position to engage offboard from")
+        self._hold_at(pos[:2], altitude_m)
+        await self.vehicle.offboard.engage()
+
+    def _hold_at(self, xy_m: NDArray[np.floating], altitude_m: float) -> None:
+        yaw_ned = self.vehicle.snapshot().yaw_ned_rad
+        self.vehicle.offboard.set_setpoint(PositionSetpoint(
+            enu_to_ned(float(xy_m[0]), float(xy_m[1]), altitude_m), yaw_rad=yaw_ned))
+
+    async def _plan(self, start_xy: NDArray[np.float64], goal_xy: tuple[float, float]) -> tuple[PlanResult, Costmap]:
+        costmap = await asyncio.to_thread(self.costmap_source)
+        self._map_version += 1
+        result = await asyncio.to_thread(self.planning.plan, costmap, self._map_version, start_xy, goal_xy)
+        self.last_plan_ms = 1e3 * result.planning_time_s
+        return result, costmap
+
+    # --- legs ---------------------------------------------------------------------------
+
+    async def fly(self, legs: Sequence[Leg]) -> list[LegReport]:
+        """Fly every leg in order; returns one report per leg (``reached`` False when a leg
+        was given up). Raises :class:`MissionError` when the vehicle left OFFBOARD."""
+        for leg in legs:
+            self.reports.append(await self.fly_leg(leg))
+        return self.reports
+
+    async def fly_leg(self, leg: Leg) -> LegReport:
+        """Plan and fly to one goal, re-planning when the path becomes invalid."""
+        rep = LegReport(leg.seq, leg.goal_xy_m)
+        t_leg = time.monotonic()
+        goal = np.array(leg.goal_xy_m)
+        log.info("leg %d: to (%.2f, %.2f) m", leg.seq, *leg.goal_xy_m)
+        while time.monotonic() - t_leg < self.leg_timeout_s:
+            self._check_offboard()
+            pos = position_enu(self.vehicle.snapshot())
+            if pos is None:
+                await asyncio.sleep(RETRY_HOLD_S)
+                continue
+            if np.linalg.norm(pos[:2] - goal) <= leg.acceptance_m:
+                rep.reached = True
+                break
+            start = self._plan_start(pos)
+            result, costmap = await self._plan(start, leg.goal_xy_m)
+            rep.plans += 1
+            rep.plan_ms.append(1e3 * result.planning_time_s)
+            if result.status is PlanStatus.START_BLOCKED:
+                esc = escape_point(costmap, start, self.cfg.vehicle_radius_m + 0.05)
+                if esc is not None and np.linalg.norm(esc - start) < 1.0:
+                    log.info("leg %d: too close to an obstacle; backing off %.2f m first", leg.seq,
+                             float(np.linalg.norm(esc - start)))
+                    await self._follow(time_parametrize(np.vstack([start, esc]), leg.altitude_m, self.limits,
+                                                        initial_yaw_rad=self._yaw_enu()),
+                                       Leg(leg.seq, (float(esc[0]), float(esc[1])), leg.altitude_m, 0.1),
+                                       check=False)
+                    continue
+            if not result.ok:
+                rep.failed_plans += 1
+                log.warning("leg %d: no path (%s: %s); holding", leg.seq, result.status.value, result.reason)
+                if rep.failed_plans >= self.max_failed_plans:
+                    break
+                self._hold_at(pos[:2], leg.altitude_m)
+                await asyncio.sleep(RETRY_HOLD_S)
+                continue
+            if self.on_path is not None:
+                self.on_path(result.path_xy_m)
+            traj = time_parametrize(result.path_xy_m, leg.altitude_m, self.limits,
+                                    initial_yaw_rad=self._yaw_enu())
+            outcome = await self._follow(traj, leg)
+            if outcome == "reached":
+                rep.reached = True
+                break
+            if outcome == "invalid":
+                rep.replans_invalid += 1
+        rep.duration_s = time.monotonic() - t_leg
+        pos = position_enu(self.vehicle.snapshot())
+        if pos is not None:
+            rep.final_error_m = float(np.linalg.norm(pos[:2] - goal))
+        log.info("leg %d: %s after %.1f s (%d plans, %d re-plans on a changed map)", leg.seq,
+                 "reached" if rep.reached else "NOT reached", rep.duration_s, rep.plans, rep.replans_invalid)
+        return rep
+
+    def _yaw_enu(self) -> float | None:
+        yaw_ned = self.vehicle.snapshot().yaw_ned_rad
+        return None if yaw_ned is None else yaw_ned_to_enu(yaw_ned)
+
+    def _plan_start(self, pos_enu: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Where a new plan starts: the setpoint being flown when it is near the vehicle (it
+        lies on the last checked path, and the vehicle brakes towards it without
+        overshooting), else the vehicle's position."""
+        sp = self.vehicle.offboard.status().setpoint
+        if sp is not None and self.vehicle.offboard.state.streams:
+            x, y, _z = ned_to_enu(*sp.position_ned_m)
+            xy = np.array([x, y])
+            if np.linalg.norm(xy - pos_enu[:2]) < 0.5:
+                return xy
+        return np.asarray(pos_enu[:2], dtype=np.float64)
+
+    def _check_offboard(self) -> None:
+        st = self.vehicle.offboard.state
+        if st in (OffboardState.YIELDED, OffboardState.IDLE):
+            raise MissionError(f"offboard control ended ({st.value}: {self.vehicle.offboard.failsafe.reason})")
+
+    async def _follow(self, traj: Trajectory, leg: Leg, check: bool = True) -> str:
+        """Feed the trajectory; "reached", "invalid" (re-plan) or "late" (re-plan from here).
+
+        Trajectory time only advances while the controller flies our setpoints (ACTIVE), so
+        after a hold (stale pose or map, link loss) the vehicle resumes where it stopped.
+        """
+        goal = np.array(leg.goal_xy_m)
+        t_traj = 0.0
+        last = time.monotonic()
+        next_check = last + CHECK_PERIOD_S
+        settle_s = 5.0
+        ctl = self.vehicle.offboard
+        while True:
+            now = time.monotonic()
+            st = ctl.state
+            if st is OffboardState.ACTIVE:
+                t_traj += now - last
+            elif st is OffboardState.LINK_LOST and self.vehicle.connected:
+                log.warning("autopilot link back: re-engaging offboard")
+                try:
+                    await ctl.engage()
+                except Exception as exc:  # noqa: BLE001 - retried on the next tick
+                    log.warning("re-engaging offboard failed: %s", exc)
+            else:
+                self._check_offboard()
+            last = now
+            s = traj.sample(t_traj)
+            n, e, d = enu_to_ned(*(float(v) for v in s.position_m))
+            vn, ve, vd = enu_to_ned(*(float(v) for v in s.velocity_m_s))
+            ctl.set_setpoint(PositionSetpoint((n, e, d), yaw_rad=yaw_enu_to_ned(s.yaw_rad),
+                                              velocity_ned_m_s=(vn, ve, vd)))
+            pos = position_enu(self.vehicle.snapshot())
+            if t_traj >= traj.duration_s and pos is not None:
+                if np.linalg.norm(pos[:2] - goal) <= leg.acceptance_m:
+                    return "reached"
+                if t_traj >= traj.duration_s + settle_s:
+                    return "late"
+            if check and now >= next_check and pos is not None and t_traj < traj.duration_s:
+                next_check = now + CHECK_PERIOD_S
+                costmap = await asyncio.to_thread(self.costmap_source)
+                ahead = _remaining(traj, t_traj)
+                if not path_clear(costmap, ahead, self.cfg.vehicle_radius_m):
+                    log.info("leg %d: the path ahead crosses a newly mapped obstacle; re-planning", leg.seq)
+                    return "invalid"
+            await asyncio.sleep(FEED_PERIOD_S)
+
+    async def finish(self, then: FlightMode = FlightMode.LAND) -> None:
+        """Hand the vehicle to ``then`` (LAND or HOLD) and stop streaming."""
+        if self.vehicle.offboard.state.streams:
+            await self.vehicle.offboard.release(then)
+
+
+def _remaining(traj: Trajectory, t_s: float) -> NDArray[np.float64]:
+    """(K, 2) the rest of the trajectory's path from a little ahead of time ``t_s`` (the
+    vehicle's own neighbourhood is not judged: it is where the vehicle already is)."""
+    t_ahead = min(traj.duration_s, t_s + 0.3)
+    ahead = traj.sample(t_ahead).position_m[:2]
+    seg = max(0, int(np.searchsorted(traj.seg_t0_s, t_ahead, side="right")) - 1)
+    return np.vstack([ahead[None, :], traj.waypoints_xy_m[seg + 1:]])

@@ -1,0 +1,193 @@
+"""Perception off the event loop: detect -> track -> geometry -> map update on the newest frame.
+
+:class:`PerceptionPipeline` is the synchronous per-frame step (the same stages as the offline
+``companion map``) and measures each stage. :class:`PerceptionWorker` feeds it from a
+:class:`~companion.sources.stream.FrameStream` (bounded, drop-oldest) and runs each step in a
+worker thread, so the event loop (setpoints, MAVLink, MQTT) never waits for perception and
+perception always works on the newest frame. The semantic map is guarded by a lock: the
+planner side reads costmaps through :meth:`PerceptionWorker.costmap`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.sources.base import FrameSource
+from companion.sources.stream import FrameStream
+from semmap.costmap import Costmap, VerticalBand
+from semmap.detection import Detector, detector_from_config
+from semmap.errors import CompanionError
+from semmap.geometry import observe_object
+from semmap.objects import ObjectMap
+from semmap.semantic_map import SemanticMap, SemanticMapSettings
+from semmap.tracking.botsort import BoTSORT
+from semmap.types import Frame
+
+log = logging.getLogger(__name__)
+
+#: The stages timed every frame, in order.
+STAGES = ("detect", "track", "geometry", "grid")
+
+
+def flight_band(cfg: CompanionConfig) -> VerticalBand:
+    """The vertical band the vehicle occupies at the planner's flight altitude."""
+    p = cfg.planner
+    return VerticalBand.for_altitude(p.flight_altitude_m, p.vehicle_height_m, p.vertical_margin_m)
+
+
+def new_semantic_map(cfg: CompanionConfig) -> SemanticMap:
+    """An empty semantic map with an object map, configured from ``cfg``."""
+    settings = SemanticMapSettings.from_config(cfg.map, cfg.classes, flight_band(cfg),
+                                               cfg.camera.depth_min_m, cfg.camera.depth_max_m)
+    return SemanticMap(settings, ObjectMap(cfg.classes, cfg.map))
+
+
+@dataclass
+class StageTimings:
+    """Per-stage durations (ms): the latest frame's and running sums for means."""
+
+    latest_ms: dict[str, float] = field(default_factory=dict)
+    sum_ms: dict[str, float] = field(default_factory=dict)
+    max_ms: dict[str, float] = field(default_factory=dict)
+    count: dict[str, int] = field(default_factory=dict)
+
+    def add(self, stage: str, ms: float) -> None:
+        self.latest_ms[stage] = ms
+        self.sum_ms[stage] = self.sum_ms.get(stage, 0.0) + ms
+        self.max_ms[stage] = max(self.max_ms.get(stage, 0.0), ms)
+        self.count[stage] = self.count.get(stage, 0) + 1
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """{stage: {"mean_ms", "max_ms", "count"}} rounded for reports."""
+        return {s: {"mean_ms": round(self.sum_ms[s] / self.count[s], 2), "max_ms": round(self.max_ms[s], 2),
+                    "count": self.count[s]} for s in self.sum_ms}
+
+
+class PerceptionPipeline:
+    """The synchronous per-frame step on a :class:`SemanticMap` (thread-safe via ``lock``).
+
+    ``object_classes``: the simulator's object id -> class (only the oracle detector uses it).
+    """
+
+    def __init__(self, cfg: CompanionConfig, smap: SemanticMap, detector: Detector,
+                 timings: StageTimings | None = None) -> None:
+        self.cfg = cfg
+        self.smap = smap
+        self.detector = detector
+        self.tracker = BoTSORT.from_config(cfg.tracker)
+        self.by_name = {c.name: c for c in cfg.classes}
+        self.depth_range = (cfg.camera.depth_min_m, cfg.camera.depth_max_m)
+        self.timings = timings or StageTimings()
+        self.lock = threading.Lock()
+        self.frames_done = 0
+        self.frames_failed = 0
+        self.last_frame_s: float | None = None  # monotonic time of the last integrated frame
+        self._rng = np.random.default_rng(0)
+
+    @classmethod
+    def from_config(cls, cfg: CompanionConfig, smap: SemanticMap,
+                    object_classes: Mapping[int, str] | None = None) -> PerceptionPipeline:
+        """The configured detector (``builtin:`` models from the package) and tracker."""
+        detector = detector_from_config(cfg.detector, [c.name for c in cfg.classes],
+                                        object_classes=object_classes, seed=cfg.sim.seed)
+        return cls(cfg, smap, detector)
+
+    def process(self, frame: Frame) -> dict[str, float]:
+        """Detect, track, measure objects and update the map with one frame; returns the
+        stage durations in ms. A frame without a pose is skipped (empty dict)."""
+        if frame.T_map_camera is None:
+            return {}
+        T = np.asarray(frame.T_map_camera, dtype=np.float64)
+        out: dict[str, float] = {}
+        t0 = time.perf_counter()
+        dets = self.detector.detect_frame(frame)
+        t1 = time.perf_counter()
+        tracks = self.tracker.update(dets, frame.rgb)
+        t2 = time.perf_counter()
+        obs = []
+        for tr in tracks:
+            o = observe_object(frame.depth_m, frame.intrinsics, T, tr, self.by_name[tr.class_name],
+                               self.cfg.geometry, depth_range_m=self.depth_range, stamp_s=frame.stamp_s,
+                               rng=self._rng)
+            if o is not None:
+                obs.append(o)
+        t3 = time.perf_counter()
+        with self.lock:
+            self.smap.integrate_frame(frame, T_map_camera=T, observations=obs)
+        t4 = time.perf_counter()
+        for name, a, b in (("detect", t0, t1), ("track", t1, t2), ("geometry", t2, t3), ("grid", t3, t4)):
+            out[name] = 1e3 * (b - a)
+            self.timings.add(name, out[name])
+        self.frames_done += 1
+        self.last_frame_s = time.monotonic()
+        return out
+
+    def costmap(self, band: VerticalBand | None = None) -> Costmap:
+        """The map's costmap at ``band`` (a consistent snapshot)."""
+        with self.lock:
+            return self.smap.costmap(band)
+
+
+class PerceptionWorker:
+    """Runs :class:`PerceptionPipeline` on the newest frame of ``source`` (async context manager).
+
+    Frames are read by the stream's reader thread into a drop-oldest queue of
+    ``queue_size``; each frame is processed in a worker thread. A failing frame (bad data,
+    a detector error) is logged and skipped; the worker keeps running. ``stale_after_s``:
+    :meth:`is_fresh` turns False when no frame was integrated for that long (camera lost).
+    """
+
+    def __init__(self, pipeline: PerceptionPipeline, source: FrameSource, *, rate_hz: float | None,
+                 queue_size: int = 1, stale_after_s: float = 2.0) -> None:
+        self.pipeline = pipeline
+        self.stream = FrameStream(source, queue_size=queue_size, rate_hz=rate_hz)
+        self.stale_after_s = stale_after_s
+        self._task: asyncio.Task[None] | None = None
+
+    async def __aenter__(self) -> PerceptionWorker:
+        await self.stream.__aenter__()
+        self._task = asyncio.create_task(self._run(), name="perception")
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
+            except Exception:  # noqa: BLE001 - already logged by _run; closing anyway
+                pass
+        await self.stream.aclose()
+
+    @property
+    def dropped_frames(self) -> int:
+        return self.stream.dropped_frames
+
+    def is_fresh(self) -> bool:
+        """True while frames keep arriving and being integrated."""
+        last = self.pipeline.last_frame_s
+        return last is not None and time.monotonic() - last <= self.stale_after_s
+
+    def costmap(self, band: VerticalBand | None = None) -> Costmap:
+        return self.pipeline.costmap(band)
+
+    async def _run(self) -> None:
+        failures = 0
+        async for frame in self.stream:
+            try:
+                await asyncio.to_thread(self.pipeline.process, frame)
+            except (CompanionError, ValueError) as exc:
+                failures += 1
+                self.pipeline.frames_failed += 1
+                if failures == 1 or failures % 50 == 0:
+                    log.warning("perception: frame %d skipped (%d so far): %s", frame.index, failures, exc)
+        log.info("perception: the frame source ended after %d frames", self.pipeline.frames_done)
