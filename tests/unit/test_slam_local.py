@@ -1,0 +1,99 @@
+"""Slam2D on a synthetic 2D room: drift correction, fallback reporting, the API around it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from _slam_world import cast, room_world, yaw_sweep_path
+from companion.sim.odometry import OdometryDriftModel
+from semmap.config import SlamConfig
+from semmap.slam import LevelScan, Slam2D, SlamStatus
+from semmap.slam.pose2d import matrix4, pose2
+
+
+def _fly(slam: Slam2D, n: int, drift: OdometryDriftModel, rate_hz: float = 5.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    truth = yaw_sweep_path(n, rate_hz)
+    rng = np.random.default_rng(5)
+    odom, est = [], []
+    for i, p in enumerate(truth):
+        t = i / rate_hz
+        o = drift.update(t, p)
+        e = slam.add_scan(t, LevelScan.from_points(cast(room_world(), p, noise_m=0.005, rng=rng)), o)
+        odom.append(o)
+        est.append(e.pose_map)
+    return truth, np.array(odom), np.array(est)
+
+
+def _ate(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
+
+
+def test_slam_closes_the_loop_and_beats_drifting_odometry() -> None:
+    # A lap and a quarter (the start is revisited) at 5 Hz.
+    drift = OdometryDriftModel(scale_error=0.03, heading_drift_deg_s=0.5, seed=1)
+    with Slam2D(SlamConfig(), background=False) as slam:
+        truth, odom, est = _fly(slam, 320, drift, rate_hz=5.0)
+        slam.optimize()
+        final = slam.trajectory()
+        assert slam.loop_closures > 0
+        assert len(slam.submaps()) >= 3
+        assert any(s.finished for s in slam.submaps())
+    assert _ate(odom, truth) > 0.3
+    assert _ate(est, truth) < 0.5 * _ate(odom, truth)
+    assert _ate(final[:, 1:], truth) < 0.05
+
+
+def test_generation_listener_and_correction() -> None:
+    drift = OdometryDriftModel(scale_error=0.03, heading_drift_deg_s=0.5, seed=2)
+    seen: list[int] = []
+    with Slam2D(SlamConfig(), background=False) as slam:
+        slam.add_listener(seen.append)
+        truth, _, est = _fly(slam, 320, drift)
+        slam.optimize()
+        assert slam.loop_closures > 0
+        assert slam.generation >= 1 and seen and seen[-1] == slam.generation
+        # The correction carries a pose used live to where the optimised map puts it.
+        k = 200
+        stamp = k / 5.0
+        T = slam.correction(stamp, est[k])
+        moved = T @ matrix4(est[k])
+        np.testing.assert_allclose(moved[:2, 3], slam.pose_at(stamp)[:2], atol=1e-9)
+        assert slam.optimized_trajectory().shape[1] == 4
+
+
+def test_loop_closure_runs_in_the_background() -> None:
+    drift = OdometryDriftModel(scale_error=0.03, heading_drift_deg_s=0.5, seed=3)
+    with Slam2D(SlamConfig()) as slam:
+        _fly(slam, 320, drift)
+        assert slam.drain(timeout_s=120.0)
+        assert slam.loop_closures > 0
+
+
+def test_odometry_mode_passes_the_autopilot_pose_through() -> None:
+    with Slam2D(SlamConfig(mode="odometry"), background=False) as slam:
+        est = slam.add_scan(0.0, np.array([[1.0, 0.0], [1.0, 0.5]]), (1.0, 2.0, 0.3))
+    assert est.status is SlamStatus.ODOMETRY
+    np.testing.assert_allclose(est.pose_map, [1.0, 2.0, 0.3])
+
+
+def test_too_few_points_is_reported_not_diverged() -> None:
+    with Slam2D(SlamConfig(), background=False) as slam:
+        p = pose2(3.0, 2.0, 0.0)
+        slam.add_scan(0.0, LevelScan.from_points(cast(room_world(), p)), p)
+        est = slam.add_scan(0.1, np.array([[2.0, 0.0], [2.0, 0.1]]), pose2(3.05, 2.0, 0.0))
+    assert est.status is SlamStatus.DEGENERATE_FALLBACK_ODOMETRY
+    assert "scan points" in est.reason
+    np.testing.assert_allclose(est.pose_map, [3.05, 2.0, 0.0], atol=1e-9)
+
+
+def test_drift_model_drifts_as_specified() -> None:
+    m = OdometryDriftModel(scale_error=0.03, heading_drift_deg_s=0.5, noise_m_per_sqrt_m=0.0,
+                           noise_rad_per_sqrt_rad=0.0)
+    out = [m.update(t, (0.1 * t, 0.0, 0.0)) for t in np.arange(0.0, 10.01, 0.1)]
+    assert math.degrees(out[-1][2]) == pytest.approx(5.0, abs=1e-6)
+    path = np.sum(np.linalg.norm(np.diff(np.array(out)[:, :2], axis=0), axis=1))
+    assert path == pytest.approx(1.03, rel=1e-6)
+    np.testing.assert_allclose(out[0], [0.0, 0.0, 0.0])
