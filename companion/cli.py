@@ -28,6 +28,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "companion.cmd_dataset",
     "companion.cmd_map",
     "companion.cmd_plan",
+    "companion.cmd_run",
 )
 
 

@@ -1,33 +1,95 @@
-"""``companion demo --out DIR``: the simulated world, a scripted flight, pictures and a summary."""
+"""``companion demo --out DIR``: the whole system flying a mission through the simulated room.
+
+The mock autopilot, the simulated RealSense in the seeded furnished room, the full service
+(detector, tracker, semantic map, planner process, offboard), a real Mosquitto when it is
+installed, and a mission uploaded with MAVSDK that crosses the room. ``--scripted`` runs the
+earlier foundation demo instead (a scripted flight rendered into frame pictures).
+"""
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import logging
 
-from companion.config import load_config
+from companion.config import CompanionConfig, load_config
+from semmap.errors import PerceptionError
+
+log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser(
-        "demo", help="fly a scripted route through the seeded simulated room and write pictures",
-        description="Generate the seeded room of the config, fly from one doorway to the other, "
-        "render RGB-D frames and write frame pictures, the ground-truth map, the effective config "
-        "and summary.json into --out.",
+        "demo", help="fly a MAVSDK-uploaded mission through the simulated room with the whole service",
+        description="Start the mock autopilot and the simulated camera in the seeded room of the "
+        "config, upload a mission crossing the room with MAVSDK and fly it with the full service "
+        "(semantic map + planner + offboard). Writes the map picture with the flown path, the ROS "
+        "map files, objects.json, the flight log, the effective config and summary.json into --out.",
     )
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--config", default=None, help="config file (default: embedded default)")
     p.add_argument("--seed", type=int, default=None, help="room seed (overrides sim.seed)")
-    p.add_argument("--frames", type=int, default=40, help="frames to render along the flight (default 40)")
-    p.add_argument("--pictures", type=int, default=4, help="frames to write as pictures (default 4)")
+    p.add_argument("--detector", choices=("auto", "onnx", "oracle"), default="auto",
+                   help="auto (default): the shipped builtin:furniture ONNX model if it loads, "
+                   "else the simulator's oracle; or force one")
+    p.add_argument("--no-broker", action="store_true", help="do not start Mosquitto (no ground link)")
+    p.add_argument("--timeout", type=float, default=170.0, help="give up the mission after this many seconds")
+    p.add_argument("--scripted", action="store_true",
+                   help="the foundation demo: a scripted flight rendered into frame pictures")
+    p.add_argument("--frames", type=int, default=40, help="--scripted: frames to render (default 40)")
+    p.add_argument("--pictures", type=int, default=4, help="--scripted: frames written as pictures (default 4)")
     p.set_defaults(func=_run)
 
 
-def _run(args: argparse.Namespace) -> int:
-    from companion.sim.demo import run_demo  # the renderer needs the 'sim' extra
+def choose_detector(cfg: CompanionConfig, which: str) -> CompanionConfig:
+    """``cfg`` with the demo's detector: the shipped ONNX model (``auto`` falls back to the
+    oracle, with a warning, when it is missing or does not load)."""
+    if which == "oracle" or (which == "auto" and cfg.detector.kind == "onnx"):
+        return cfg if which == "auto" else cfg.model_copy(
+            update={"detector": cfg.detector.model_copy(update={"kind": "oracle"})})
+    onnx = cfg.model_copy(update={"detector": cfg.detector.model_copy(
+        update={"kind": "onnx", "model_path": cfg.detector.model_path or "builtin:furniture"})})
+    from semmap.detection import detector_from_config
 
+    try:
+        detector_from_config(onnx.detector, [c.name for c in onnx.classes])
+    except PerceptionError as exc:
+        if which == "onnx":
+            raise
+        log.warning("the shipped detector is not usable (%s): the demo uses the simulator's oracle", exc)
+        return cfg
+    return onnx
+
+
+def _run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.seed is not None:
         cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": args.seed})})
+    if args.scripted:
+        return _scripted(cfg, args)
+    from companion.service.demo import run_e2e
+
+    cfg = choose_detector(cfg, args.detector)
+    result = asyncio.run(run_e2e(cfg, args.out, use_broker=not args.no_broker, timeout_s=args.timeout))
+    s = result.summary
+    print(f"demo: room seed {s['seed']}, detector {cfg.detector.kind}, "
+          f"{s['waypoints_reached']}/{s['waypoints_total']} waypoints reached, {s['collisions']} collisions, "
+          f"min clearance {s['min_clearance_m']} m, {len(s['objects_found'])} objects mapped "
+          f"({s['objects_true']} in the room), longest setpoint gap {s['max_setpoint_gap_ms']} ms, "
+          f"{s['elapsed_s']} s")
+    if s.get("mission_error"):
+        print(f"mission error: {s['mission_error']}")
+    print(f"outputs in {result.out_dir}:")
+    for role in ("picture", "map_picture", "map_map_yaml", "map_costmap_yaml", "map_objects", "summary", "config"):
+        if role in result.files:
+            print(f"  {role}: {result.files[role]}")
+    print(f"  flight log: {result.out_dir / 'flight_log.csv'}")
+    return 0 if s["waypoints_reached"] == s["waypoints_total"] and not s.get("mission_error") else 1
+
+
+def _scripted(cfg: CompanionConfig, args: argparse.Namespace) -> int:
+    from companion.sim.demo import run_demo  # the renderer needs the 'sim' extra
+
     result = run_demo(cfg, args.out, n_frames=args.frames, n_pictures=args.pictures)
     s = result.summary
     print(f"demo: room seed {s['seed']}, {len(s['objects'])} objects, "

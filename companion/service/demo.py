@@ -34,8 +34,9 @@ from companion.config import CompanionConfig, write_effective_config
 from companion.mavsdk_client import MavsdkClient
 from companion.missions import MissionPlan, Waypoint
 from companion.service.app import CompanionService, ServiceReport
-from companion.service.sim_world import SimPlacement, SimWorld
+from companion.service.sim_world import START_INSIDE_M, SimPlacement, SimWorld
 from companion.sim.groundtruth import clearance_m, collides, densify
+from companion.sim.trajectory import plan_route
 from semmap.errors import SimulationError
 from semmap.export import export_all, render_picture
 
@@ -104,7 +105,7 @@ def crossing_waypoints_room(placement: SimPlacement, cfg: CompanionConfig) -> li
     room = placement.room
     start = placement.offset_xy_m
     if len(room.doorways) >= 2:
-        goal = room.doorways[1].inside_point_m(0.6)
+        goal = room.doorways[1].inside_point_m(START_INSIDE_M)
     else:
         goal = (room.width_m - start[0], room.depth_m - start[1])
     p = cfg.planner
@@ -123,8 +124,18 @@ def crossing_waypoints_room(placement: SimPlacement, cfg: CompanionConfig) -> li
         raise SimulationError(f"room seed {room.seed}: no free point for a mission waypoint")
     mid_target = np.array([room.width_m / 2.0, room.depth_m / 2.0])
     free = cand[ok, :2]
-    mid = free[int(np.argmin(np.linalg.norm(free - mid_target, axis=1)))]
-    return [(float(mid[0]), float(mid[1])), (float(goal[0]), float(goal[1]))]
+    order = np.argsort(np.linalg.norm(free - mid_target, axis=1))
+    for clearance in (p.vehicle_radius_m + 0.1, p.vehicle_radius_m + 0.05, p.vehicle_radius_m):
+        for k in order[:40:4]:
+            mid = (float(free[k, 0]), float(free[k, 1]))
+            try:
+                # The ground truth has a route through it with room to spare.
+                plan_route(room, [start, mid, goal], p.flight_altitude_m, clearance, p.vehicle_height_m,
+                           vertical_margin_m=p.vertical_margin_m)
+            except SimulationError:
+                continue
+            return [mid, (float(goal[0]), float(goal[1]))]
+    raise SimulationError(f"room seed {room.seed}: no reachable mid-room waypoint")
 
 
 async def upload_mission_mavsdk(port: int, waypoints_map_xy: list[tuple[float, float]], altitude_m: float,
@@ -164,6 +175,14 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
         cfg = cfg.model_copy(update={"mqtt": mqtt, "link": link, "service": service_cfg})
         result.files["config"] = write_effective_config(cfg, out)
         world = SimWorld(cfg, autopilot_port=0, remote_ports=(link_port, mavsdk_port))
+        if cfg.planner.geofence_xy_m is None:
+            # The mission author knows the room's walls (not its furniture): the room is the
+            # geofence, so no leg is planned out of a doorway through unmapped space.
+            x0, y0 = world.placement.room_to_map_xy((0.0, 0.0))
+            x1, y1 = world.placement.room_to_map_xy((world.room.width_m, world.room.depth_m))
+            cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(
+                update={"geofence_xy_m": (x0, y0, x1, y1)})})
+            result.files["config"] = write_effective_config(cfg, out)
         async with world:
             placement = world.placement
             wps_room = crossing_waypoints_room(placement, cfg)
@@ -213,6 +232,8 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
     result.files["picture"] = _write_picture(out / "map_with_path.png", service, placement, path_map, wps_map)
     result.summary = _summary(cfg, placement, report, path_map, wps_map, stamps, service, time.monotonic() - t_start)
     result.summary["mqtt"] = broker_port is not None
+    result.summary["detector"] = cfg.detector.kind
+    result.summary["autopilot_failsafes"] = [str(f) for f in world.autopilot.failsafes]
     path = out / "summary.json"
     result.files["summary"] = path
     result.summary["files"] = {k: str(p.relative_to(out)) if p.is_relative_to(out) else str(p)

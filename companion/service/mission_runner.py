@@ -18,7 +18,6 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
@@ -29,10 +28,11 @@ from companion.mavlink.state import HomePosition, VehicleState
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from planner.config import PlannerConfig
+from planner.cspace import CSpace, CSpaceParams, build_cspace, update_cspace
 from planner.trajectory import Trajectory, TrajectoryLimits, time_parametrize
 from planner.types import PlanResult, PlanStatus
 from planner.worker import PlanningService
-from semmap.costmap import LETHAL_OBSTACLE, Costmap
+from semmap.costmap import Costmap
 from semmap.errors import MissionError
 from semmap.frames import enu_to_ned, ned_to_enu, yaw_enu_to_ned, yaw_ned_to_enu
 
@@ -85,42 +85,43 @@ def position_enu(state: VehicleState) -> NDArray[np.float64] | None:
     return np.array(ned_to_enu(*state.position_ned_m))
 
 
-def clearance_field_m(costmap: Costmap) -> NDArray[np.float32]:
-    """(rows, cols) distance in metres from each cell to the nearest lethal cell."""
-    free = (costmap.cost != LETHAL_OBSTACLE).astype(np.uint8)
-    return np.asarray(cv2.distanceTransform(free, cv2.DIST_L2, 5) * costmap.spec.resolution_m, np.float32)
+class PathChecker:
+    """The planner's own configuration space on the newest costmap (updated by window), so
+    the service judges paths exactly as the planner does: ``path_free`` for the remaining
+    path, ``escape_point`` when the vehicle has ended up too close to an obstacle."""
 
+    def __init__(self, cfg: PlannerConfig) -> None:
+        self.params = CSpaceParams(vehicle_radius_m=cfg.vehicle_radius_m, unknown_cost=cfg.unknown_cost,
+                                   clearance_decay_m=cfg.clearance_decay_m, geofence_xy_m=cfg.geofence_xy_m)
+        self.cs: CSpace | None = None
+        self._version = 0
 
-def escape_point(costmap: Costmap, xy_m: NDArray[np.floating], radius_m: float) -> NDArray[np.float64] | None:
-    """The nearest point to ``xy_m`` (map frame) that keeps ``radius_m`` from lethal cells,
-    or None when there is none (a vehicle too close to an obstacle moves there first)."""
-    dist = clearance_field_m(costmap)
-    rows, cols = np.nonzero(dist >= radius_m)
-    if len(rows) == 0:
-        return None
-    spec = costmap.spec
-    cx = spec.origin_xy_m[0] + (cols + 0.5) * spec.resolution_m
-    cy = spec.origin_xy_m[1] + (rows + 0.5) * spec.resolution_m
-    k = int(np.argmin((cx - xy_m[0]) ** 2 + (cy - xy_m[1]) ** 2))
-    return np.array([cx[k], cy[k]])
+    def update(self, costmap: Costmap) -> CSpace:
+        """Adopt ``costmap`` (full build on a new grid or band, else the changed window)."""
+        self._version += 1
+        if self.cs is None or self.cs.spec != costmap.spec or self.cs.band != costmap.band:
+            self.cs = build_cspace(costmap, self.params, self._version)
+        else:
+            self.cs, _window = update_cspace(self.cs, costmap, self._version)
+        return self.cs
 
+    def path_free(self, path_xy_m: NDArray[np.floating]) -> bool:
+        """True if the (K, 2) polyline is free on the last costmap."""
+        return self.cs is None or self.cs.path_free(path_xy_m)
 
-def path_clear(costmap: Costmap, path_xy_m: NDArray[np.floating], radius_m: float, step_m: float = 0.05) -> bool:
-    """True if every point of the (K, 2) polyline keeps ``radius_m`` from lethal cells."""
-    p = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
-    if len(p) == 0:
-        return True
-    pts = [p[:1]]
-    for a, b in zip(p[:-1], p[1:], strict=True):
-        n = max(1, int(math.ceil(float(np.linalg.norm(b - a)) / step_m)))
-        pts.append(a + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b - a))
-    xy = np.concatenate(pts)
-    dist_m = clearance_field_m(costmap)
-    spec = costmap.spec
-    col = np.floor((xy[:, 0] - spec.origin_xy_m[0]) / spec.resolution_m).astype(np.int64)
-    row = np.floor((xy[:, 1] - spec.origin_xy_m[1]) / spec.resolution_m).astype(np.int64)
-    inside = (row >= 0) & (row < spec.rows) & (col >= 0) & (col < spec.cols)
-    return bool(np.all(dist_m[row[inside], col[inside]] >= radius_m))
+    def escape_point(self, xy_m: NDArray[np.floating], extra_m: float = 0.05) -> NDArray[np.float64] | None:
+        """The nearest point to ``xy_m`` where the vehicle fits with ``extra_m`` to spare."""
+        cs = self.cs
+        if cs is None:
+            return None
+        rows, cols = np.nonzero(cs.free & (cs.clearance_m >= cs.free_threshold_m + extra_m))
+        if len(rows) == 0:
+            return None
+        spec = cs.spec
+        cx = spec.origin_xy_m[0] + (cols + 0.5) * spec.resolution_m
+        cy = spec.origin_xy_m[1] + (rows + 0.5) * spec.resolution_m
+        k = int(np.argmin((cx - xy_m[0]) ** 2 + (cy - xy_m[1]) ** 2))
+        return np.array([cx[k], cy[k]])
 
 
 @dataclass
@@ -136,6 +137,7 @@ class LegReport:
     plan_ms: list[float] = field(default_factory=list)
     duration_s: float = 0.0
     final_error_m: float = math.nan
+    snapped_goal: bool = False  # the waypoint was blocked; the nearest free point was flown to
 
 
 class MissionRunner:
@@ -155,6 +157,7 @@ class MissionRunner:
         self.max_failed_plans = max_failed_plans
         self.leg_timeout_s = leg_timeout_s
         self._map_version = 0
+        self.checker = PathChecker(planner_cfg)
         #: Latest plan duration (ms), for the per-stage timings.
         self.last_plan_ms: float | None = None
         self.reports: list[LegReport] = []
@@ -187,10 +190,12 @@ class MissionRunner:
         self.vehicle.offboard.set_setpoint(PositionSetpoint(
             enu_to_ned(float(xy_m[0]), float(xy_m[1]), altitude_m), yaw_rad=yaw_ned))
 
-    async def _plan(self, start_xy: NDArray[np.float64], goal_xy: tuple[float, float]) -> tuple[PlanResult, Costmap]:
+    async def _plan(self, start_xy: NDArray[np.float64], goal_xy: tuple[float, float],
+                    snap_goal: bool = False) -> tuple[PlanResult, Costmap]:
         costmap = await asyncio.to_thread(self.costmap_source)
         self._map_version += 1
-        result = await asyncio.to_thread(self.planning.plan, costmap, self._map_version, start_xy, goal_xy)
+        result = await asyncio.to_thread(self.planning.plan, costmap, self._map_version, start_xy, goal_xy,
+                                         None, snap_goal or None)
         self.last_plan_ms = 1e3 * result.planning_time_s
         return result, costmap
 
@@ -208,6 +213,7 @@ class MissionRunner:
         rep = LegReport(leg.seq, leg.goal_xy_m)
         t_leg = time.monotonic()
         goal = np.array(leg.goal_xy_m)
+        goal_blocked = False
         log.info("leg %d: to (%.2f, %.2f) m", leg.seq, *leg.goal_xy_m)
         while time.monotonic() - t_leg < self.leg_timeout_s:
             self._check_offboard()
@@ -219,11 +225,15 @@ class MissionRunner:
                 rep.reached = True
                 break
             start = self._plan_start(pos)
-            result, costmap = await self._plan(start, leg.goal_xy_m)
+            # A waypoint that turned out to lie in (or too near) a mapped object is replaced
+            # by the nearest point the vehicle fits (the planner's goal snapping).
+            result, costmap = await self._plan(start, leg.goal_xy_m, snap_goal=goal_blocked)
+            goal_blocked = result.status is PlanStatus.GOAL_BLOCKED
             rep.plans += 1
             rep.plan_ms.append(1e3 * result.planning_time_s)
             if result.status is PlanStatus.START_BLOCKED:
-                esc = escape_point(costmap, start, self.cfg.vehicle_radius_m + 0.05)
+                await asyncio.to_thread(self.checker.update, costmap)
+                esc = self.checker.escape_point(start)
                 if esc is not None and np.linalg.norm(esc - start) < 1.0:
                     log.info("leg %d: too close to an obstacle; backing off %.2f m first", leg.seq,
                              float(np.linalg.norm(esc - start)))
@@ -244,7 +254,14 @@ class MissionRunner:
                 self.on_path(result.path_xy_m)
             traj = time_parametrize(result.path_xy_m, leg.altitude_m, self.limits,
                                     initial_yaw_rad=self._yaw_enu())
-            outcome = await self._follow(traj, leg)
+            target = leg
+            if result.snapped_goal and result.goal_xy_m is not None:
+                log.warning("leg %d: waypoint blocked on the map; flying to the nearest free point (%.2f, %.2f) m",
+                            leg.seq, *result.goal_xy_m)
+                target = Leg(leg.seq, result.goal_xy_m, leg.altitude_m, leg.acceptance_m)
+                goal = np.array(result.goal_xy_m)
+                rep.snapped_goal = True
+            outcome = await self._follow(traj, target)
             if outcome == "reached":
                 rep.reached = True
                 break
@@ -319,8 +336,8 @@ class MissionRunner:
             if check and now >= next_check and pos is not None and t_traj < traj.duration_s:
                 next_check = now + CHECK_PERIOD_S
                 costmap = await asyncio.to_thread(self.costmap_source)
-                ahead = _remaining(traj, t_traj)
-                if not path_clear(costmap, ahead, self.cfg.vehicle_radius_m):
+                await asyncio.to_thread(self.checker.update, costmap)
+                if not self.checker.path_free(_remaining(traj, t_traj)):
                     log.info("leg %d: the path ahead crosses a newly mapped obstacle; re-planning", leg.seq)
                     return "invalid"
             await asyncio.sleep(FEED_PERIOD_S)

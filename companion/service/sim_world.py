@@ -31,7 +31,7 @@ from semmap.types import CameraIntrinsics, Frame
 log = logging.getLogger(__name__)
 
 #: How far inside the first doorway the vehicle boots (metres).
-START_INSIDE_M = 0.6
+START_INSIDE_M = 0.9
 
 
 def start_point_room_m(room: Room) -> tuple[float, float]:

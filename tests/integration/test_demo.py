@@ -24,7 +24,7 @@ def test_demo_command_writes_pictures_config_and_summary(tmp_path: Path, capsys:
     cfg_path = tmp_path / "small.yaml"
     cfg_path.write_text(yaml.safe_dump(SMALL))
     out = tmp_path / "out"
-    rc = main(["demo", "--out", str(out), "--config", str(cfg_path), "--frames", "6", "--pictures", "2"])
+    rc = main(["demo", "--scripted", "--out", str(out), "--config", str(cfg_path), "--frames", "6", "--pictures", "2"])
     assert rc == 0
     printed = capsys.readouterr().out
     assert str(out) in printed and "ground_truth_map" in printed
@@ -55,7 +55,7 @@ def test_demo_seed_override_changes_the_room(tmp_path: Path) -> None:
     rooms = []
     for seed in (1, 2):
         out = tmp_path / f"seed{seed}"
-        assert main(["demo", "--out", str(out), "--config", str(cfg_path), "--seed", str(seed),
+        assert main(["demo", "--scripted", "--out", str(out), "--config", str(cfg_path), "--seed", str(seed),
                      "--frames", "2", "--pictures", "1"]) == 0
         rooms.append(json.loads((out / "summary.json").read_text()))
     assert rooms[0]["seed"] == 1 and rooms[1]["seed"] == 2
@@ -65,5 +65,5 @@ def test_demo_seed_override_changes_the_room(tmp_path: Path) -> None:
 def test_demo_with_a_bad_config_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("sim: {room_width_m: 1.0}\n")
-    assert main(["demo", "--out", str(tmp_path / "o"), "--config", str(bad)]) == 2
+    assert main(["demo", "--scripted", "--out", str(tmp_path / "o"), "--config", str(bad)]) == 2
     assert "sim.room_width_m" in capsys.readouterr().err
