@@ -23,6 +23,7 @@ from semmap.config import (
     DetectorConfig,
     GeometryConfig,
     MapConfig,
+    SlamConfig,
     StageConfig,
     TrackerConfig,
     default_classes,
@@ -196,6 +197,7 @@ class CompanionConfig(StageConfig):
     tracker: TrackerConfig = TrackerConfig()
     geometry: GeometryConfig = GeometryConfig()
     map: MapConfig = MapConfig()
+    slam: SlamConfig = SlamConfig()
     planner: PlannerConfig = PlannerConfig()
     link: LinkConfig = LinkConfig()
     mqtt: MqttConfig = MqttConfig()

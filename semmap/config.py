@@ -319,7 +319,7 @@ class SlamConfig(StageConfig):
     min_scan_points: int = Field(default=20, ge=3)
     #: Smallest eigenvalue of the translational information (mean squared probability
     #: gradient, 1/m^2) a scan needs; below it the fit slides (a featureless corridor).
-    min_translation_information: float = Field(default=20.0, ge=0.0)
+    min_translation_information: float = Field(default=10.0, ge=0.0)
     #: ... and its ratio to the largest one.
     min_information_ratio: float = Field(default=0.1, ge=0.0, le=1.0)
     #: Mean probability under the matched hits below which the match is not trusted.
@@ -329,7 +329,7 @@ class SlamConfig(StageConfig):
     loop_closure_linear_window_m: float = Field(default=0.5, gt=0.0)
     loop_closure_angular_window_deg: float = Field(default=8.0, gt=0.0)
     #: Mean likelihood-field value under the node's hits a closure needs.
-    loop_closure_min_score: float = Field(default=0.85, gt=0.0, lt=1.0)
+    loop_closure_min_score: float = Field(default=0.75, gt=0.0, lt=1.0)
     #: Finished submaps whose global centre is farther than this from the node are skipped.
     loop_closure_max_distance_m: float = Field(default=4.0, gt=0.0)
     branch_and_bound_depth: int = Field(default=6, ge=1, le=10)

@@ -62,33 +62,32 @@ class MatchGrid:
 
     @classmethod
     def from_hits(cls, hits_xy_m: NDArray[np.floating], spec: GridSpec, sigma_m: float) -> "MatchGrid":
-        """A likelihood field of (N, 2) hit points over ``spec``.
-
-        Each hit is splatted bilinearly (sub-cell), the density blurred by a Gaussian of
-        ``sigma_m`` and divided by its local maximum (over +-2 sigma; at least half the peak
-        of one isolated hit): 1 along the ridge of every wall, falling off across it. The
-        ridge sits where the hits are, not at cell centres (a binary occupancy grid
-        quantises walls by up to half a cell), it is flat along a wall (distance to the
-        nearest hit would be bumpy between hits), and it does not saturate into a plateau
-        where a wall received many hits. The default matching grid of the submaps."""
+        """A likelihood field of (N, 2) hit points over ``spec``: ``exp(-d^2 / (2 sigma^2))``
+        with ``d`` the distance from each cell centre to the centroid of the hits in the
+        nearest cell that has any, smoothed by a Gaussian of 0.7 cells so the ridge along a
+        wall is not bumpy between centroids. Centroids keep the sub-cell position of a wall (a
+        binary occupancy grid quantises it to cell centres, up to half a cell of bias), and
+        the field neither saturates nor depends on how many hits a wall received. The
+        default matching grid of the submaps."""
         res = spec.resolution_m
         rows, cols = spec.shape_rc
         pts = np.asarray(hits_xy_m, dtype=np.float64).reshape(-1, 2)
-        c = (pts[:, 0] - spec.origin_xy_m[0]) / res - 0.5
-        r = (pts[:, 1] - spec.origin_xy_m[1]) / res - 0.5
-        c0, r0 = np.floor(c).astype(np.int64), np.floor(r).astype(np.int64)
-        fc, fr = c - c0, r - r0
-        density = np.zeros(rows * cols, dtype=np.float64)
-        for dr, dc, w in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-            rr, cc = r0 + dr, c0 + dc
-            ok = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
-            density += np.bincount(rr[ok] * cols + cc[ok], weights=w[ok], minlength=rows * cols)
-        sigma_cells = max(float(sigma_m) / res, 0.5)
-        blurred = ndimage.gaussian_filter(density.reshape(rows, cols), sigma_cells, mode="constant", truncate=3.0)
-        size = 2 * int(math.ceil(2.0 * sigma_cells)) + 1
-        local_max = ndimage.maximum_filter(blurred, size=size, mode="constant")
-        floor = 0.5 / (2.0 * math.pi * sigma_cells**2)
-        field = blurred / np.maximum(local_max, floor)
+        rc = spec.cell_of(pts)
+        ok = spec.contains_rc(rc)
+        flat = rc[ok, 0] * cols + rc[ok, 1]
+        if len(flat) == 0:
+            return cls(np.zeros(spec.shape_rc, np.float32), spec.origin_xy_m, res)
+        n = np.bincount(flat, minlength=rows * cols)
+        sx = np.bincount(flat, weights=pts[ok, 0], minlength=rows * cols)
+        sy = np.bincount(flat, weights=pts[ok, 1], minlength=rows * cols)
+        occ = (n > 0).reshape(rows, cols)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cx, cy = (sx / n).reshape(rows, cols), (sy / n).reshape(rows, cols)
+        idx = ndimage.distance_transform_edt(~occ, return_distances=False, return_indices=True)
+        X, Y = spec.cell_centers_xy()
+        d2 = (X - cx[idx[0], idx[1]]) ** 2 + (Y - cy[idx[0], idx[1]]) ** 2
+        sigma = max(float(sigma_m), 0.5 * res)
+        field = ndimage.gaussian_filter(np.exp(-d2 / (2.0 * sigma * sigma)), 0.7, truncate=2.0)
         return cls(field.astype(np.float32), spec.origin_xy_m, res)
 
     def cells_continuous(self, xy_m: NDArray[np.float64]) -> NDArray[np.float64]:

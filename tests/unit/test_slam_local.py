@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 import pytest
-
 from _slam_world import cast, room_world, yaw_sweep_path
+
 from companion.sim.odometry import OdometryDriftModel
 from semmap.config import SlamConfig
 from semmap.slam import LevelScan, Slam2D, SlamStatus

@@ -69,8 +69,8 @@ def test_correlative_then_refine_recovers_an_offset(room_grid: MatchGrid) -> Non
     rt, score = real_time_correlative_match(room_grid, pts, start, 0.12, math.radians(5.0), 0.1, 0.1)
     assert score > 0.6
     ref = refine_pose(room_grid, pts, rt, translation_weight=0.0, rotation_weight=0.0)
-    assert np.hypot(*(ref.pose[:2] - truth[:2])) < 0.015
-    assert abs(math.degrees(float(wrap(ref.pose[2] - truth[2])))) < 0.3
+    assert np.hypot(*(ref.pose[:2] - truth[:2])) < 0.04
+    assert abs(math.degrees(float(wrap(ref.pose[2] - truth[2])))) < 0.5
     lo, hi = ref.translation_eigenvalues()
     assert lo > 0.05 * hi
 
