@@ -107,6 +107,7 @@ class CompanionService:
         self.restored = False
         self.mission_done = asyncio.Event()
         self._mission_task: asyncio.Task[None] | None = None
+        self._stop: asyncio.Event | None = None
         self._t0 = time.monotonic()
         self._path_xy: NDArray[np.float64] = np.zeros((0, 2))
         #: Called once the service is active (tests inject faults from here).
@@ -129,6 +130,7 @@ class CompanionService:
         if self.state != "configured":
             self.configure()
         assert self.smap is not None and self.pipeline is not None
+        self._stop = stop
         cfg = self.cfg
         band = flight_band(cfg)
         pipeline = self.pipeline
@@ -183,6 +185,11 @@ class CompanionService:
             self.report.checkpoints = self.checkpointer.saves
         log.info("service stopped")
         return self.report
+
+    def request_stop(self) -> None:
+        """Ask :meth:`run` to deactivate and return (what SIGTERM does)."""
+        if self._stop is not None:
+            self._stop.set()
 
     async def deactivate(self) -> None:
         """Stop flying: cancel the mission, then hold or land (``service.on_sigterm``) while

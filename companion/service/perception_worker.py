@@ -24,7 +24,7 @@ from companion.sources.base import FrameSource
 from companion.sources.stream import FrameStream
 from semmap.costmap import Costmap, VerticalBand
 from semmap.detection import Detector, detector_from_config
-from semmap.errors import CompanionError
+from semmap.errors import FrameError
 from semmap.geometry import observe_object
 from semmap.objects import ObjectMap
 from semmap.semantic_map import SemanticMap, SemanticMapSettings
@@ -71,6 +71,26 @@ class StageTimings:
                     "count": self.count[s]} for s in self.sum_ms}
 
 
+#: A frame with less valid depth than this (fraction of pixels in range) is not mapped.
+MIN_VALID_DEPTH_FRACTION = 0.2
+
+
+def check_frame(frame: Frame, depth_min_m: float, depth_max_m: float) -> None:
+    """Raise :class:`FrameError` for a frame that must not reach the map: wrong shapes, a
+    non-finite pose, or too little depth within ``[depth_min_m, depth_max_m]`` (a corrupt or
+    blinded frame would otherwise paint phantom obstacles)."""
+    d = np.asarray(frame.depth_m)
+    if d.ndim != 2 or frame.rgb.shape[:2] != d.shape:
+        raise FrameError(f"frame {frame.index}: rgb {frame.rgb.shape} and depth {d.shape} do not match")
+    if frame.T_map_camera is not None and not np.all(np.isfinite(frame.T_map_camera)):
+        raise FrameError(f"frame {frame.index}: the camera pose is not finite")
+    with np.errstate(invalid="ignore"):
+        valid = float(np.mean((d >= depth_min_m) & (d <= depth_max_m)))
+    if valid < MIN_VALID_DEPTH_FRACTION:
+        raise FrameError(f"frame {frame.index}: only {100 * valid:.0f} % of the depth is valid "
+                         f"(< {100 * MIN_VALID_DEPTH_FRACTION:.0f} %); not mapped")
+
+
 class PerceptionPipeline:
     """The synchronous per-frame step on a :class:`SemanticMap` (thread-safe via ``lock``).
 
@@ -105,6 +125,7 @@ class PerceptionPipeline:
         stage durations in ms. A frame without a pose is skipped (empty dict)."""
         if frame.T_map_camera is None:
             return {}
+        check_frame(frame, *self.depth_range)
         T = np.asarray(frame.T_map_camera, dtype=np.float64)
         out: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -185,9 +206,10 @@ class PerceptionWorker:
         async for frame in self.stream:
             try:
                 await asyncio.to_thread(self.pipeline.process, frame)
-            except (CompanionError, ValueError) as exc:
+            except Exception as exc:  # noqa: BLE001 - one bad frame must not stop perception
                 failures += 1
                 self.pipeline.frames_failed += 1
                 if failures == 1 or failures % 50 == 0:
-                    log.warning("perception: frame %d skipped (%d so far): %s", frame.index, failures, exc)
+                    log.warning("perception: frame %d skipped (%d so far): %s", frame.index, failures, exc,
+                                exc_info=not isinstance(exc, FrameError))
         log.info("perception: the frame source ended after %d frames", self.pipeline.frames_done)

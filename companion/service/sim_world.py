@@ -12,6 +12,7 @@ autopilot's pose would give them.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, replace
 from types import TracebackType
 
@@ -44,9 +45,10 @@ def start_point_room_m(room: Room) -> tuple[float, float]:
 class _MapFrameSource(FrameSource):
     """Renders in the room frame, returns frames whose pose is in the map frame."""
 
-    def __init__(self, inner: SimFrameSource, T_map_room: NDArray[np.float64]) -> None:
+    def __init__(self, inner: SimFrameSource, T_map_room: NDArray[np.float64], world: SimWorld) -> None:
         self.inner = inner
         self.T_map_room = T_map_room
+        self.world = world
         self.dropped_frames = 0
 
     @property
@@ -60,10 +62,21 @@ class _MapFrameSource(FrameSource):
         self.inner.close()
 
     def read(self) -> Frame | None:
+        while self.world.camera_missing:
+            # A camera that delivers nothing: read() blocks, as a stalled USB camera does.
+            time.sleep(0.02)
         frame = self.inner.read()
         if frame is None or frame.T_map_camera is None:
             return frame
-        return replace(frame, T_map_camera=self.T_map_room @ np.asarray(frame.T_map_camera))
+        frame = replace(frame, T_map_camera=self.T_map_room @ np.asarray(frame.T_map_camera))
+        if self.world.camera_corrupt:
+            # Garbage images: random colour, depth invalid or absurd.
+            rng = np.random.default_rng(frame.index)
+            depth = rng.uniform(-5.0, 50.0, frame.depth_m.shape).astype(np.float32)
+            depth[rng.random(depth.shape) < 0.5] = np.nan
+            frame = replace(frame, rgb=rng.integers(0, 255, frame.rgb.shape, dtype=np.uint8), depth_m=depth,
+                            masks={})
+        return frame
 
 
 @dataclass(frozen=True)
@@ -111,8 +124,9 @@ class SimWorld:
             params={"COM_DISARM_PRFLT": -1.0, **(params or {})}, seed=s.seed,
         )
         self.cfg = cfg
-        #: Set True to make the camera deliver nothing (fault injection: frames missing).
-        self.camera_blind = False
+        #: Fault injection: the camera delivers nothing / garbage while these are True.
+        self.camera_missing = False
+        self.camera_corrupt = False
 
     @property
     def room(self) -> Room:
@@ -138,4 +152,4 @@ class SimWorld:
         """The simulated camera on the mock vehicle, frames posed in the map frame."""
         inner = SimFrameSource(renderer_from_config(self.room, self.cfg), self._pose_room,
                                self.cfg.camera.extrinsics.T_body_camera())
-        return _MapFrameSource(inner, self.placement.T_map_room)
+        return _MapFrameSource(inner, self.placement.T_map_room, self)
