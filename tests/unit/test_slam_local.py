@@ -31,29 +31,19 @@ def _ate(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
 
 
-def test_slam_closes_the_loop_and_beats_drifting_odometry() -> None:
-    # A lap and a quarter (the start is revisited) at 5 Hz.
+def test_slam_closes_the_loop_in_the_background_and_beats_drifting_odometry() -> None:
+    # A lap and a quarter (the start is revisited) at 5 Hz; loop closure on its worker thread.
     drift = OdometryDriftModel(scale_error=0.03, heading_drift_deg_s=0.5, seed=1)
-    with Slam2D(SlamConfig(), background=False) as slam:
+    seen: list[int] = []
+    with Slam2D(SlamConfig()) as slam:
+        slam.add_listener(seen.append)
         truth, odom, est = _fly(slam, 320, drift, rate_hz=5.0)
+        assert slam.drain(timeout_s=120.0)
         slam.optimize()
         final = slam.trajectory()
         assert slam.loop_closures > 0
         assert len(slam.submaps()) >= 3
         assert any(s.finished for s in slam.submaps())
-    assert _ate(odom, truth) > 0.3
-    assert _ate(est, truth) < 0.5 * _ate(odom, truth)
-    assert _ate(final[:, 1:], truth) < 0.05
-
-
-def test_generation_listener_and_correction() -> None:
-    drift = OdometryDriftModel(scale_error=0.03, heading_drift_deg_s=0.5, seed=2)
-    seen: list[int] = []
-    with Slam2D(SlamConfig(), background=False) as slam:
-        slam.add_listener(seen.append)
-        truth, _, est = _fly(slam, 320, drift)
-        slam.optimize()
-        assert slam.loop_closures > 0
         assert slam.generation >= 1 and seen and seen[-1] == slam.generation
         # The correction carries a pose used live to where the optimised map puts it.
         k = 200
@@ -62,14 +52,9 @@ def test_generation_listener_and_correction() -> None:
         moved = T @ matrix4(est[k])
         np.testing.assert_allclose(moved[:2, 3], slam.pose_at(stamp)[:2], atol=1e-9)
         assert slam.optimized_trajectory().shape[1] == 4
-
-
-def test_loop_closure_runs_in_the_background() -> None:
-    drift = OdometryDriftModel(scale_error=0.03, heading_drift_deg_s=0.5, seed=3)
-    with Slam2D(SlamConfig()) as slam:
-        _fly(slam, 320, drift)
-        assert slam.drain(timeout_s=120.0)
-        assert slam.loop_closures > 0
+    assert _ate(odom, truth) > 0.3
+    assert _ate(est, truth) < 0.5 * _ate(odom, truth)
+    assert _ate(final[:, 1:], truth) < 0.05
 
 
 def test_odometry_mode_passes_the_autopilot_pose_through() -> None:
