@@ -112,6 +112,11 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
         true_occ = gt.occupancy_at_band(room, spec, BAND)
         slam_grid = slam.rebuild_grid(spec)
         loops = slam.loop_closures
+        # Closures against submaps built long before (not the neighbours of the node's own):
+        # the revisits of the loop.
+        nodes = slam.global_.nodes
+        revisits = sum(1 for c in slam.global_.loop_closures
+                       if nodes[c.node].submaps and c.submap < min(nodes[c.node].submaps) - 2)
     truth_a, odom_a, live_a = np.array(truth), np.array(odom), np.array(live)
     odom_grid = ProbabilityGrid(spec, fixed_size=True)
     for sc, p in zip(scans[::3], odom_a[::3], strict=True):
@@ -124,7 +129,7 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
         "ate_slam_m": ate_rmse(final[:, 1:3], truth_a[:, :2]),
         "yaw_err_slam_deg_rms": float(np.degrees(np.sqrt(np.mean(
             ((final[:, 3] - truth_a[:, 2] + np.pi) % (2 * np.pi) - np.pi) ** 2)))),
-        "loop_closures": loops, "fallbacks": n_fallback,
+        "loop_closures": loops, "revisit_closures": revisits, "fallbacks": n_fallback,
         "agreement_slam": agreement(slam_grid, true_occ), "agreement_odometry": agreement(odom_grid, true_occ),
         "local_ms": times,
     }
@@ -144,10 +149,10 @@ def main(argv: list[str] | None = None) -> int:
             r = run_flight(seed)
         results.append(r)
     print(f"{'seed':>4} {'dur s':>6} {'scans':>5} {'ATE odom m':>10} {'ATE live m':>10} {'ATE SLAM m':>10} "
-          f"{'loops':>5} {'fallb':>5} {'agree slam':>10} {'agree odom':>10} {'local p50 ms':>12}")
+          f"{'loops':>5} {'revis':>5} {'fallb':>5} {'agree slam':>10} {'agree odom':>10} {'local p50 ms':>12}")
     for r in results:
         print(f"{r['seed']:>4} {r['duration_s']:6.1f} {r['scans']:5d} {r['ate_odometry_m']:10.3f} "
-              f"{r['ate_slam_live_m']:10.3f} {r['ate_slam_m']:10.3f} {r['loop_closures']:5d} {r['fallbacks']:5d} "
+              f"{r['ate_slam_live_m']:10.3f} {r['ate_slam_m']:10.3f} {r['loop_closures']:5d} {r['revisit_closures']:5d} {r['fallbacks']:5d} "
               f"{r['agreement_slam']:10.3f} {r['agreement_odometry']:10.3f} {np.percentile(r['local_ms'], 50):12.2f}")
     all_ms = np.concatenate([r["local_ms"] for r in results])
     summary = {
@@ -158,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         "ate_slam_m_max": round(float(np.max([r["ate_slam_m"] for r in results])), 4),
         "ate_slam_live_m_mean": round(float(np.mean([r["ate_slam_live_m"] for r in results])), 4),
         "loop_closures_min": int(min(r["loop_closures"] for r in results)),
+        "revisit_closures_min": int(min(r["revisit_closures"] for r in results)),
         "agreement_slam_mean": round(float(np.mean([r["agreement_slam"] for r in results])), 4),
         "agreement_odometry_mean": round(float(np.mean([r["agreement_odometry"] for r in results])), 4),
         "local_slam_ms_p50": round(float(np.percentile(all_ms, 50)), 3),

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semmap.config import SlamConfig
+from semmap.frames import pose_from_xyz_rpy
 from semmap.grid import GridSpec
 from semmap.occupancy import ProbabilityGrid, ProbabilityTables
 from semmap.slam.global_ import GlobalSlam
@@ -52,8 +53,6 @@ class SlamPose:
 
     def T_map_body(self, z_m: float, roll_rad: float = 0.0, pitch_rad: float = 0.0) -> NDArray[np.float64]:  # noqa: N802
         """(4, 4) body pose with the SLAM's x, y, yaw and the given height and attitude."""
-        from semmap.frames import pose_from_xyz_rpy
-
         p = self.pose_map
         return pose_from_xyz_rpy(float(p[0]), float(p[1]), z_m, roll_rad, pitch_rad, float(p[2]))
 
