@@ -1,0 +1,175 @@
+"""Faults while the service flies a mission: each ends in the documented behaviour, no crash.
+
+* camera frames corrupt for 2 s: the frames fail the sanity check and are not mapped;
+* camera frames missing for 2 s: the map goes stale, the offboard controller holds, then resumes;
+* autopilot link lost for 3 s: setpoints stop (PX4 fails over to Hold); when the link is back
+  the service engages OFFBOARD again and finishes the mission;
+* malformed MQTT commands: refused with a reply, the mission goes on;
+* stop (SIGTERM) mid-flight: hold, stop streaming, map saved; a restart restores the map;
+  and the real ``companion run`` process ends with exit code 0 on SIGTERM.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import aiomqtt
+import pytest
+import yaml
+
+from companion.config import load_config
+from companion.mavlink.failsafe import OffboardState
+from companion.service.app import CompanionService
+from companion.service.checkpoint import checkpoint_path, restore_map
+from companion.service.demo import free_udp_port, run_e2e
+from companion.service.sim_world import SimWorld
+
+pytest.importorskip("open3d")
+
+REPO = Path(__file__).resolve().parents[2]
+SMALL: dict[str, Any] = {
+    "camera": {"width_px": 160, "height_px": 120, "fx_px": 96.0, "fy_px": 96.0, "cx_px": 80.0, "cy_px": 60.0},
+    "sim": {"seed": 3, "room_width_m": 6.0, "room_depth_m": 5.0, "n_objects": 4},
+}
+
+
+def _config(tmp_path: Path, extra: dict[str, Any] | None = None) -> Path:
+    doc = json.loads(json.dumps(SMALL))
+    for k, v in (extra or {}).items():
+        doc.setdefault(k, {}).update(v)
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+async def _until(pred: Any, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not reached in time")
+        await asyncio.sleep(0.05)
+
+
+def _active(svc: CompanionService) -> bool:
+    return svc.vehicle is not None and svc.vehicle.offboard.state is OffboardState.ACTIVE
+
+
+def test_camera_link_and_ground_faults_mid_flight(tmp_path: Path) -> None:
+    cfg = load_config(_config(tmp_path))
+    events: dict[str, Any] = {}
+
+    async def inject(world: SimWorld, svc: CompanionService) -> None:
+        await _until(lambda: _active(svc), 40.0)
+        await asyncio.sleep(0.5)
+        # Malformed commands on the ground link: refused with a reply, nothing else happens.
+        m = svc.cfg.mqtt
+        base = f"{m.topic_prefix}/{m.vehicle_id}"
+        async with aiomqtt.Client("127.0.0.1", m.port) as client:
+            await client.subscribe(f"{base}/reply", qos=1)
+            await client.publish(f"{base}/cmd/goal", b"{not json", qos=1)
+            await client.publish(f"{base}/cmd/goal", json.dumps({"schema_version": 1, "x_m": "far"}), qos=1)
+            replies = []
+            async with asyncio.timeout(10.0):
+                async for msg in client.messages:
+                    replies.append(json.loads(bytes(msg.payload)))
+                    if len(replies) == 2:
+                        break
+        events["replies"] = replies
+        world.camera_corrupt = True
+        await asyncio.sleep(2.0)
+        world.camera_corrupt = False
+        events["failed_after_corrupt"] = svc.pipeline.frames_failed if svc.pipeline else 0
+        world.camera_missing = True
+        t0 = time.monotonic()
+        held = False
+        while time.monotonic() - t0 < 2.5:
+            held |= svc.vehicle is not None and svc.vehicle.offboard.state is OffboardState.HOLDING
+            await asyncio.sleep(0.05)
+        world.camera_missing = False
+        events["held_while_camera_missing"] = held
+        await _until(lambda: _active(svc), 10.0)
+        world.autopilot.faults.drop_link = True
+        await asyncio.sleep(3.0)
+        events["state_during_link_loss"] = svc.vehicle.offboard.state.value if svc.vehicle else None
+        world.autopilot.faults.drop_link = False
+
+    result = asyncio.run(run_e2e(cfg, tmp_path / "out", timeout_s=150.0, inject=inject))
+    s = result.summary
+    assert [r["ok"] for r in events["replies"]] == [False, False]
+    assert events["failed_after_corrupt"] > 0
+    assert events["held_while_camera_missing"] is True
+    assert events["state_during_link_loss"] == "link_lost"
+    # The mission still completes, without touching anything.
+    assert s["mission_error"] is None
+    assert s["waypoints_reached"] == s["waypoints_total"], s["legs"]
+    assert s["collisions"] == 0
+
+
+def test_stop_mid_flight_holds_saves_and_restart_restores(tmp_path: Path) -> None:
+    cfg = load_config(_config(tmp_path, {"service": {"on_sigterm": "hold"}}))
+
+    async def stop_mid_flight(world: SimWorld, svc: CompanionService) -> None:
+        await _until(lambda: _active(svc), 40.0)
+        await _until(lambda: svc.smap is not None and len(svc.smap.objects) >= 1, 30.0)
+        await asyncio.sleep(1.0)
+        svc.request_stop()
+
+    out = tmp_path / "out"
+    result = asyncio.run(run_e2e(cfg, out, use_broker=False, timeout_s=120.0, inject=stop_mid_flight))
+    s = result.summary
+    # Held in the air (on_sigterm: hold), streaming stopped, nothing crashed.
+    assert s["autopilot_final"] == {"mode": "HOLD", "in_air": True, "armed": True}
+    assert s["waypoints_reached"] < s["waypoints_total"]
+    eff = load_config(out / "effective-config.yaml")
+    restored = restore_map(eff, checkpoint_path(eff))
+    assert restored is not None
+    assert len(restored.objects) == len(s["objects_found"]) >= 1
+    # A restarted service starts from that map.
+    svc = CompanionService(eff, frame_source=None, out_dir=out)  # type: ignore[arg-type]
+    svc.configure()
+    assert svc.restored and svc.smap is not None and len(svc.smap.objects) == len(s["objects_found"])
+
+
+def test_companion_run_ends_cleanly_on_sigterm_and_restores_its_map(tmp_path: Path) -> None:
+    ap_port, link_port, gcs_port = free_udp_port(), free_udp_port(), free_udp_port()
+    cfg_path = _config(tmp_path, {
+        "sim": {"autopilot_local_port": ap_port, "autopilot_offboard_port": link_port, "autopilot_gcs_port": gcs_port},
+        "link": {"url": f"udpin://127.0.0.1:{link_port}"},
+        "mqtt": {"enabled": False},
+        "service": {"output_dir": str(tmp_path / "out"), "map_dir": str(tmp_path / "map"),
+                    "checkpoint_interval_s": 1.0},
+    })
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.pop("NOTIFY_SOCKET", None)
+    logs = []
+    for _ in range(2):
+        log_path = tmp_path / f"run{len(logs)}.log"
+        with log_path.open("w") as out:
+            proc = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(cfg_path)],
+                                    cwd=REPO, stdout=out, stderr=subprocess.STDOUT, env=env)
+            try:
+                deadline = time.monotonic() + 60.0
+                while "service active" not in log_path.read_text() and time.monotonic() < deadline:
+                    assert proc.poll() is None, log_path.read_text()
+                    time.sleep(0.2)
+                time.sleep(3.0)  # frames mapped, a checkpoint or two
+                proc.send_signal(signal.SIGTERM)
+                rc = proc.wait(30.0)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait(5.0)
+        logs.append(log_path.read_text())
+        assert rc == 0, logs[-1][-3000:]
+        assert "service stopped" in logs[-1]
+        assert (tmp_path / "map" / "semantic_map.npz").is_file()
+    assert "service configured (new map)" in logs[0]
+    assert "restored the map from" in logs[1]
