@@ -304,7 +304,7 @@ class SlamConfig(StageConfig):
     blur_sigma_cells: float = Field(default=1.0, ge=0.0)
     # Motion filter: a scan is inserted when one of these is exceeded since the last insert.
     motion_filter_distance_m: float = Field(default=0.1, ge=0.0)
-    motion_filter_angle_deg: float = Field(default=2.0, ge=0.0)
+    motion_filter_angle_deg: float = Field(default=5.0, ge=0.0)
     motion_filter_time_s: float = Field(default=2.0, ge=0.0)
     # Real-time correlative search window around the odometry prediction.
     correlative_linear_window_m: float = Field(default=0.1, ge=0.0)
@@ -325,13 +325,13 @@ class SlamConfig(StageConfig):
     #: Mean probability under the matched hits below which the match is not trusted.
     min_match_score: float = Field(default=0.3, ge=0.0, le=1.0)
     # Loop closure (background).
-    loop_closure_every_n_nodes: int = Field(default=3, ge=1)
+    loop_closure_every_n_nodes: int = Field(default=5, ge=1)
     loop_closure_linear_window_m: float = Field(default=0.5, gt=0.0)
     loop_closure_angular_window_deg: float = Field(default=8.0, gt=0.0)
     #: Mean likelihood-field value under the node's hits a closure needs.
     loop_closure_min_score: float = Field(default=0.75, gt=0.0, lt=1.0)
     #: Finished submaps whose global centre is farther than this from the node are skipped.
-    loop_closure_max_distance_m: float = Field(default=4.0, gt=0.0)
+    loop_closure_max_distance_m: float = Field(default=2.5, gt=0.0)
     branch_and_bound_depth: int = Field(default=6, ge=1, le=10)
     loop_closure_queue_size: int = Field(default=64, ge=1)
     # Pose graph.

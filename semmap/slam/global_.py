@@ -119,8 +119,10 @@ class GlobalSlam:
                 try:
                     self._queue.put_nowait(node.index)
                 except queue.Full:
+                    # The worker is behind (a busy CPU): skip this node, the next ones overlap it.
                     self.n_dropped += 1
-                    log.warning("loop closure queue full: node %d not searched", node.index)
+                    if self.n_dropped % 100 == 1:
+                        log.warning("loop closure queue full: %d nodes not searched so far", self.n_dropped)
             else:
                 self._process(node.index)
         return node
