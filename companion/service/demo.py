@@ -35,6 +35,7 @@ from companion.config import CompanionConfig, write_effective_config
 from companion.mavsdk_client import MavsdkClient
 from companion.missions import MissionPlan, Waypoint
 from companion.service.app import CompanionService, ServiceReport
+from companion.service.checkpoint import checkpoint_path
 from companion.service.sim_world import START_INSIDE_M, SimPlacement, SimWorld, start_point_room_m
 from companion.sim.groundtruth import (
     clearance_m,
@@ -43,6 +44,7 @@ from companion.sim.groundtruth import (
     room_grid_spec,
     semantic_costmap,
 )
+from companion.sim.world import Room
 from companion.sources.sim import room_from_config
 from planner.planner import Planner
 from semmap.costmap import VerticalBand
@@ -107,8 +109,8 @@ def local_broker(workdir: Path) -> Any:
 
 
 def crossing_waypoints_room(placement: SimPlacement, cfg: CompanionConfig) -> list[tuple[float, float]]:
-    """Mission waypoints (room frame) across the room: the middle of the room (the free point
-    nearest to it) and just inside the far doorway. They keep clear of everything in the
+    """Mission waypoints (room frame) across the room and back: the middle of the room (the
+    free point nearest to it), just inside the far doorway, the middle again and the start. They keep clear of everything in the
     ground truth, but the straight legs between them cross furniture freely: the mission
     author knows the room's doorways, not its furniture."""
     room = placement.room
@@ -135,12 +137,36 @@ def crossing_waypoints_room(placement: SimPlacement, cfg: CompanionConfig) -> li
     free = cand[ok, :2]
     order = np.argsort(np.linalg.norm(free - mid_target, axis=1))
     planner = ground_truth_planner(placement, cfg)
-    for k in order[:60:3]:
+    goal_xy = (float(goal[0]), float(goal[1]))
+    start_xy = (float(start[0]), float(start[1]))
+    best: tuple[int, tuple[float, float]] | None = None
+    for k in order[:90:3]:
         mid = (float(free[k, 0]), float(free[k, 1]))
         # Our planner, with the class margins, has a path through it on the true semantic map.
-        if planner.plan(start, mid).ok and planner.plan(mid, goal).ok:
-            return [mid, (float(goal[0]), float(goal[1]))]
+        if not (planner.plan(start, mid).ok and planner.plan(mid, goal).ok):
+            continue
+        # Prefer waypoints whose straight legs run into furniture: the planner must go around.
+        crossed = _objects_crossed(room, [start_xy, mid, goal_xy])
+        if best is None or crossed > best[0]:
+            best = (crossed, mid)
+        if crossed >= 2:
+            break
+    if best is not None:
+        mid = best[1]
+        # Across and back: the return legs fly through the map built on the way out.
+        return [mid, goal_xy, mid, start_xy]
     raise SimulationError(f"room seed {room.seed}: no reachable mid-room waypoint")
+
+
+def _objects_crossed(room: Room, polyline_xy_m: list[tuple[float, float]]) -> int:
+    """How many objects' footprints the straight polyline passes over."""
+    pts = densify(np.asarray(polyline_xy_m, dtype=np.float64), 0.05)
+    n = 0
+    for o in room.objects:
+        poly = o.footprint_xy_m().astype(np.float32)
+        if any(cv2.pointPolygonTest(poly, (float(x), float(y)), False) >= 0 for x, y in pts):
+            n += 1
+    return n
 
 
 def ground_truth_planner(placement: SimPlacement, cfg: CompanionConfig) -> Planner:
@@ -212,6 +238,12 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
         link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
         service_cfg = cfg.service.model_copy(update={"output_dir": str(out), "map_dir": str(out / "checkpoint")})
         cfg = cfg.model_copy(update={"mqtt": mqtt, "link": link, "service": service_cfg})
+        stale = checkpoint_path(cfg)
+        if stale.exists():
+            # A demo flies a fresh room: a map left by an earlier run (maybe another seed) must
+            # not be restored into it.
+            log.info("removing the previous demo's map checkpoint %s", stale)
+            stale.unlink()
         result.files["config"] = write_effective_config(cfg, out)
         world = SimWorld(cfg, autopilot_port=0, remote_ports=(link_port, mavsdk_port))
         if cfg.planner.geofence_xy_m is None:

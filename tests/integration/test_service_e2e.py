@@ -35,7 +35,7 @@ def test_mission_flown_without_collisions_and_outputs_written(tmp_path: Path) ->
     s = result.summary
 
     assert s["mission_error"] is None
-    assert s["waypoints_total"] == 2
+    assert s["waypoints_total"] == 4
     assert s["waypoints_reached"] == s["waypoints_total"], s["legs"]
     assert s["collisions"] == 0, s["collision_points_room_xy_m"]
     assert s["min_clearance_m"] >= cfg.planner.vehicle_radius_m
