@@ -8,7 +8,8 @@ closer than ``distance_m`` always share a cluster, points of different clusters 
 than ``distance_m`` apart (their cells do not touch), and one link of a chain may span up to
 2*sqrt(3)*``distance_m`` (opposite corners of touching cells). Clouds of small extent (the
 usual case: one object's box) are labelled on a dense occupancy grid with
-``scipy.ndimage.label``; clouds whose bounding grid would be large (a stray far point) keep
+``scipy.ndimage.label``; clouds whose bounding grid would be large (a stray far point, a wall
+far behind the object: many more cells than points) keep
 their cells sparse (sorted keys, ``searchsorted``, a sparse graph), so the cost follows the
 number of occupied cells, not the extent. Several times faster than a k-d tree radius search
 followed by connected components on the few thousand points of one object.
@@ -39,6 +40,8 @@ _HALF_NEIGHBOURS = np.array(
 _FULL_3X3X3 = np.ones((3, 3, 3), dtype=bool)
 #: Above this many cells in the cloud's bounding grid, components are found sparsely.
 _DENSE_MAX_CELLS = 300_000
+#: ... or more than this many cells per point (measured break-even of the two passes).
+_DENSE_CELLS_PER_POINT = 25
 
 
 def _cell_keys(
@@ -98,7 +101,10 @@ def euclidean_clusters(
     if n == 0:
         return np.zeros(0, np.int64)
     keys, span = _cell_keys(pts, distance_m, pad=1)
-    if int(np.prod(span)) <= _DENSE_MAX_CELLS:
+    n_cells = int(np.prod(span))
+    # The dense pass costs per cell of the bounding grid, the sparse one per point (with a
+    # higher constant): dense only while the grid is not much larger than the cloud.
+    if n_cells <= min(_DENSE_MAX_CELLS, _DENSE_CELLS_PER_POINT * n):
         # Small extent: label a dense occupancy grid (scipy.ndimage, one C pass).
         occ = np.zeros(int(np.prod(span)), dtype=bool)
         occ[keys] = True

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -40,6 +41,19 @@ from semmap.types import CameraIntrinsics, Track
 
 #: A box this close to the image border may be cut by it (detector boxes jitter by a few px).
 _EDGE_MARGIN_PX = 8
+#: Background walls are fitted on a ring of pixels around the box: this far outside it (box
+#: jitter must not put the object's own edge in the ring), this wide, sampled at this stride.
+_RING_GAP_PX = 4
+_RING_WIDTH_PX = 12
+_RING_STRIDE_PX = 4
+#: A wall is a vertical plane holding at least this share of the ring's above-floor points
+#: (and ``_WALL_MIN_POINTS``), with at most ``_WALL_MAX_BEHIND`` of them beyond it.
+_WALL_MIN_SHARE = 0.4
+_WALL_MIN_POINTS = 30
+_WALL_MAX_BEHIND = 0.1
+_WALL_HYPOTHESES = 64
+#: A wall faces the camera: cosine between its normal and the line of sight at least this.
+_WALL_MIN_FACING = 0.35
 
 
 @dataclass(frozen=True, eq=False)
@@ -326,6 +340,97 @@ def convex_iou(a_xy_m: NDArray[np.floating], b_xy_m: NDArray[np.floating]) -> fl
     return inter / union if union > 0 else 0.0
 
 
+def _quantile_lower(values: NDArray[np.float64], q: float) -> float:
+    """The ``q`` quantile of (N,) values by selection (the sample at or below it, no
+    interpolation): O(N), without a full sort."""
+    k = int(q * (len(values) - 1))
+    return float(np.partition(values, k)[k])
+
+
+def _ring_points(
+    depth_m: NDArray[np.floating], intrinsics: CameraIntrinsics, xyxy_px: tuple[float, float, float, float],
+    depth_range_m: tuple[float, float],
+) -> NDArray[np.float32]:
+    """Camera-frame points (N, 3) of a sampled ring of pixels just outside a box (clipped to
+    the image): what surrounds the object, for finding the wall behind it."""
+    u0, v0, u1, v1 = xyxy_px
+    g, w = _RING_GAP_PX, _RING_GAP_PX + _RING_WIDTH_PX
+    iu0, iv0, iu1, iv1 = int(u0) - g, int(v0) - g, int(math.ceil(u1)) + g, int(math.ceil(v1)) + g
+    ou0, ov0, ou1, ov1 = int(u0) - w, int(v0) - w, int(math.ceil(u1)) + w, int(math.ceil(v1)) + w
+    strips = [(ou0, ov0, ou1, iv0), (ou0, iv1, ou1, ov1), (ou0, iv0, iu0, iv1), (iu1, iv0, ou1, iv1)]
+    parts = [backproject(depth_m, intrinsics, depth_range_m[0], depth_range_m[1], s, _RING_STRIDE_PX)[0]
+             for s in strips]
+    return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
+
+
+def _noise_tolerance_m(range_m: NDArray[np.float64], params: GeometryConfig) -> NDArray[np.float64]:
+    """(N,) distance within which a point at ``range_m`` (N,) counts as on a surface: the RANSAC
+    distance plus half the floor cut's range-squared term (depth noise grows with range^2)."""
+    return params.ransac_distance_m + 0.5 * params.floor_clearance_per_m2 * range_m**2
+
+
+def background_walls(
+    ring_map_m: NDArray[np.float64], ring_range_m: NDArray[np.float64], camera_xy_m: NDArray[np.float64],
+    floor: Plane, params: GeometryConfig, rng: np.random.Generator,
+) -> list[tuple[NDArray[np.float64], float]]:
+    """Vertical planes (walls) behind an object, from the points around its box.
+
+    ``ring_map_m``: (N, 3) map-frame points of the pixels around the box, ``ring_range_m`` (N,)
+    their camera z-depths, ``camera_xy_m`` (2,). A wall is a vertical plane (a line in the map
+    plane) holding a large share of the ring's above-floor points with almost none beyond it:
+    the room's boundary, which nothing stands behind. Returns up to two walls (a corner) as
+    ``(normal_xy (2,), offset_m)`` with the normal towards the camera, so ``normal . xy +
+    offset`` is the distance in front of the wall.
+    """
+    h = floor.signed_distance_m(ring_map_m)
+    clear = params.floor_clearance_m + params.floor_clearance_per_m2 * ring_range_m**2
+    above = h > clear
+    xy = ring_map_m[above, :2]  # (N, 2)
+    n_all = len(xy)
+    if n_all < _WALL_MIN_POINTS:
+        return []
+    tol = _noise_tolerance_m(ring_range_m[above], params)  # (N,)
+    remaining = np.ones(n_all, dtype=bool)
+    walls: list[tuple[NDArray[np.float64], float]] = []
+    for share in (_WALL_MIN_SHARE, _WALL_MIN_SHARE / 2):
+        idx = np.nonzero(remaining)[0]
+        if len(idx) < _WALL_MIN_POINTS:
+            break
+        pairs = idx[rng.integers(0, len(idx), size=(_WALL_HYPOTHESES, 2))]
+        d = xy[pairs[:, 1]] - xy[pairs[:, 0]]  # (Hy, 2)
+        length = np.hypot(d[:, 0], d[:, 1])
+        ok = length > 0.05
+        if not ok.any():
+            break
+        normals = np.stack([-d[ok, 1], d[ok, 0]], axis=1) / length[ok, None]
+        offsets = -np.einsum("hj,hj->h", normals, xy[pairs[ok, 0]])
+        dist = xy @ normals.T + offsets  # (N, Hy)
+        support = ((np.abs(dist) <= tol[:, None]) & remaining[:, None]).sum(axis=0)
+        best = int(np.argmax(support))
+        if support[best] < max(_WALL_MIN_POINTS, share * n_all):
+            break
+        inl = (np.abs(dist[:, best]) <= tol) & remaining
+        # Least-squares line through the inliers.
+        c = xy[inl].mean(axis=0)
+        _, _, vt = np.linalg.svd(xy[inl] - c, full_matrices=False)
+        n = vt[-1]
+        off = -float(n @ c)
+        if float(n @ camera_xy_m) + off < 0:
+            n, off = -n, -off
+        dist_ref = xy @ n + off
+        inl = (np.abs(dist_ref) <= tol) & remaining
+        if inl.sum() < max(_WALL_MIN_POINTS, share * n_all):
+            break
+        if float(np.mean(dist_ref < -tol)) > _WALL_MAX_BEHIND:
+            break  # things stand behind it: a piece of furniture, not the room's boundary
+        view = c - camera_xy_m
+        if abs(float(n @ view)) < _WALL_MIN_FACING * float(np.hypot(view[0], view[1])):
+            break  # seen edge-on: a strip of something along the line of sight, not a wall
+        walls.append((n, off))
+        remaining &= ~inl
+    return walls
+
+
 def observe_object(
     depth_m: NDArray[np.floating],
     intrinsics: CameraIntrinsics,
@@ -337,6 +442,9 @@ def observe_object(
     depth_range_m: tuple[float, float] = (0.0, math.inf),
     stamp_s: float = 0.0,
     rng: np.random.Generator | None = None,
+    *,
+    cluster_by: Literal["box", "voxels"] = "box",
+    remove_walls: bool = True,
 ) -> ObjectObservation | None:
     """The object a track's box shows, or None when its depth holds no object.
 
@@ -344,7 +452,11 @@ def observe_object(
     too. ``T_map_camera``: (4, 4) optical camera -> map. ``floor``: the floor plane in the map
     frame with its normal up (default: z = 0, the map plane). ``class_cfg.hollow`` decides
     whether a top plane is searched. Returns None when fewer than ``min_cluster_points``
-    voxels survive (an empty, distant or all-floor box).
+    voxels survive (an empty, distant or all-floor box). ``cluster_by``: "box" picks the
+    nearest large cluster spanning the box (see :func:`_pick_cluster`); "voxels" the cluster
+    with most voxels (Open3D's usual choice after ``cluster_dbscan``, for comparisons).
+    ``remove_walls``: drop the wall behind the object first (:func:`background_walls`, fitted
+    on the pixels around the box) with everything beyond it.
     """
     floor = floor if floor is not None else Plane.horizontal()
     H, W = np.asarray(depth_m).shape
@@ -369,14 +481,39 @@ def observe_object(
     )
     if len(pts) < params.min_cluster_points:
         return None
+    # A wall behind the object (found around the box) goes, with everything beyond it: an
+    # object a few cm in front of a wall would otherwise cluster together with it.
+    rng = rng if rng is not None else np.random.default_rng(0)
+    ring_cam = (_ring_points(depth_m, intrinsics, track.xyxy_px, depth_range_m) if remove_walls
+                else np.zeros((0, 3), np.float32))
+    if len(ring_cam) >= _WALL_MIN_POINTS:
+        ring = ring_cam.astype(np.float64) @ R.T + t
+        walls = background_walls(ring, ring_cam[:, 2].astype(np.float64), t[:2], floor, params, rng)
+        tol = _noise_tolerance_m(rng_cam, params)
+        front = np.ones(len(pts), dtype=bool)
+        for n_xy, off in walls:
+            dist = pts[:, :2] @ n_xy + off  # (N,) in front of the wall
+            # Nothing of the box stands behind a wall; a "wall" with the box's points behind
+            # it is an occluder in front of the object.
+            if float(np.mean(dist < -tol)) <= _WALL_MAX_BEHIND:
+                front &= dist > tol
+        if not front.all():
+            if front.sum() < params.min_cluster_points:
+                return None  # the box shows the wall only
+            pts, heights, rng_cam, clearance, uv = (
+                pts[front], heights[front], rng_cam[front], clearance[front], uv[front]
+            )
 
     vox, inverse = voxel_downsample(pts, params.voxel_size_m)  # (M, 3), (N,)
-    spacing_m = stride * float(np.quantile(rng_cam, 0.9)) / min(intrinsics.fx_px, intrinsics.fy_px)
+    spacing_m = stride * _quantile_lower(rng_cam, 0.9) / min(intrinsics.fx_px, intrinsics.fy_px)
     eps = max(params.cluster_distance_m, params.cluster_pixel_gaps * spacing_m)
     vox_label = euclidean_clusters(vox, eps)
     point_label = vox_label[inverse]
-    best = _pick_cluster(point_label, rng_cam, uv, window, params.cluster_min_pixel_frac,
-                         params.cluster_min_box_cover)
+    if cluster_by == "voxels":
+        best = 0  # labels are ordered by voxel count
+    else:
+        best = _pick_cluster(point_label, rng_cam, uv, window, params.cluster_min_pixel_frac,
+                             params.cluster_min_box_cover)
     obj_vox = vox[vox_label == best]
     if len(obj_vox) < params.min_cluster_points:
         return None
@@ -385,7 +522,7 @@ def observe_object(
     # Clearance at the object's lowest point: the floor cut removed up to that much of it.
     lowest_clearance = float(clearance[on_obj][int(np.argmin(obj_h))])
 
-    z_max = float(np.quantile(obj_h, params.height_quantile))
+    z_max = _quantile_lower(obj_h, params.height_quantile)
     z_min = float(obj_h.min())
     # Standing on the floor: its lowest points were cut with the floor, so it reaches z = 0.
     if z_min <= lowest_clearance + params.voxel_size_m:

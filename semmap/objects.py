@@ -210,11 +210,18 @@ class _State:
     #: Last snapshot; dropped whenever the state changes (most objects do not, each frame).
     snapshot_cache: MappedObject | None = None
 
+    #: (hull array it was computed from, its bounding box): the hull changes rarely.
+    bbox_cache: tuple[NDArray[np.float64], tuple[float, float, float, float]] | None = None
+
     @property
     def bbox_xy_m(self) -> tuple[float, float, float, float]:
         """(x_min, y_min, x_max, y_max) of the hull."""
+        if self.bbox_cache is not None and self.bbox_cache[0] is self.hull_xy_m:
+            return self.bbox_cache[1]
         lo, hi = self.hull_xy_m.min(axis=0), self.hull_xy_m.max(axis=0)
-        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+        box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+        self.bbox_cache = (self.hull_xy_m, box)
+        return box
 
 
 class ObjectMap:

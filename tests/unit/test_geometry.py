@@ -67,9 +67,10 @@ def box_of(boxes: list, T_map_camera: np.ndarray) -> tuple[float, float, float, 
     return (max(0.0, u.min()), max(0.0, v.min()), min(K.width_px, u.max()), min(K.height_px, v.max()))
 
 
-def observe(depth: np.ndarray, T: np.ndarray, cls: ClassConfig = TABLE, **kw):
+def observe(depth: np.ndarray, T: np.ndarray, cls: ClassConfig = TABLE, remove_walls: bool = True, **kw):
     track = Track(7, box_of(TABLE_BOXES, T), 0.9, cls.name)
-    return observe_object(depth, K, T, track, cls, GeometryConfig(**kw), depth_range_m=(0.3, 8.0))
+    return observe_object(depth, K, T, track, cls, GeometryConfig(**kw), depth_range_m=(0.3, 8.0),
+                          remove_walls=remove_walls)
 
 
 TRUE_FOOTPRINT = np.array([[2.4, 0.65], [3.6, 0.65], [3.6, 1.35], [2.4, 1.35]])
@@ -172,3 +173,26 @@ def test_convex_iou_and_degenerate_footprints() -> None:
     line = np.column_stack([np.linspace(0, 1, 10), np.zeros(10)])
     fp = convex_footprint(line, min_width_m=0.03)
     assert polygon_area_m2(fp) == pytest.approx(1.0 * 0.03, rel=1e-6)
+
+
+def test_a_wall_a_few_cm_behind_the_object_is_removed_before_clustering() -> None:
+    T = camera_pose(1.0, 1.0, 1.5, 0.0, 30.0)
+    # The wall's face is 5 cm behind the table's far edge: one voxel-connected cloud otherwise.
+    wall = ((3.65, -3.0, 0.0), (3.75, 5.0, 2.5))
+    depth = render(TABLE_BOXES + [FLOOR, wall], T)
+    joined = observe(depth, T, remove_walls=False)
+    assert joined is not None and np.ptp(joined.footprint_xy_m[:, 1]) > 1.0  # the wall came along
+    obs = observe(depth, T)
+    assert obs is not None
+    assert obs.footprint_xy_m[:, 0].max() < 3.63
+    assert np.ptp(obs.footprint_xy_m[:, 1]) < 0.8
+    assert convex_iou(obs.footprint_xy_m, TRUE_FOOTPRINT) > 0.7
+
+
+def test_an_occluder_in_front_is_not_taken_for_a_wall() -> None:
+    T = camera_pose(1.0, 1.0, 1.5, 0.0, 30.0)
+    # A low screen between the camera and the table fills the pixels below the box.
+    screen = ((2.0, -3.0, 0.0), (2.05, 5.0, 0.5))
+    obs = observe(render(TABLE_BOXES + [FLOOR, screen], T), T)
+    assert obs is not None
+    assert obs.footprint_xy_m[:, 0].min() > 2.3
