@@ -9,9 +9,13 @@ The pipeline per track (one I/O-free step, :func:`observe_object`):
    compose as ``T_map_body @ T_body_camera``, in SE(3)).
 3. Points within ``floor_clearance_m`` of the floor plane are dropped: the floor is not part
    of any object, and it would join every leg into one cluster with the room.
+   The wall behind the object goes too, with everything beyond it: a vertical plane fitted
+   (:func:`background_walls`) on a ring of pixels just outside the box, accepted only when
+   nothing of the ring or the box stands behind it and it faces the camera. A chair a few
+   centimetres in front of a wall would otherwise be one cluster with the wall.
 4. Voxel downsampling, then Euclidean clustering (:mod:`semmap.clustering`). The object is
-   the cluster covering most pixels of the box: a tight box is mostly its object, while a
-   background wall far behind it can own more voxels than the object does.
+   the nearest large cluster spanning the box (:func:`_pick_cluster`): a tight box is
+   mostly its object, while a background far behind it can own more voxels than it does.
 5. Hollow-bottom classes: RANSAC finds the seat / top plane, constrained near horizontal.
 6. Footprint: the convex hull of the projection of the object's points (top and legs alike)
    onto the map plane, so the space between the legs is inside it. Heights are true heights

@@ -547,11 +547,15 @@ class ObjectMap:
 
     @staticmethod
     def _add_evidence(s: _State, keys: NDArray[np.int64], weight: float) -> None:
-        allk = np.concatenate([s.cell_keys, keys])
-        allw = np.concatenate([s.cell_w, np.full(len(keys), weight)])
-        uk, inv = np.unique(allk, return_inverse=True)
-        s.cell_keys = uk
-        s.cell_w = np.bincount(inv.reshape(-1), weights=allw, minlength=len(uk)).astype(np.float64)
+        """Add ``weight`` to the cells ``keys`` (sorted, unique) of the object's evidence."""
+        pos = np.searchsorted(s.cell_keys, keys)  # (K,) a merge, not a re-sort of everything
+        known = pos < len(s.cell_keys)
+        known[known] = s.cell_keys[pos[known]] == keys[known]
+        w = s.cell_w.copy()
+        w[pos[known]] += weight
+        fresh = ~known
+        s.cell_keys = np.insert(s.cell_keys, pos[fresh], keys[fresh])
+        s.cell_w = np.insert(w, pos[fresh], weight)
         s.footprint_cache = None
         s.snapshot_cache = None
 
@@ -571,7 +575,8 @@ class ObjectMap:
             h = _CELL_M / 2
             hull = convex_footprint(c)  # of centres; each cell's half-width is added back
             corners = np.concatenate([hull + [-h, -h], hull + [h, -h], hull + [h, h], hull + [-h, h]])
-            poly = convex_footprint(corners)
+            # The rectangle takes the hull of the corners itself: one hull, not two.
+            poly = corners if cfg.footprint_shape == "rectangle" else convex_footprint(corners)
         s.footprint_cache = (
             min_area_rectangle(poly) if cfg.footprint_shape == "rectangle" else poly
         )
