@@ -13,7 +13,8 @@ Figures per room and overall:
 * loop closures found, odometry fallbacks;
 * map agreement with ground truth (observed cells whose occupancy equals
   ``occupancy_at_band``), for the grid rebuilt at SLAM poses and at odometry poses;
-* local SLAM time per scan (the live path), p50 / p95, milliseconds.
+* local SLAM time per scan (the live path), p50 / p95, milliseconds: wall time and the live
+  thread's CPU time (the latter is what a scan costs on an otherwise idle core).
 
 ``python bench/slam.py [--quick]``; the last line is a JSON object with the figures.
 """
@@ -84,7 +85,7 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
     drift = drift or OdometryDriftModel(0.03, 0.5, seed=seed)
     duration = traj.duration_s if max_duration_s is None else min(traj.duration_s, max_duration_s)
     n = int(duration * rate_hz)
-    truth, odom, live, times, scans = [], [], [], [], []
+    truth, odom, live, times, cpu_times, scans = [], [], [], [], [], []
     n_fallback = 0
     with Slam2D(cfg or SlamConfig()) as slam:
         for i in range(n):
@@ -96,9 +97,12 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
                                          max_depth_m=max_range_m,
                                          stride_px=2 if width_px > 200 else 1, stamp_s=t)
             o = drift.update(t, (xyz[0], xyz[1], yaw))
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             est = slam.add_scan(t, scan, o)
             times.append((time.perf_counter() - t0) * 1e3)
+            # CPU time of the live thread alone: what a scan costs whatever else (the loop
+            # closer, other processes) shares the CPU.
+            cpu_times.append((time.thread_time() - c0) * 1e3)
             n_fallback += est.status is not SlamStatus.OK
             truth.append((xyz[0], xyz[1], yaw))
             odom.append(o)
@@ -131,7 +135,7 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
             ((final[:, 3] - truth_a[:, 2] + np.pi) % (2 * np.pi) - np.pi) ** 2)))),
         "loop_closures": loops, "revisit_closures": revisits, "fallbacks": n_fallback,
         "agreement_slam": agreement(slam_grid, true_occ), "agreement_odometry": agreement(odom_grid, true_occ),
-        "local_ms": times,
+        "local_ms": times, "local_cpu_ms": cpu_times,
     }
 
 
@@ -155,9 +159,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['ate_slam_live_m']:10.3f} {r['ate_slam_m']:10.3f} {r['loop_closures']:5d} {r['revisit_closures']:5d} {r['fallbacks']:5d} "
               f"{r['agreement_slam']:10.3f} {r['agreement_odometry']:10.3f} {np.percentile(r['local_ms'], 50):12.2f}")
     all_ms = np.concatenate([r["local_ms"] for r in results])
+    all_cpu = np.concatenate([r["local_cpu_ms"] for r in results])
     summary = {
         "rooms": {str(r["seed"]): {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()
-                                   if k != "local_ms"} for r in results},
+                                   if k not in ("local_ms", "local_cpu_ms")} for r in results},
         "ate_odometry_m_mean": round(float(np.mean([r["ate_odometry_m"] for r in results])), 4),
         "ate_slam_m_mean": round(float(np.mean([r["ate_slam_m"] for r in results])), 4),
         "ate_slam_m_max": round(float(np.max([r["ate_slam_m"] for r in results])), 4),
@@ -168,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
         "agreement_odometry_mean": round(float(np.mean([r["agreement_odometry"] for r in results])), 4),
         "local_slam_ms_p50": round(float(np.percentile(all_ms, 50)), 3),
         "local_slam_ms_p95": round(float(np.percentile(all_ms, 95)), 3),
+        "local_slam_cpu_ms_p50": round(float(np.percentile(all_cpu, 50)), 3),
+        "local_slam_cpu_ms_p95": round(float(np.percentile(all_cpu, 95)), 3),
     }
     print(json.dumps(summary))
     return 0
