@@ -60,6 +60,9 @@ from semmap.semantic_map import SemanticMap
 
 log = logging.getLogger(__name__)
 
+#: The systemd watchdog stops pinging when no frame went through perception for this long.
+PERCEPTION_SILENCE_S = 15.0
+
 
 @dataclass
 class ServiceReport:
@@ -150,6 +153,9 @@ class CompanionService:
             self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
             watchdog = await stack.enter_async_context(Watchdog(self.notifier))
             watchdog.register("status-loop", 5.0)
+            # A hung perception thread (or camera) stops the pings: systemd restarts us.
+            watchdog.register("perception", PERCEPTION_SILENCE_S)
+            self.worker.on_frame = lambda: watchdog.alive("perception")
             self.runner = MissionRunner(self.vehicle, planning, lambda: pipeline.costmap(band), cfg.planner,
                                         on_path=self._on_path)
             self.state = "active"

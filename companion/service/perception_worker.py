@@ -14,7 +14,7 @@ import asyncio
 import logging
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -172,6 +172,8 @@ class PerceptionWorker:
         self.stream = FrameStream(source, queue_size=queue_size, rate_hz=rate_hz)
         self.stale_after_s = stale_after_s
         self._task: asyncio.Task[None] | None = None
+        #: Called after every frame, processed or skipped (the systemd watchdog's heartbeat).
+        self.on_frame: Callable[[], None] | None = None
 
     async def __aenter__(self) -> PerceptionWorker:
         await self.stream.__aenter__()
@@ -212,4 +214,6 @@ class PerceptionWorker:
                 if failures == 1 or failures % 50 == 0:
                     log.warning("perception: frame %d skipped (%d so far): %s", frame.index, failures, exc,
                                 exc_info=not isinstance(exc, FrameError))
+            if self.on_frame is not None:
+                self.on_frame()
         log.info("perception: the frame source ended after %d frames", self.pipeline.frames_done)

@@ -12,11 +12,15 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
+import shutil
 import signal
+import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -147,8 +151,27 @@ def test_companion_run_ends_cleanly_on_sigterm_and_restores_its_map(tmp_path: Pa
         "service": {"output_dir": str(tmp_path / "out"), "map_dir": str(tmp_path / "map"),
                     "checkpoint_interval_s": 1.0},
     })
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    env.pop("NOTIFY_SOCKET", None)
+    # systemd's notification socket, as Type=notify with WatchdogSec=4 provides it.
+    sock_dir = tempfile.mkdtemp(prefix="sdn-", dir="/tmp")
+    notify_path = os.path.join(sock_dir, "notify")
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(notify_path)
+    notify.setblocking(False)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "NOTIFY_SOCKET": notify_path, "WATCHDOG_USEC": "4000000"}
+    env.pop("WATCHDOG_PID", None)
+    notes: list[str] = []
+
+    def drain() -> None:  # the socket queues only ~10 datagrams: read them as they come
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                notes.append(notify.recv(4096).decode())
+
+    def wait(seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            drain()
+            time.sleep(0.1)
+
     logs = []
     for _ in range(2):
         log_path = tmp_path / f"run{len(logs)}.log"
@@ -159,10 +182,14 @@ def test_companion_run_ends_cleanly_on_sigterm_and_restores_its_map(tmp_path: Pa
                 deadline = time.monotonic() + 60.0
                 while "service active" not in log_path.read_text() and time.monotonic() < deadline:
                     assert proc.poll() is None, log_path.read_text()
-                    time.sleep(0.2)
-                time.sleep(3.0)  # frames mapped, a checkpoint or two
+                    wait(0.2)
+                wait(3.0)  # frames mapped, a checkpoint or two
                 proc.send_signal(signal.SIGTERM)
-                rc = proc.wait(30.0)
+                deadline = time.monotonic() + 30.0
+                while proc.poll() is None and time.monotonic() < deadline:
+                    wait(0.1)
+                rc = proc.wait(1.0)
+                drain()
             finally:
                 if proc.poll() is None:
                     proc.kill()
@@ -173,3 +200,9 @@ def test_companion_run_ends_cleanly_on_sigterm_and_restores_its_map(tmp_path: Pa
         assert (tmp_path / "map" / "semantic_map.npz").is_file()
     assert "service configured (new map)" in logs[0]
     assert "restored the map from" in logs[1]
+    notify.close()
+    shutil.rmtree(sock_dir)
+    assert sum("READY=1" in n for n in notes) == 2
+    assert any("WATCHDOG=1" in n for n in notes)
+    assert any("STATUS=" in n for n in notes)
+    assert sum("STOPPING=1" in n for n in notes) == 2
