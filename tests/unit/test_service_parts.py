@@ -1,0 +1,78 @@
+"""Pure parts of the companion service: mission legs, frame sanity checks, checkpoints."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.config import CompanionConfig
+from companion.mavlink.mission_download import MissionItem
+from companion.mavlink.state import HomePosition
+from companion.service.checkpoint import checkpoint_path, restore_map
+from companion.service.mission_runner import mission_legs
+from companion.service.perception_worker import check_frame, new_semantic_map
+from semmap.errors import FrameError, MissionError
+from semmap.types import CameraIntrinsics, Frame
+
+HOME = HomePosition(47.397742, 8.545594, 488.0, (0.0, 0.0, 0.0))
+
+
+def _item(seq: int, cmd: int, frame: int = mavlink.MAV_FRAME_LOCAL_NED, x: float = 0.0, y: float = 0.0,
+          z: float = -1.0, acc: float = 0.0) -> MissionItem:
+    return MissionItem(seq, frame, cmd, False, True, 0.0, acc, 0.0, 0.0, x, y, z)
+
+
+def test_mission_legs_keep_waypoints_in_the_map_frame() -> None:
+    items = [
+        _item(0, mavlink.MAV_CMD_NAV_TAKEOFF),
+        _item(1, mavlink.MAV_CMD_NAV_WAYPOINT, x=2.0, y=1.0, acc=0.5),  # north 2, east 1
+        _item(2, mavlink.MAV_CMD_DO_CHANGE_SPEED),
+        _item(3, mavlink.MAV_CMD_NAV_WAYPOINT, x=-1.0, y=3.0),
+        _item(4, mavlink.MAV_CMD_NAV_LAND),
+    ]
+    legs = mission_legs(items, HOME, altitude_m=0.6)
+    assert [leg.seq for leg in legs] == [1, 3]
+    assert legs[0].goal_xy_m == pytest.approx((1.0, 2.0))  # ENU: x east, y north
+    assert legs[0].acceptance_m == 0.5 and legs[1].acceptance_m == 0.3
+    assert all(leg.altitude_m == 0.6 for leg in legs)
+
+
+def test_a_mission_without_waypoints_is_an_error() -> None:
+    with pytest.raises(MissionError, match="no waypoint"):
+        mission_legs([_item(0, mavlink.MAV_CMD_NAV_TAKEOFF)], HOME, 0.6)
+
+
+def _frame(depth: np.ndarray) -> Frame:
+    h, w = depth.shape
+    return Frame(0.0, np.zeros((h, w, 3), np.uint8), depth.astype(np.float32),
+                 CameraIntrinsics(50.0, 50.0, w / 2, h / 2, w, h), np.eye(4))
+
+
+def test_frames_with_too_little_valid_depth_are_rejected() -> None:
+    good = np.full((20, 30), 2.0)
+    check_frame(_frame(good), 0.3, 6.0)
+    bad = good.copy()
+    bad[:, :27] = np.nan
+    with pytest.raises(FrameError, match="valid"):
+        check_frame(_frame(bad), 0.3, 6.0)
+    with pytest.raises(FrameError, match="valid"):
+        check_frame(_frame(np.full((20, 30), 40.0)), 0.3, 6.0)
+    f = _frame(good)
+    f.T_map_camera[0, 3] = np.nan  # type: ignore[index]
+    with pytest.raises(FrameError, match="pose"):
+        check_frame(f, 0.3, 6.0)
+
+
+def test_checkpoint_round_trip_and_a_damaged_one_is_set_aside(tmp_path: Path) -> None:
+    cfg = CompanionConfig().model_copy(update={"service": CompanionConfig().service.model_copy(
+        update={"map_dir": str(tmp_path)})})
+    path = checkpoint_path(cfg)
+    assert restore_map(cfg, path) is None
+    new_semantic_map(cfg).save(path)
+    assert restore_map(cfg, path) is not None
+    path.write_bytes(b"not a map")
+    assert restore_map(cfg, path) is None
+    assert not path.exists() and path.with_suffix(".npz.bad").is_file()
