@@ -23,6 +23,7 @@ import socket
 import subprocess
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -79,33 +80,56 @@ def _free_tcp_port() -> int:
         return int(s.getsockname()[1])
 
 
-@contextlib.contextmanager
-def local_broker(workdir: Path) -> Any:
-    """A Mosquitto broker on a free loopback port (yields the port), or None without the binary."""
-    if not Path(MOSQUITTO).exists():
-        log.warning("mosquitto not installed: the demo runs without the ground link")
-        yield None
-        return
-    port = _free_tcp_port()
-    conf = workdir / "mosquitto.conf"
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n", encoding="utf-8")
-    with (workdir / "mosquitto.log").open("w") as out:
-        proc = subprocess.Popen([MOSQUITTO, "-c", str(conf)], stdout=out, stderr=subprocess.STDOUT)
-    try:
-        deadline = time.monotonic() + 5.0
+class LocalBroker:
+    """A Mosquitto broker on a free loopback port; ``stop()`` and ``start()`` again keep the port
+    (fault tests restart it under connected clients)."""
+
+    def __init__(self, workdir: Path) -> None:
+        self.port = _free_tcp_port()
+        self.workdir = workdir
+        self._proc: subprocess.Popen[bytes] | None = None
+        self.conf = workdir / "mosquitto.conf"
+        self.conf.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence false\n",
+                             encoding="utf-8")
+
+    def start(self, timeout_s: float = 5.0) -> None:
+        """Start the broker and wait until it accepts connections."""
+        with (self.workdir / "mosquitto.log").open("a") as out:
+            self._proc = subprocess.Popen([MOSQUITTO, "-c", str(self.conf)], stdout=out, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             with socket.socket() as s:
-                if s.connect_ex(("127.0.0.1", port)) == 0:
-                    break
+                if s.connect_ex(("127.0.0.1", self.port)) == 0:
+                    return
             time.sleep(0.05)
-        yield port
-    finally:
+        log.warning("mosquitto did not accept connections on %d within %.0f s", self.port, timeout_s)
+
+    def stop(self) -> None:
+        """Stop the broker (it loses every session and retained message)."""
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
         proc.terminate()
         try:
             proc.wait(3.0)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(1.0)
+
+
+@contextlib.contextmanager
+def local_broker(workdir: Path) -> Iterator[LocalBroker | None]:
+    """A running :class:`LocalBroker`, or None when Mosquitto is not installed."""
+    if not Path(MOSQUITTO).exists():
+        log.warning("mosquitto not installed: the demo runs without the ground link")
+        yield None
+        return
+    broker = LocalBroker(workdir)
+    broker.start()
+    try:
+        yield broker
+    finally:
+        broker.stop()
 
 
 def crossing_waypoints_room(placement: SimPlacement, cfg: CompanionConfig) -> list[tuple[float, float]]:
@@ -224,7 +248,7 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
                   timeout_s: float = 170.0, inject: Any = None) -> E2EResult:
     """Fly the demo mission with the whole service; write outputs into ``out_dir``.
 
-    ``inject``: optional ``async (world, service) -> None`` run once the service is active
+    ``inject``: optional ``async (world, service, broker) -> None`` run once the service is active
     (fault tests). Returns the summary (also written as ``summary.json``)."""
     out = Path(out_dir)
     await asyncio.to_thread(out.mkdir, parents=True, exist_ok=True)
@@ -233,7 +257,8 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
     cfg = await asyncio.to_thread(feasible_seed, cfg)
     link_port, mavsdk_port = free_udp_port(), free_udp_port()
     with tempfile.TemporaryDirectory(prefix="companion-demo-") as tmp, \
-            (local_broker(Path(tmp)) if use_broker else contextlib.nullcontext(None)) as broker_port:
+            (local_broker(Path(tmp)) if use_broker else contextlib.nullcontext(None)) as broker:
+        broker_port = broker.port if broker is not None else None
         mqtt = cfg.mqtt.model_copy(update={"enabled": broker_port is not None, "port": broker_port or 1883})
         link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
         service_cfg = cfg.service.model_copy(update={"output_dir": str(out), "map_dir": str(out / "checkpoint")})
@@ -289,7 +314,7 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
                 stop.set()
 
             if inject is not None:
-                service.on_active = lambda svc: inject(world, svc)
+                service.on_active = lambda svc: inject(world, svc, broker)
             async with asyncio.TaskGroup() as tg:
                 tg.create_task(watch())
                 tg.create_task(stopper())

@@ -3,14 +3,14 @@ leg by leg with the semantic planner, judged against the simulator's ground trut
 
 from __future__ import annotations
 
-import asyncio
 import json
 from pathlib import Path
 
 import pytest
 
+from companion.cli import main
 from companion.config import CompanionConfig, load_config
-from companion.service.demo import read_flight_log, run_e2e
+from companion.service.demo import read_flight_log
 
 pytest.importorskip("open3d")
 
@@ -28,11 +28,17 @@ def small_config(tmp_path: Path) -> CompanionConfig:
     return load_config(path)
 
 
-def test_mission_flown_without_collisions_and_outputs_written(tmp_path: Path) -> None:
+def test_mission_flown_without_collisions_and_outputs_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg = small_config(tmp_path)
     out = tmp_path / "out"
-    result = asyncio.run(run_e2e(cfg, out, timeout_s=120.0))
-    s = result.summary
+    # ``companion demo`` on the small room, with the simulator's oracle detector.
+    rc = main(["demo", "--out", str(out), "--config", str(tmp_path / "small.yaml"), "--detector", "oracle",
+               "--timeout", "120"])
+    printed = capsys.readouterr().out
+    assert rc == 0, printed
+    assert f"outputs in {out}" in printed and "4/4 waypoints reached" in printed
+    s = json.loads((out / "summary.json").read_text())
+    assert s["detector"] == "oracle"
 
     assert s["mission_error"] is None
     assert s["waypoints_total"] == 4

@@ -5,6 +5,7 @@
 * autopilot link lost for 3 s: setpoints stop (PX4 fails over to Hold); when the link is back
   the service engages OFFBOARD again and finishes the mission;
 * malformed MQTT commands: refused with a reply, the mission goes on;
+* the MQTT broker stopped for 2 s and restarted: the bridge reconnects, the flight goes on;
 * stop (SIGTERM) mid-flight: hold, stop streaming, map saved; a restart restores the map;
   and the real ``companion run`` process ends with exit code 0 on SIGTERM.
 """
@@ -33,7 +34,7 @@ from companion.config import load_config
 from companion.mavlink.failsafe import OffboardState
 from companion.service.app import CompanionService
 from companion.service.checkpoint import checkpoint_path, restore_map
-from companion.service.demo import free_udp_port, run_e2e
+from companion.service.demo import LocalBroker, free_udp_port, run_e2e
 from companion.service.sim_world import SimWorld
 
 pytest.importorskip("open3d")
@@ -70,7 +71,7 @@ def test_camera_link_and_ground_faults_mid_flight(tmp_path: Path) -> None:
     cfg = load_config(_config(tmp_path))
     events: dict[str, Any] = {}
 
-    async def inject(world: SimWorld, svc: CompanionService) -> None:
+    async def inject(world: SimWorld, svc: CompanionService, broker: LocalBroker | None) -> None:
         await _until(lambda: _active(svc), 40.0)
         await asyncio.sleep(0.5)
         # Malformed commands on the ground link: refused with a reply, nothing else happens.
@@ -87,6 +88,14 @@ def test_camera_link_and_ground_faults_mid_flight(tmp_path: Path) -> None:
                     if len(replies) == 2:
                         break
         events["replies"] = replies
+        # The broker goes away for 2 s and comes back empty: the bridge reconnects by itself.
+        assert broker is not None and svc.ground is not None
+        await asyncio.to_thread(broker.stop)
+        await _until(lambda: not svc.ground.connected, 10.0)
+        await asyncio.sleep(2.0)
+        await asyncio.to_thread(broker.start)
+        await _until(lambda: svc.ground.connected, 20.0)
+        events["reconnected"] = True
         world.camera_corrupt = True
         await asyncio.sleep(2.0)
         world.camera_corrupt = False
@@ -108,6 +117,7 @@ def test_camera_link_and_ground_faults_mid_flight(tmp_path: Path) -> None:
     result = asyncio.run(run_e2e(cfg, tmp_path / "out", timeout_s=150.0, inject=inject))
     s = result.summary
     assert [r["ok"] for r in events["replies"]] == [False, False]
+    assert events["reconnected"] is True
     assert events["failed_after_corrupt"] > 0
     assert events["held_while_camera_missing"] is True
     assert events["state_during_link_loss"] == "link_lost"
@@ -120,7 +130,7 @@ def test_camera_link_and_ground_faults_mid_flight(tmp_path: Path) -> None:
 def test_stop_mid_flight_holds_saves_and_restart_restores(tmp_path: Path) -> None:
     cfg = load_config(_config(tmp_path, {"service": {"on_sigterm": "hold"}}))
 
-    async def stop_mid_flight(world: SimWorld, svc: CompanionService) -> None:
+    async def stop_mid_flight(world: SimWorld, svc: CompanionService, broker: LocalBroker | None) -> None:
         await _until(lambda: _active(svc), 40.0)
         await _until(lambda: svc.smap is not None and len(svc.smap.objects) >= 1, 30.0)
         await asyncio.sleep(1.0)
