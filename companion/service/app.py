@@ -294,7 +294,7 @@ class CompanionService:
                 self._mission_task.cancel()
                 pos = position_enu(v.snapshot())
                 if pos is not None and v.offboard.state.streams and self.runner is not None:
-                    self.runner._hold_at(pos[:2], float(pos[2]))  # noqa: SLF001 - same package
+                    self.runner.hold_at(pos[:2], float(pos[2]))
         elif isinstance(cmd, VehicleCommand):
             if busy:
                 assert self._mission_task is not None

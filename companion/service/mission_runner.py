@@ -182,10 +182,11 @@ class MissionRunner:
         pos = position_enu(self.vehicle.snapshot())
         if pos is None:
             raise MissionError("no vehicle position to engage offboard from")
-        self._hold_at(pos[:2], altitude_m)
+        self.hold_at(pos[:2], altitude_m)
         await self.vehicle.offboard.engage()
 
-    def _hold_at(self, xy_m: NDArray[np.floating], altitude_m: float) -> None:
+    def hold_at(self, xy_m: NDArray[np.floating], altitude_m: float) -> None:
+        """Replace the setpoint with a hold at ``xy_m`` (map frame) and ``altitude_m``, keeping yaw."""
         yaw_ned = self.vehicle.snapshot().yaw_ned_rad
         self.vehicle.offboard.set_setpoint(PositionSetpoint(
             enu_to_ned(float(xy_m[0]), float(xy_m[1]), altitude_m), yaw_rad=yaw_ned))
@@ -247,7 +248,7 @@ class MissionRunner:
                 log.warning("leg %d: no path (%s: %s); holding", leg.seq, result.status.value, result.reason)
                 if rep.failed_plans >= self.max_failed_plans:
                     break
-                self._hold_at(pos[:2], leg.altitude_m)
+                self.hold_at(pos[:2], leg.altitude_m)
                 await asyncio.sleep(RETRY_HOLD_S)
                 continue
             if self.on_path is not None:
