@@ -339,8 +339,8 @@ class SlamConfig(StageConfig):
     constraint_rotation_weight: float = Field(default=100.0, gt=0.0)
     #: Consecutive nodes (local SLAM's relative motion): stiff, so loop closures bend the
     #: trajectory over long spans instead of jolting single nodes.
-    local_translation_weight: float = Field(default=1000.0, gt=0.0)
-    local_rotation_weight: float = Field(default=1000.0, gt=0.0)
+    local_translation_weight: float = Field(default=200.0, gt=0.0)
+    local_rotation_weight: float = Field(default=200.0, gt=0.0)
     loop_translation_weight: float = Field(default=100.0, gt=0.0)
     loop_rotation_weight: float = Field(default=100.0, gt=0.0)
     #: Huber scale of the pose graph's robust loss (in weighted residual units).
