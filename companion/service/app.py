@@ -158,6 +158,7 @@ class CompanionService:
                 Checkpointer(self.smap, checkpoint_path(cfg), cfg.service.checkpoint_interval_s, pipeline.lock))
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
             self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
+            self._update_goal_fence()
             watchdog = await stack.enter_async_context(Watchdog(self.notifier))
             watchdog.register("status-loop", 5.0)
             # A hung perception thread (or camera) stops the pings: systemd restarts us.
@@ -335,6 +336,7 @@ class CompanionService:
                                       {n: round(t, 2) for n, t in timings.items() if math.isfinite(t)},
                                       health, detail)
                 self.notifier.status(f"{self.state}: {detail}")
+                self._update_goal_fence()
                 with pipeline.lock:
                     objects = pipeline.smap.objects
                 if len(objects) != n_objects:
@@ -344,6 +346,16 @@ class CompanionService:
                     ground.publish_map(await asyncio.to_thread(pipeline.costmap, flight_band(self.cfg)))
             k += 1
             await asyncio.sleep(period)
+
+    def _update_goal_fence(self) -> None:
+        """Goals over MQTT must lie in the map (when no geofence is configured): tell the
+        ground link's validator the map's current extent (the grid may grow)."""
+        if self.ground is None or self.smap is None:
+            return
+        spec = self.smap.spec
+        x0, y0 = spec.origin_xy_m
+        self.ground.validator.set_map_extent((x0, y0, x0 + spec.cols * spec.resolution_m,
+                                              y0 + spec.rows * spec.resolution_m))
 
     @property
     def path_xy_m(self) -> NDArray[np.float64]:
