@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for seed in seeds:
         if args.quick:
-            r = run_flight(seed, laps=1, speed_m_s=0.5, rate_hz=8.0, width_px=160)
+            r = run_flight(seed, laps=1, speed_m_s=0.6, rate_hz=6.0, width_px=160)
         else:
             r = run_flight(seed)
         results.append(r)
