@@ -10,9 +10,8 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform, rotation_from_rpy
 from semmap.types import CameraIntrinsics
