@@ -52,7 +52,7 @@ _RING_WIDTH_PX = 12
 _RING_STRIDE_PX = 4
 #: A wall is a vertical plane holding at least this share of the ring's above-floor points
 #: (and ``_WALL_MIN_POINTS``), with at most ``_WALL_MAX_BEHIND`` of them beyond it.
-_WALL_MIN_SHARE = 0.4
+_WALL_MIN_SHARE = 0.15
 _WALL_MIN_POINTS = 30
 _WALL_MAX_BEHIND = 0.1
 _WALL_HYPOTHESES = 64
