@@ -102,9 +102,11 @@ class _STrack:
         return np.array([x - w / 2.0, y - h / 2.0, x + w / 2.0, y + h / 2.0])
 
     def to_track(self, frame_id: int) -> Track:
-        u0, v0, u1, v1 = (float(v) for v in self.xyxy)
-        return Track(self.track_id, (u0, v0, u1, v1), float(self.score), self.class_name,
-                     frame_id - self.start_frame)
+        # Plain floats straight from the state: this runs for every track every frame.
+        x, y, w, h = self.mean[:4].tolist()
+        hw, hh = w / 2.0, h / 2.0
+        return Track(self.track_id, (x - hw, y - hh, x + hw, y + hh), float(self.score),
+                     self.class_name, frame_id - self.start_frame)
 
 
 def _track_boxes(tracks: Sequence[_STrack]) -> NDArray[np.float64]:
@@ -348,8 +350,8 @@ class BoTSORT:
     def _predict(tracks: Sequence[_STrack]) -> None:
         if not tracks:
             return
-        means = np.stack([t.mean for t in tracks])
-        covs = np.stack([t.cov for t in tracks])
+        means = np.array([t.mean for t in tracks])
+        covs = np.array([t.cov for t in tracks])
         not_tracked = np.array([t.state != TrackState.TRACKED for t in tracks])
         means[not_tracked, 6:8] = 0.0
         means, covs = kalman.predict(means, covs)
@@ -364,7 +366,7 @@ class BoTSORT:
         if not tracks:
             return
         means, covs = kalman.apply_warp(
-            np.stack([t.mean for t in tracks]), np.stack([t.cov for t in tracks]), warp
+            np.array([t.mean for t in tracks]), np.array([t.cov for t in tracks]), warp
         )
         for t, m, c in zip(tracks, means, covs, strict=True):
             t.mean, t.cov = m, c
@@ -376,8 +378,8 @@ class BoTSORT:
         if not updates:
             return
         tracks = [u[0] for u in updates]
-        z = _xyxy_to_xywh(np.stack([u[1] for u in updates]))
-        means, covs = kalman.update(np.stack([t.mean for t in tracks]), np.stack([t.cov for t in tracks]), z)
+        z = _xyxy_to_xywh(np.array([u[1] for u in updates]))
+        means, covs = kalman.update(np.array([t.mean for t in tracks]), np.array([t.cov for t in tracks]), z)
         for (t, _box, score, feat), m, c in zip(updates, means, covs, strict=True):
             reactivated = t.state != TrackState.TRACKED
             t.mean, t.cov = m, c
