@@ -99,7 +99,7 @@ def train(args: argparse.Namespace) -> None:
         "amp": False,
         "plots": False,
         "project": str(Path(args.out).resolve()),
-        "name": "furniture",
+        "name": args.name,
         "exist_ok": True,
         "seed": 0,
         "patience": 1000,
@@ -108,12 +108,19 @@ def train(args: argparse.Namespace) -> None:
     if args.time_hours:
         # Ultralytics fits the epoch count (and the LR schedule) to this wall-clock budget.
         settings["time"] = args.time_hours
-    model = YOLO("yolov8n.yaml")
+    # --weights continues from an earlier run's checkpoint (its weights only: a fresh optimizer
+    # and LR schedule fitted to this run's budget), so a budget can be spent in several sittings.
+    # Ultralytics only loads a checkpoint's weights when `pretrained` names it; with
+    # pretrained=False it rebuilds the architecture from scratch even from a .pt.
+    model = YOLO(args.weights) if args.weights else YOLO("yolov8n.yaml")
+    if args.weights:
+        settings["pretrained"] = str(args.weights)
     t0 = time.time()
     model.train(**settings)
     summary = {"settings": settings, "train_seconds": round(time.time() - t0, 1),
-               "ultralytics_architecture": "yolov8n.yaml", "torch_threads": _torch_threads()}
-    (Path(args.out) / "furniture" / "train_summary.json").write_text(json.dumps(summary, indent=2))
+               "ultralytics_architecture": "yolov8n.yaml",
+               "initial_weights": args.weights, "torch_threads": _torch_threads()}
+    (Path(args.out) / args.name / "train_summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary))
 
 
@@ -169,6 +176,9 @@ def main() -> None:
     t.add_argument("--epochs", type=int, default=30)
     t.add_argument("--time-hours", type=float, default=None,
                    help="wall-clock budget; overrides --epochs (Ultralytics' `time`)")
+    t.add_argument("--weights", default=None,
+                   help="start from this checkpoint (e.g. an earlier run's last.pt), not from scratch")
+    t.add_argument("--name", default="furniture", help="run folder name under --out")
     t.add_argument("--lr0", type=float, default=0.002)
     t.add_argument("--close-mosaic", type=int, default=1)
     t.add_argument("--warmup-epochs", type=float, default=0.0)
