@@ -61,6 +61,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="30 frames per case instead of 200")
     ap.add_argument("--frames", type=int, default=None, help="frames per case (overrides --quick)")
     ap.add_argument("--threads", type=int, default=0, help="ray-cast threads (0: all cores)")
+    ap.add_argument("--shade-threads", type=int, default=0,
+                    help="threads for the per-pixel shading and decoding bands (0: one per core, up to 2)")
     args = ap.parse_args()
     n = args.frames or (30 if args.quick else 200)
 
@@ -69,6 +71,8 @@ def main() -> None:
     world = build_world(cfg)
     renderer = world.renderer
     renderer.n_threads = args.threads
+    if args.shade_threads:
+        renderer.shade_threads = args.shade_threads
     setup_s = time.perf_counter() - t0
     T_bc = cfg.camera.extrinsics.T_body_camera()
     traj = world.trajectory
@@ -90,7 +94,7 @@ def main() -> None:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"== Simulated RGB-D camera, {intr.width_px}x{intr.height_px}, {n} frames per case ==")
     print(f"room seed {world.room.seed}: {renderer.n_primitives} primitives, scene setup {setup_s:.2f} s; "
-          f"{os.cpu_count()} CPUs, load average {load:.2f}, {platform.processor() or platform.machine()}")
+          f"{renderer.shade_threads} shading threads, {os.cpu_count()} CPUs, load average {load:.2f}, {platform.processor() or platform.machine()}")
     print(f"{'case':<18}{'p50 ms':>9}{'p95 ms':>9}{'mean ms':>9}{'fps':>8}{'CPU ms':>9}")
     for name, s in cases.items():
         print(f"{name:<18}{s['p50_ms']:>9.2f}{s['p95_ms']:>9.2f}{s['mean_ms']:>9.2f}{s['fps']:>8.1f}"
@@ -102,6 +106,7 @@ def main() -> None:
         "resolution": f"{intr.width_px}x{intr.height_px}",
         "frames_per_case": n,
         "primitives": renderer.n_primitives,
+        "shade_threads": renderer.shade_threads,
         "load_average_1min": round(load, 2),
         "cpus": os.cpu_count(),
         **cases,

@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -211,6 +213,8 @@ class RoomRenderer:
     ``class_names`` gives the class index of the ``"class"`` mask (the config's class order);
     objects whose class is not in it get -1. ``seed`` seeds the textures and, when no
     generator is passed to :meth:`render`, the per-frame noise (``(seed, frame index)``).
+    ``n_threads`` are Open3D's ray-casting threads (0: all cores); ``shade_threads`` (0: up to
+    two, one per core) split the per-pixel numpy work into horizontal bands run side by side.
     """
 
     def __init__(
@@ -223,6 +227,7 @@ class RoomRenderer:
         light_dir_map: tuple[float, float, float] = (0.35, 0.25, 1.0),
         rgb_noise_std: float = 2.0,
         n_threads: int = 0,
+        shade_threads: int = 0,
     ) -> None:
         try:
             import open3d as o3d
@@ -238,6 +243,9 @@ class RoomRenderer:
         self.seed = int(seed)
         self.rgb_noise_std = float(rgb_noise_std)
         self.n_threads = int(n_threads)
+        #: Threads that shade the colour image in bands (1: shade in the caller's thread).
+        self.shade_threads = int(shade_threads) if shade_threads else min(2, os.cpu_count() or 1)
+        self._pool: ThreadPoolExecutor | None = None
         #: Intersect the floor and ceiling analytically when the camera is between them (the
         #: same result as casting against their slabs, for a third less ray-casting time).
         self.analytic_slabs = True
@@ -377,9 +385,19 @@ class RoomRenderer:
             raise SimulationError(f"T_map_camera must be a finite (4, 4) transform (got shape {T.shape})")
         R = T[:3, :3].astype(np.float32)
         rays = self._rays  # reused: a fresh 7 MB buffer per frame costs page faults
-        rays[:, :3] = T[:3, 3]
-        for i in range(3):  # map-frame direction = R @ (x, y, 1)
-            rays[:, 3 + i] = R[i, 0] * self._xc + R[i, 1] * self._yc + R[i, 2]
+        n_px = rays.shape[0]
+        bands = self._bands(self.intrinsics.height_px, self.intrinsics.width_px)
+
+        def set_rays(lo: int, hi: int) -> None:
+            rays[lo:hi, :3] = T[:3, 3]
+            xc, yc = self._xc[lo:hi], self._yc[lo:hi]
+            for i in range(3):  # map-frame direction = R @ (x, y, 1)
+                col = rays[lo:hi, 3 + i]
+                np.multiply(xc, R[i, 0], out=col)
+                col += R[i, 1] * yc
+                col += R[i, 2]
+
+        self._run_bands(set_rays, bands)
         o3d = self._o3d
         ox, oy, oz = (float(v) for v in T[:3, 3])
         analytic = self.analytic_slabs and 0.0 < oz < self.room.wall_height_m
@@ -388,24 +406,46 @@ class RoomRenderer:
         t_hit = ans["t_hit"].numpy()
         gids = ans["geometry_ids"].numpy().view(np.int32)  # INVALID_ID reads as -1
         tri = ans["primitive_ids"].numpy().view(np.int32)
-        miss = gids < 0
-        prim = np.where(miss, np.intp(self._n_prims), gids.astype(np.intp) + first)
-        face = np.where(miss, np.intp(6 * self._n_prims), 6 * prim + (tri >> 1))
-        if analytic:
-            self._add_slabs(rays, ox, oy, oz, t_hit, prim, face)
+        prim = np.empty(n_px, dtype=np.intp)
+        face = np.empty(n_px, dtype=np.intp)
+        n_prims = self._n_prims
+
+        def decode(lo: int, hi: int) -> None:
+            g, p, f = gids[lo:hi], prim[lo:hi], face[lo:hi]
+            miss = g < 0
+            np.add(g, first, out=p)
+            p[miss] = n_prims
+            np.multiply(p, 6, out=f)
+            f += tri[lo:hi] >> 1
+            f[miss] = 6 * n_prims
+            if analytic:
+                bufs = {k: v[lo:hi] for k, v in self._slab_bufs.items()}
+                self._add_slabs(rays[lo:hi], ox, oy, oz, t_hit[lo:hi], p, f, bufs)
+
+        self._run_bands(decode, bands)
         return {"depth_m": t_hit, "prim": prim, "face": face, "T": T}
+
+    def _run_bands(self, fn: Any, bands: list[tuple[int, int]]) -> None:
+        """``fn(lo, hi)`` for every band, on the shading pool when there are several."""
+        if len(bands) == 1:
+            fn(*bands[0])
+            return
+        futures = [self._shade_pool().submit(fn, lo, hi) for lo, hi in bands]
+        for fut in futures:
+            fut.result()
 
     def _add_slabs(
         self, rays: NDArray[np.float32], ox: float, oy: float, oz: float,
         t_hit: NDArray[np.float32], prim: NDArray[np.intp], face: NDArray[np.intp],
+        b: dict[str, NDArray[Any]],
     ) -> None:
         """In place: where the floor (z = 0, its top face) or the ceiling (z = H, its bottom
         face) is nearer than the scene's hit, and its slab exists there, take it.
 
         Written with preallocated buffers: fresh multi-megabyte temporaries each frame cost
-        more in page faults than the arithmetic.
+        more in page faults than the arithmetic. ``b`` holds those buffers (same length as
+        the rays), so bands of one frame can run side by side.
         """
-        b = self._slab_bufs
         dz = rays[:, 5]
         down = np.less(dz, 0.0, out=b["down"])
         t_p = b["t"]
@@ -443,6 +483,12 @@ class RoomRenderer:
 
         ``rng`` drives all noise; None seeds a generator from ``(seed, index)``, so the same
         pose and index always give the same frame. Masks are from the noise-free geometry.
+
+        After the ray cast (Open3D, all cores), the colour is shaded in horizontal bands on a
+        small thread pool while this thread adds the depth noise and the masks: numpy's
+        gathers and ufuncs release the GIL, so the per-pixel work uses both cores of the
+        drone's computer. The bands only split the work; the frame is the same bit for bit
+        whatever the thread count (every random draw happens in this thread, in a fixed order).
         """
         intr = self.intrinsics
         H, W = intr.height_px, intr.width_px
@@ -450,67 +496,117 @@ class RoomRenderer:
             rng = np.random.default_rng([self.seed, int(index) & 0x7FFFFFFF])
         c = self.cast(T_map_camera)
         prim = c["prim"]
-        rgb = self._shade(c, rng).reshape(H, W, 3)
-        depth = self._noisy_depth(c["depth_m"].reshape(H, W), rng)
+        n_px = H * W
+        rgb = np.empty((n_px, 3), dtype=np.uint8)
+        lum_noise = self._gaussian(rng, n_px) if self.rgb_noise_std > 0 else None
+        tables = self._shade_tables(c["T"])
+        bands = self._bands(H, W)
+        pool = self._shade_pool() if len(bands) > 1 else None
+        if pool is None:
+            for lo, hi in bands:
+                self._shade_band(c, tables, lo, hi, lum_noise, rgb)
+            depth = self._noisy_depth(c["depth_m"].reshape(H, W), rng)
+        else:
+            futures = [pool.submit(self._shade_band, c, tables, lo, hi, lum_noise, rgb)
+                       for lo, hi in bands]
+            try:
+                depth = self._noisy_depth(c["depth_m"].reshape(H, W), rng)
+            finally:
+                for fut in futures:
+                    fut.result()
         masks: dict[str, NDArray[np.generic]] = {
             "instance": self._owner[prim].reshape(H, W),
             "class": self._class[prim].reshape(H, W),
         }
         return Frame(
-            stamp_s=float(stamp_s), rgb=rgb, depth_m=depth, intrinsics=intr,
+            stamp_s=float(stamp_s), rgb=rgb.reshape(H, W, 3), depth_m=depth, intrinsics=intr,
             T_map_camera=np.array(T_map_camera, dtype=np.float64), index=int(index), masks=masks,
         )
 
-    def _shade(self, c: dict[str, Any], rng: np.random.Generator) -> NDArray[np.uint8]:
-        """(H*W, 3) uint8 colours: base colour x Lambert shading x material texture."""
-        face = c["face"]
-        T = c["T"]
-        R = T[:3, :3]
+    def _bands(self, H: int, W: int) -> list[tuple[int, int]]:
+        """Flat pixel ranges ``[lo, hi)`` of ``shade_threads`` horizontal bands of whole rows."""
+        k = max(1, min(int(self.shade_threads), H))
+        rows = np.linspace(0, H, k + 1).round().astype(int)
+        return [(int(a) * W, int(b) * W) for a, b in zip(rows[:-1], rows[1:], strict=True)]
+
+    def _shade_pool(self) -> ThreadPoolExecutor:
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(
+                max_workers=max(1, int(self.shade_threads)), thread_name_prefix="render-shade")
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the shading threads (the renderer stays usable: they restart on demand)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def _shade_tables(self, T: NDArray[np.float64]) -> dict[str, Any]:
+        """Per-face tables for one pose (F = 6 * primitives + 1 rows, small).
+
+        ``n_cam`` (F, 3): face normals in the camera frame (rows = R^T n), for the headlight
+        term ``|n.d| / |d| = |n_cam . (x, y, 1)| / |(x, y, 1)|``. For the texture, a face maps
+        a map-frame point p to texel coordinates ``a . p + b``; with the hit at
+        ``p = o + t R (x, y, 1)`` that is ``(a . o + b) + t (R^T a) . (x, y, 1)``: ``a_cam``
+        (2, F, 3) holds ``R^T a`` and ``const`` (2, F) holds ``a . o + b`` per texture axis.
+        """
+        R, o = T[:3, :3], T[:3, 3]
+        n_cam = (self._face_normal @ R).astype(np.float32)
+        a_cam, const = [], []
+        for row in (0, 1):
+            A = self._face_tex[:, row, :3]  # (F, 3) texel axis per metre, map frame
+            const.append((A @ o + self._face_tex[:, row, 3]).astype(np.float32))
+            a_cam.append((A @ R).astype(np.float32))
+        return {
+            "n_cam": [np.ascontiguousarray(n_cam[:, k]) for k in range(3)],
+            "a_cam": [[np.ascontiguousarray(a[:, k]) for k in range(3)] for a in a_cam],
+            "const": const,
+        }
+
+    def _shade_band(
+        self, c: dict[str, Any], tables: dict[str, Any], lo: int, hi: int,
+        lum_noise: NDArray[np.float32] | None, rgb_out: NDArray[np.uint8],
+    ) -> None:
+        """Shade flat pixels ``[lo, hi)`` into ``rgb_out`` (H*W, 3) uint8: base colour x
+        Lambert shading x material texture (+ sensor noise)."""
+        face = c["face"][lo:hi]
+        prim = c["prim"][lo:hi]
+        xc, yc = self._xc[lo:hi], self._yc[lo:hi]
         hit = face < 6 * self._n_prims
-        # Per-face tables for this pose, then one 1D gather each: normals in the camera frame
-        # give |n.d| / |d| = |n_cam . (x, y, 1)| / |(x, y, 1)| (the headlight term).
-        n_cam = (self._face_normal @ R).astype(np.float32)  # (F, 3) rows = R^T n
-        ndotd = n_cam[:, 0][face] * self._xc
-        ndotd += n_cam[:, 1][face] * self._yc
-        ndotd += n_cam[:, 2][face]
+        nx, ny, nz = tables["n_cam"]
+        ndotd = nx[face] * xc
+        ndotd += ny[face] * yc
+        ndotd += nz[face]
         lum = np.abs(ndotd)
-        lum *= self._inv_len
+        lum *= self._inv_len[lo:hi]
         lum *= np.float32(HEADLIGHT)
         lum += self._face_flat_light[face]
-        lum *= self._texture_lookup(c, hit)
-        if self.rgb_noise_std > 0:
-            lum += self._gaussian(rng, lum.shape[0]) * np.float32(self.rgb_noise_std / 128.0)
+        lum *= self._texture_band(c["depth_m"][lo:hi], face, hit, xc, yc, tables)
+        if lum_noise is not None:
+            lum += lum_noise[lo:hi] * np.float32(self.rgb_noise_std / 128.0)
         lum[~hit] = 1.0
-        prim = c["prim"]
-        rgb = np.empty((lum.shape[0], 3), dtype=np.uint8)
+        out = rgb_out[lo:hi]
         for k in range(3):
             ch = self._color_cols[k][prim] * lum
             np.clip(ch, 0.0, 255.0, out=ch)
-            rgb[:, k] = ch
-        return rgb
+            out[:, k] = ch
 
-    def _texture_lookup(self, c: dict[str, Any], hit: NDArray[np.bool_]) -> NDArray[np.float32]:
-        """(H*W,) texture factor at each hit, from its face's texel coordinates.
-
-        A face maps a map-frame point p to texel coordinates ``a . p + b``; with the hit at
-        ``p = o + t R (x, y, 1)`` that is ``(a . o + b) + t (R^T a) . (x, y, 1)``, so per pose
-        only small per-face tables change and each pixel needs a few gathers and products.
-        """
-        face = c["face"]
-        T = c["T"]
-        R, o = T[:3, :3], T[:3, 3]
-        t = np.where(hit, c["depth_m"], np.float32(0.0))
+    def _texture_band(
+        self, depth_m: NDArray[np.float32], face: NDArray[np.intp], hit: NDArray[np.bool_],
+        xc: NDArray[np.float32], yc: NDArray[np.float32], tables: dict[str, Any],
+    ) -> NDArray[np.float32]:
+        """Texture factor of a band's pixels, from each hit's texel coordinates on its face
+        (see :meth:`_shade_tables`): a few gathers and products per pixel."""
+        t = np.where(hit, depth_m, np.float32(0.0))
         mask = TEX_SIZE - 1
         idx = self._face_tex_base[face]
         for row, stride in ((0, 1), (1, TEX_SIZE)):
-            A = self._face_tex[:, row, :3]  # (F, 3) texel axis per metre, map frame
-            const = (A @ o + self._face_tex[:, row, 3]).astype(np.float32)  # (F,)
-            a_cam = (A @ R).astype(np.float32)  # (F, 3) rows = R^T a
-            coord = a_cam[:, 0][face] * self._xc
-            coord += a_cam[:, 1][face] * self._yc
-            coord += a_cam[:, 2][face]
+            ax, ay, az = tables["a_cam"][row]
+            coord = ax[face] * xc
+            coord += ay[face] * yc
+            coord += az[face]
             coord *= t
-            coord += const[face]
+            coord += tables["const"][row][face]
             idx += (np.floor(coord).astype(np.intp) & mask) * stride
         return self._tex_flat[idx]
 
