@@ -31,7 +31,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-import companion
 from companion.config import CompanionConfig, write_effective_config
 from companion.sources.recorded import RecordedFrameSource
 from semmap.costmap import VerticalBand
@@ -200,8 +199,7 @@ def build_offline_map(
         raise ConfigError("detector.kind 'oracle' needs the simulator; for a recording give "
                           "--detections FILE or configure detector.kind: onnx")
     else:
-        detector = detector_from_config(cfg.detector, class_names,
-                                        builtin_dir=Path(companion.__file__).parent / "models")
+        detector = detector_from_config(cfg.detector, class_names)
 
     T_map_world = (estimate_map_alignment(source, depth_range, opts.floor_sample_frames)
                    if opts.align_floor else np.eye(4))

@@ -57,3 +57,15 @@ def test_bad_inputs_are_reported(dining: Path, tmp_path: Path) -> None:
     with pytest.raises(DataError, match=r"frames\['1.png'\]\[0\]"):
         load_detections_file(bad, ["chair"])
     assert main(["map", str(dining), "--out", str(tmp_path / "c"), "--detections", str(bad)]) == 2
+
+
+def test_the_shipped_detector_maps_a_recording(dining: Path, tmp_path: Path) -> None:
+    """``detector.kind: onnx`` with ``builtin:furniture`` resolves the model shipped in
+    semmap and runs the neural-network path over real frames (no detections file)."""
+    base = load_config(None)
+    cfg = base.model_copy(update={"detector": base.detector.model_copy(
+        update={"kind": "onnx", "model_path": "builtin:furniture"})})
+    out = tmp_path / "nn"
+    result = build_offline_map(dining, out, cfg, OfflineMapOptions(use_tracker=True))
+    assert (out / "map.yaml").is_file() and (out / "objects.json").is_file()
+    assert result.frames_used == 5 and result.frames_skipped == 0
