@@ -243,6 +243,10 @@ class MapConfig(StageConfig):
     scan_band_m: tuple[float, float] | None = None
     #: Layers older than this make the planner hold position.
     stale_after_s: float = Field(default=2.0, gt=0.0)
+    #: What the planner is given: ``semantic`` (occupancy + object footprints + margins) or
+    #: ``metric`` (the occupancy layer alone: with ``scan_band_m`` a thin slice at flight
+    #: altitude, what a plain 2D map gives; for comparisons such as ``bench/safety.py``).
+    mode: Literal["semantic", "metric"] = "semantic"
     # Object map.
     existence_hit_logodds: float = Field(default=0.85, gt=0.0)
     #: Prior before the first observation: one sighting alone does not confirm an object.

@@ -45,6 +45,8 @@ log = logging.getLogger(__name__)
 FILE_FORMAT_VERSION = 1
 #: Added to the ids of loaded objects kept beside a fresh object map (no id clashes).
 RESTORED_ID_OFFSET = 1_000_000
+#: What :meth:`SemanticMap.costmap` may be built from (``SemanticMapSettings.mode``).
+MAP_MODES = ("semantic", "metric")
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,9 @@ class SemanticMapSettings:
     class_margins_m: tuple[tuple[str, float], ...] = ()
     combine_rule: str = "maximum"
     stale_after_s: float = 2.0
+    #: ``semantic``: :meth:`SemanticMap.costmap` combines every layer; ``metric``: the
+    #: occupancy layer alone (see :meth:`SemanticMap.metric_costmap`).
+    mode: str = "semantic"
     #: A path point is recorded when the vehicle moved at least this far.
     path_min_step_m: float = 0.05
 
@@ -99,7 +104,7 @@ class SemanticMapSettings:
             depth_min_m=depth_min_m, depth_max_m=depth_max_m,
             existence_confirm=map_cfg.existence_confirm, margin_decay_m=map_cfg.margin_decay_m,
             class_margins_m=tuple((c.name, float(c.margin_m)) for c in classes),
-            stale_after_s=map_cfg.stale_after_s,
+            stale_after_s=map_cfg.stale_after_s, mode=map_cfg.mode,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -138,6 +143,8 @@ class SemanticMap:
         s = settings
         self.settings = s
         self.object_map = object_map
+        if s.mode not in MAP_MODES:
+            raise MapError(f"settings: unknown map mode {s.mode!r} (known: {list(MAP_MODES)})")
         if object_map is not None and list(object_map.class_names) != list(s.class_names):
             raise MapError(
                 f"object map classes {object_map.class_names} differ from the map's {list(s.class_names)}"
@@ -296,8 +303,23 @@ class SemanticMap:
         return np.asarray([p[0] for p in self._path], np.float64)
 
     def costmap(self, band: VerticalBand | None = None) -> Costmap:
-        """The combined costmap for a vehicle band (default: the scan band)."""
+        """The costmap the planner is given for a vehicle band (default: the scan band): every
+        layer combined, or the occupancy layer alone when ``settings.mode`` is ``metric``."""
+        if self.settings.mode == "metric":
+            return self.metric_costmap(band)
         return self.layers.costmap(band or self.settings.scan_band)
+
+    def metric_costmap(self, band: VerticalBand | None = None) -> Costmap:
+        """The occupancy layer alone as a costmap (no object footprints, margins or classes):
+        what a plain 2D map built from the depth slice gives. ``band`` only labels the result
+        (the grid holds what the scan band saw); default: the scan band."""
+        layers = self.layers
+        layers.sync_spec()
+        spec = layers.spec
+        band = band or self.settings.scan_band
+        cost = layers.occupancy.costs(spec, band, Bounds(0, 0, spec.rows, spec.cols))
+        stamp = layers.occupancy.stamp_s
+        return Costmap(spec, np.ascontiguousarray(cost), band, stamp_s=stamp if np.isfinite(stamp) else 0.0)
 
     def stale_layers(self, now_s: float) -> list[str]:
         """Layers older than ``settings.stale_after_s`` at ``now_s`` (empty = fresh map)."""
