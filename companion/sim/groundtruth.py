@@ -138,6 +138,24 @@ def collides(
     return clearance_m(room, xyz_m, vehicle_height_m) < vehicle_radius_m
 
 
+def colliding_owners(
+    room: Room, xyz_m: NDArray[np.floating], vehicle_radius_m: float, vehicle_height_m: float,
+) -> tuple[int, ...]:
+    """Sorted owners (object id, 0 = a wall) of the primitives that a vertical cylinder (radius,
+    height) centred at any of the (N, 3) points touches (the same rule as :func:`collides`)."""
+    pts = np.asarray(xyz_m, dtype=np.float64).reshape(-1, 3)
+    half = vehicle_height_m / 2.0
+    owners: set[int] = set()
+    for box, oid in room.all_boxes():
+        if oid in owners:
+            continue
+        z0, z1 = box.z_range_m
+        overlap = (pts[:, 2] - half <= z1) & (pts[:, 2] + half >= z0)
+        if np.any(overlap) and np.any(_box_distance_xy(box, pts[overlap, :2]) < vehicle_radius_m):
+            owners.add(oid)
+    return tuple(sorted(owners))
+
+
 def path_collides(
     room: Room, path_xyz_m: NDArray[np.floating], vehicle_radius_m: float,
     vehicle_height_m: float, step_m: float = 0.02,
