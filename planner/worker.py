@@ -36,7 +36,8 @@ log = logging.getLogger(__name__)
 
 
 def _worker_main(conn: Connection, config: PlannerConfig) -> None:
-    """Worker loop: ``("map", version, costmap)`` and ``("plan", id, start, goal, limit, snap)``."""
+    """Worker loop: ``("map", version, costmap)``, ``("plan", id, start, goal, limit, snap)`` and
+    ``("check", id, path)`` (is the (K, 2) path free on the current map)."""
     from planner.planner import Planner  # imported in the child: OMPL loads here
 
     planner = Planner(config)
@@ -57,10 +58,13 @@ def _worker_main(conn: Connection, config: PlannerConfig) -> None:
             elif kind == "plan":
                 _, req_id, start, goal, limit, snap = msg
                 conn.send(("result", req_id, planner.plan(start, goal, limit, snap)))
+            elif kind == "check":
+                _, req_id, path = msg
+                conn.send(("result", req_id, bool(planner.path_still_valid(np.asarray(path, dtype=np.float64)))))
             else:
                 conn.send(("error", None, f"unknown request {kind!r}"))
         except Exception as exc:  # noqa: BLE001 - report every failure to the client, keep serving
-            conn.send(("error", msg[1] if kind == "plan" else None, f"{type(exc).__name__}: {exc}"))
+            conn.send(("error", msg[1] if kind in ("plan", "check") else None, f"{type(exc).__name__}: {exc}"))
 
 
 class PlanningService:
@@ -228,3 +232,39 @@ class PlanningService:
             raise PlanningError(f"planning request rejected: {reply[2]}")
         result: PlanResult = reply[2]
         return result
+
+    def path_free(self, costmap: Costmap, map_version: int, path_xy_m: NDArray[np.floating],
+                  timeout_s: float = 5.0) -> bool | None:
+        """Whether the (K, 2) map-frame polyline is free on ``costmap`` (identified by
+        ``map_version``), judged by the worker's configuration space exactly as the planner
+        judges its own paths; so the caller's process never builds one. The costmap is
+        transferred only if the worker does not hold this version yet. Returns None when the
+        worker did not answer within ``timeout_s`` (it is restarted, as for :meth:`plan`)."""
+        path = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
+        deadline = time.monotonic() + float(timeout_s)
+        with self._lock:
+            self.start()
+            conn = self._conn
+            assert conn is not None
+            try:
+                if self._worker_version != map_version:
+                    conn.send(("map", int(map_version), costmap))
+                    self.maps_sent += 1
+                    reply = self._recv(deadline)
+                    if reply[0] == "error":
+                        self._worker_version = None
+                        raise PlanningError(f"planning worker rejected map version {map_version}: {reply[2]}")
+                    self._worker_version = int(map_version)
+                self._next_id += 1
+                req_id = self._next_id
+                conn.send(("check", req_id, path))
+                while True:
+                    reply = self._recv(deadline)
+                    if reply[1] == req_id or reply[0] == "error":
+                        break
+            except (TimeoutError, EOFError, OSError, BrokenPipeError):
+                self._abandon()
+                return None
+        if reply[0] == "error":
+            raise PlanningError(f"path check rejected: {reply[2]}")
+        return bool(reply[2])

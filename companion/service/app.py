@@ -5,9 +5,11 @@
 * ``configure()`` builds everything from the config without touching the world: the semantic
   map (restored from the last checkpoint), the perception pipeline and the planning service;
 * ``activate()`` (inside :meth:`run`) opens every long-lived part as an async context manager
-  under one exit stack and a TaskGroup: the planner process, the MAVLink vehicle (setpoint
-  stream, telemetry, OBSTACLE_DISTANCE), the frame stream and perception worker, map
-  checkpointing, the flight log, the MQTT bridge and the systemd watchdog;
+  under one exit stack and a TaskGroup: the planner process, the perception process (camera,
+  detector, tracker, semantic map and its checkpoints; :mod:`.perception_process`), the
+  MAVLink vehicle (setpoint stream, telemetry, OBSTACLE_DISTANCE), the flight log, the MQTT
+  bridge and the systemd watchdog. The service process itself only runs the event loop, so
+  the setpoint stream never waits for perception's share of the GIL;
 * ``deactivate()`` (when ``stop`` is set, e.g. on SIGTERM) holds or lands first
   (``service.on_sigterm``), then stops streaming, and the checkpointer saves the map.
 
@@ -37,7 +39,7 @@ from companion.ground import MqttBridge
 from companion.ground.schema import GoalCommand, MissionCommand, VehicleCommand
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
-from companion.service.checkpoint import Checkpointer, checkpoint_path, restore_map
+from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.flight_log import FlightLog
 from companion.service.mission_runner import (
     Leg,
@@ -46,15 +48,15 @@ from companion.service.mission_runner import (
     mission_legs,
     position_enu,
 )
+from companion.service.perception_process import LatencyStats, PerceptionProcess
 from companion.service.perception_worker import (
     PerceptionPipeline,
-    PerceptionWorker,
-    flight_band,
     new_semantic_map,
 )
 from companion.sources.base import FrameSource
 from companion.systemd_notify import SystemdNotifier, Watchdog
 from planner.worker import PlanningService
+from semmap.costmap import ObjectFootprint
 from semmap.errors import CompanionError, MissionError
 from semmap.frames import yaw_ned_to_enu
 from semmap.semantic_map import SemanticMap
@@ -80,6 +82,9 @@ class ServiceReport:
     plan_ms: list[float] = field(default_factory=list)
     checkpoints: int = 0
     flight_log_rows: int = 0
+    #: {"frame_to_map": ..., "frame_to_setpoint": ...}: {"count", "p50_ms", "p95_ms", "max_ms"}
+    #: (see :meth:`CompanionService.latency_summary`).
+    latency: dict[str, dict[str, float | int]] = field(default_factory=dict)
 
 
 class CompanionService:
@@ -104,12 +109,13 @@ class CompanionService:
         self.state = "created"
         self.report = ServiceReport()
         self.smap: SemanticMap | None = None
+        #: Only set by callers that run perception in this process (the service runs it in
+        #: :attr:`perception`, a separate process).
         self.pipeline: PerceptionPipeline | None = None
         self.vehicle: Vehicle | None = None
-        self.worker: PerceptionWorker | None = None
+        self.perception: PerceptionProcess | None = None
         self.runner: MissionRunner | None = None
         self.ground: MqttBridge | None = None
-        self.checkpointer: Checkpointer | None = None
         self.restored = False
         self.mission_done = asyncio.Event()
         self._mission_task: asyncio.Task[None] | None = None
@@ -122,11 +128,12 @@ class CompanionService:
     # --- lifecycle ----------------------------------------------------------------------
 
     def configure(self) -> None:
-        """Build the map (restored from the checkpoint when there is one) and the pipeline."""
+        """Load the map (restored from the checkpoint when there is one). The perception
+        process restores the same checkpoint and owns the map while the service runs;
+        :attr:`smap` is its final state once :meth:`run` returns."""
         restored = restore_map(self.cfg, checkpoint_path(self.cfg))
         self.restored = restored is not None
         self.smap = restored if restored is not None else new_semantic_map(self.cfg)
-        self.pipeline = PerceptionPipeline.from_config(self.cfg, self.smap, self.object_classes)
         self.state = "configured"
         log.info("service configured (%s map)", "restored" if self.restored else "new")
 
@@ -135,37 +142,29 @@ class CompanionService:
         deactivate. Returns the run's report."""
         if self.state != "configured":
             self.configure()
-        assert self.smap is not None and self.pipeline is not None
+        assert self.smap is not None
         self._stop = stop
         cfg = self.cfg
-        band = flight_band(cfg)
-        # The event loop (setpoints at 30 Hz) shares the GIL with the perception and frame
-        # threads: hand it over every millisecond instead of every 5 so a setpoint tick waits
-        # at most that long for a busy thread.
+        # Threads left in this process (MAVLink/MQTT helpers, the perception update reader)
+        # are light; still hand the GIL over every millisecond rather than every 5.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
-        pipeline = self.pipeline
+        perception = self.perception = PerceptionProcess(cfg, self.frame_source, self.object_classes)
         async with contextlib.AsyncExitStack() as stack:
             planning = PlanningService(cfg.planner)
             await asyncio.to_thread(planning.start)
             stack.callback(planning.close)
-            self.worker = PerceptionWorker(pipeline, self.frame_source, rate_hz=cfg.camera.rate_hz,
-                                           queue_size=cfg.service.frame_queue_size,
-                                           stale_after_s=cfg.map.stale_after_s)
-            self.vehicle = await stack.enter_async_context(
-                Vehicle(cfg.link, is_map_fresh=self.worker.is_fresh))
-            await stack.enter_async_context(self.worker)
-            self.checkpointer = await stack.enter_async_context(
-                Checkpointer(self.smap, checkpoint_path(cfg), cfg.service.checkpoint_interval_s, pipeline.lock))
+            await stack.enter_async_context(perception)
+            self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh))
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
             self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
             self._update_goal_fence()
             watchdog = await stack.enter_async_context(Watchdog(self.notifier))
             watchdog.register("status-loop", 5.0)
-            # A hung perception thread (or camera) stops the pings: systemd restarts us.
+            # A hung perception process (or camera) stops the pings: systemd restarts us.
             watchdog.register("perception", PERCEPTION_SILENCE_S)
-            self.worker.on_frame = lambda: watchdog.alive("perception")
-            self.runner = MissionRunner(self.vehicle, planning, lambda: pipeline.costmap(band), cfg.planner,
-                                        on_path=self._on_path)
+            perception.on_frame = lambda: watchdog.alive("perception")
+            self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,
+                                        on_path=self._on_path, capture_time=perception.capture_time)
             self.state = "active"
             self.notifier.ready("active")
             log.info("service active")
@@ -187,18 +186,46 @@ class CompanionService:
                         t.cancel()
             finally:
                 self.state = "stopped"
-                self.report.frames_processed = pipeline.frames_done
-                self.report.frames_failed = pipeline.frames_failed
-                self.report.frames_dropped = self.worker.dropped_frames
-                self.report.stage_timings = pipeline.timings.summary()
                 self.report.flight_log_rows = flight_log.rows
                 if self.runner is not None:
                     self.report.legs = list(self.runner.reports)
                     self.report.plan_ms = [ms for r in self.runner.reports for ms in r.plan_ms]
-        if self.checkpointer is not None:
-            self.report.checkpoints = self.checkpointer.saves
+        # The perception process has stopped and saved the map: its final state.
+        counts = perception.counters()
+        self.report.frames_processed = counts["processed"]
+        self.report.frames_failed = counts["failed"]
+        self.report.frames_dropped = counts["dropped"]
+        self.report.checkpoints = counts["checkpoints"]
+        if perception.latest is not None:
+            self.report.stage_timings = perception.latest.timings_summary
+        self.report.latency = self.latency_summary()
+        if perception.final_map is not None:
+            self.smap = perception.final_map
         log.info("service stopped")
         return self.report
+
+    def latency_summary(self) -> dict[str, dict[str, float | int]]:
+        """End-to-end latencies so far, ``{"count", "p50_ms", "p95_ms", "max_ms"}`` each:
+
+        * ``frame_to_map``: a frame's capture (read from the camera) until the costmap that
+          includes it reaches the service (perception + map update + hand-over);
+        * ``frame_to_setpoint``: a frame's capture until the first setpoint computed from a
+          plan made on a costmap that includes it is handed to the setpoint stream (adds the
+          wait for the next plan, planning and trajectory timing). Sampled once per plan.
+        """
+        out: dict[str, dict[str, float | int]] = {}
+        if self.perception is not None:
+            out["frame_to_map"] = LatencyStats(self.perception.frame_to_map_ms).summary()
+        if self.runner is not None:
+            out["frame_to_setpoint"] = LatencyStats(self.runner.frame_to_setpoint_ms).summary()
+        return out
+
+    @property
+    def objects(self) -> tuple[ObjectFootprint, ...]:
+        """The map's objects: the perception process's latest while running, else the map's."""
+        if self.perception is not None and self.perception.latest is not None and self.state != "stopped":
+            return self.perception.objects
+        return self.smap.objects if self.smap is not None else ()
 
     def request_stop(self) -> None:
         """Ask :meth:`run` to deactivate and return (what SIGTERM does)."""
@@ -308,8 +335,8 @@ class CompanionService:
                 await v.commands.hold()
 
     async def _status_loop(self, watchdog: Watchdog) -> None:
-        v, ground, pipeline = self.vehicle, self.ground, self.pipeline
-        assert v is not None and ground is not None and pipeline is not None
+        v, ground, perception = self.vehicle, self.ground, self.perception
+        assert v is not None and ground is not None and perception is not None
         period = 1.0 / self.cfg.service.telemetry_rate_hz
         status_every = max(1, round(self.cfg.service.telemetry_rate_hz / self.cfg.service.status_rate_hz))
         n_objects = -1
@@ -325,34 +352,50 @@ class CompanionService:
                                          s.flight_mode.name if s.flight_mode else "UNKNOWN",
                                          None if s.battery_remaining is None else 100.0 * s.battery_remaining)
             if k % status_every == 0:
-                timings = dict(pipeline.timings.latest_ms)
-                if self.runner is not None and self.runner.last_plan_ms is not None:
-                    timings["plan"] = self.runner.last_plan_ms
-                health = {"mavlink": v.connected, "camera": self.worker is not None and self.worker.is_fresh(),
-                          "map_fresh": self.worker is not None and self.worker.is_fresh(),
+                timings = self.status_timings_ms()
+                health = {"mavlink": v.connected, "camera": perception.is_fresh(),
+                          "map_fresh": perception.is_fresh(), "perception": perception.running,
                           "ground": ground.connected}
-                detail = f"offboard {v.offboard.state.value}, {pipeline.frames_done} frames"
-                ground.publish_status(self.state, time.monotonic() - self._t0,
-                                      {n: round(t, 2) for n, t in timings.items() if math.isfinite(t)},
-                                      health, detail)
+                detail = f"offboard {v.offboard.state.value}, {perception.counters()['processed']} frames"
+                ground.publish_status(self.state, time.monotonic() - self._t0, timings, health, detail)
                 self.notifier.status(f"{self.state}: {detail}")
                 self._update_goal_fence()
-                with pipeline.lock:
-                    objects = pipeline.smap.objects
+                objects = perception.objects
                 if len(objects) != n_objects:
                     n_objects = len(objects)
                     ground.publish_objects(objects)
                 with contextlib.suppress(CompanionError):
-                    ground.publish_map(await asyncio.to_thread(pipeline.costmap, flight_band(self.cfg)))
+                    ground.publish_map(perception.costmap())
             k += 1
             await asyncio.sleep(period)
+
+    def status_timings_ms(self) -> dict[str, float]:
+        """The status message's ``stage_timings_ms``: the latest frame's ``detect``, ``track``,
+        ``geometry``, ``grid``; the latest ``plan``; the latest end-to-end ``frame_to_map`` and
+        ``frame_to_setpoint`` and their 95th percentiles so far (``*_p95``; see
+        :meth:`latency_summary` for the definitions)."""
+        timings: dict[str, float] = {}
+        p = self.perception
+        if p is not None and p.latest is not None:
+            timings.update(p.latest.timings_ms)
+        if self.runner is not None and self.runner.last_plan_ms is not None:
+            timings["plan"] = self.runner.last_plan_ms
+        lat = {"frame_to_map": p.frame_to_map_ms if p is not None else (),
+               "frame_to_setpoint": self.runner.frame_to_setpoint_ms if self.runner is not None else ()}
+        for name, values in lat.items():
+            if values:
+                timings[name] = values[-1]
+                p95 = LatencyStats(values).summary().get("p95_ms")
+                if p95 is not None:
+                    timings[f"{name}_p95"] = float(p95)
+        return {n: round(t, 2) for n, t in timings.items() if math.isfinite(t)}
 
     def _update_goal_fence(self) -> None:
         """Goals over MQTT must lie in the map (when no geofence is configured): tell the
         ground link's validator the map's current extent (the grid may grow)."""
         if self.ground is None or self.smap is None:
             return
-        spec = self.smap.spec
+        spec = self.perception.spec if self.perception is not None and self.perception.spec else self.smap.spec
         x0, y0 = spec.origin_xy_m
         self.ground.validator.set_map_extent((x0, y0, x0 + spec.cols * spec.resolution_m,
                                               y0 + spec.rows * spec.resolution_m))

@@ -244,6 +244,18 @@ def setpoint_gaps_s(stamps_s: list[float]) -> float:
     return float(np.max(np.diff(np.asarray(sorted(stamps_s)))))
 
 
+def setpoint_gap_stats_ms(stamps_s: list[float]) -> dict[str, float | int]:
+    """The distribution of gaps between consecutive received setpoints (autopilot receive
+    times, seconds): ``{"p50_ms", "p99_ms", "max_ms", "over_100ms"}`` (zeros for fewer than two)."""
+    if len(stamps_s) < 2:
+        return {"p50_ms": 0.0, "p99_ms": 0.0, "max_ms": 0.0, "over_100ms": 0}
+    gaps_ms = 1e3 * np.diff(np.asarray(sorted(stamps_s)))
+    return {"p50_ms": round(float(np.percentile(gaps_ms, 50)), 1),
+            "p99_ms": round(float(np.percentile(gaps_ms, 99)), 1),
+            "max_ms": round(float(np.max(gaps_ms)), 1),
+            "over_100ms": int(np.count_nonzero(gaps_ms > 100.0))}
+
+
 async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool = True,
                   timeout_s: float = 170.0, inject: Any = None) -> E2EResult:
     """Fly the demo mission with the whole service; write outputs into ``out_dir``.
@@ -375,8 +387,10 @@ def _summary(cfg: CompanionConfig, placement: SimPlacement, report: ServiceRepor
         "objects_true": len(true_ids),
         "objects_found": found,
         "max_setpoint_gap_ms": round(1e3 * setpoint_gaps_s(stamps), 1),
+        "setpoint_gaps": setpoint_gap_stats_ms(stamps),
         "setpoints_received": len(stamps),
         "stage_timings_ms": report.stage_timings,
+        "latency_ms": report.latency,
         "plan_ms": {"mean": round(float(np.mean(report.plan_ms)), 1) if report.plan_ms else None,
                     "max": round(float(np.max(report.plan_ms)), 1) if report.plan_ms else None,
                     "count": len(report.plan_ms)},

@@ -15,6 +15,7 @@ import asyncio
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -143,11 +144,15 @@ class LegReport:
 class MissionRunner:
     """Flies legs with ``vehicle`` (already connected) using ``planning`` on the costmaps
     from ``costmap_source`` (callable returning the current costmap at the flight band;
-    called in a worker thread). ``on_path`` is told each new planned path (MQTT, logs)."""
+    called in a worker thread). ``on_path`` is told each new planned path (MQTT, logs).
+    ``capture_time``: the capture time (``time.monotonic()`` s) of the newest camera frame in
+    a costmap, when known; each plan's frame-to-setpoint latency is then recorded in
+    :attr:`frame_to_setpoint_ms`."""
 
     def __init__(self, vehicle: Vehicle, planning: PlanningService, costmap_source: Callable[[], Costmap],
                  planner_cfg: PlannerConfig, *, on_path: Callable[[NDArray[np.float64]], None] | None = None,
-                 max_failed_plans: int = 20, leg_timeout_s: float = 120.0) -> None:
+                 max_failed_plans: int = 20, leg_timeout_s: float = 120.0,
+                 capture_time: Callable[[Costmap], float | None] | None = None) -> None:
         self.vehicle = vehicle
         self.planning = planning
         self.costmap_source = costmap_source
@@ -157,9 +162,14 @@ class MissionRunner:
         self.max_failed_plans = max_failed_plans
         self.leg_timeout_s = leg_timeout_s
         self._map_version = 0
+        self._versioned: Costmap | None = None
         self.checker = PathChecker(planner_cfg)
         #: Latest plan duration (ms), for the per-stage timings.
         self.last_plan_ms: float | None = None
+        self.capture_time = capture_time
+        #: Per plan: capture of the newest frame in the planned-on costmap -> the plan's first
+        #: setpoint handed to the setpoint stream (ms).
+        self.frame_to_setpoint_ms: deque[float] = deque(maxlen=2000)
         self.reports: list[LegReport] = []
 
     # --- vehicle steps ------------------------------------------------------------------
@@ -194,11 +204,26 @@ class MissionRunner:
     async def _plan(self, start_xy: NDArray[np.float64], goal_xy: tuple[float, float],
                     snap_goal: bool = False) -> tuple[PlanResult, Costmap]:
         costmap = await asyncio.to_thread(self.costmap_source)
-        self._map_version += 1
-        result = await asyncio.to_thread(self.planning.plan, costmap, self._map_version, start_xy, goal_xy,
+        result = await asyncio.to_thread(self.planning.plan, costmap, self._version_of(costmap), start_xy, goal_xy,
                                          None, snap_goal or None)
         self.last_plan_ms = 1e3 * result.planning_time_s
         return result, costmap
+
+    def _version_of(self, costmap: Costmap) -> int:
+        """The map version of ``costmap`` for the planning worker: a new one for each new
+        costmap object (the worker then applies only the changed window)."""
+        if costmap is not self._versioned:
+            self._versioned = costmap
+            self._map_version += 1
+        return self._map_version
+
+    async def _path_free(self, path_xy_m: NDArray[np.float64]) -> bool:
+        """Whether the (K, 2) path is free on the newest costmap, judged in the planning
+        process (a configuration-space update costs tens of ms of numpy/scipy that must not
+        compete with the setpoint stream for this process's GIL)."""
+        costmap = await asyncio.to_thread(self.costmap_source)
+        free = await asyncio.to_thread(self.planning.path_free, costmap, self._version_of(costmap), path_xy_m)
+        return True if free is None else free  # no answer: keep flying; the next check asks again
 
     # --- legs ---------------------------------------------------------------------------
 
@@ -262,7 +287,8 @@ class MissionRunner:
                 target = Leg(leg.seq, result.goal_xy_m, leg.altitude_m, leg.acceptance_m)
                 goal = np.array(result.goal_xy_m)
                 rep.snapped_goal = True
-            outcome = await self._follow(traj, target)
+            capture_s = self.capture_time(costmap) if self.capture_time is not None else None
+            outcome = await self._follow(traj, target, capture_mono_s=capture_s)
             if outcome == "reached":
                 rep.reached = True
                 break
@@ -297,8 +323,11 @@ class MissionRunner:
         if st in (OffboardState.YIELDED, OffboardState.IDLE):
             raise MissionError(f"offboard control ended ({st.value}: {self.vehicle.offboard.failsafe.reason})")
 
-    async def _follow(self, traj: Trajectory, leg: Leg, check: bool = True) -> str:
+    async def _follow(self, traj: Trajectory, leg: Leg, check: bool = True,
+                      capture_mono_s: float | None = None) -> str:
         """Feed the trajectory; "reached", "invalid" (re-plan) or "late" (re-plan from here).
+        ``capture_mono_s``: capture time of the newest frame in the map the trajectory was
+        planned on (its first setpoint's latency is recorded).
 
         Trajectory time only advances while the controller flies our setpoints (ACTIVE), so
         after a hold (stale pose or map, link loss) the vehicle resumes where it stopped.
@@ -328,6 +357,9 @@ class MissionRunner:
             vn, ve, vd = enu_to_ned(*(float(v) for v in s.velocity_m_s))
             ctl.set_setpoint(PositionSetpoint((n, e, d), yaw_rad=yaw_enu_to_ned(s.yaw_rad),
                                               velocity_ned_m_s=(vn, ve, vd)))
+            if capture_mono_s is not None:
+                self.frame_to_setpoint_ms.append(1e3 * (time.monotonic() - capture_mono_s))
+                capture_mono_s = None
             pos = position_enu(self.vehicle.snapshot())
             if t_traj >= traj.duration_s and pos is not None:
                 if np.linalg.norm(pos[:2] - goal) <= leg.acceptance_m:
@@ -336,9 +368,7 @@ class MissionRunner:
                     return "late"
             if check and now >= next_check and pos is not None and t_traj < traj.duration_s:
                 next_check = now + CHECK_PERIOD_S
-                costmap = await asyncio.to_thread(self.costmap_source)
-                await asyncio.to_thread(self.checker.update, costmap)
-                if not self.checker.path_free(_remaining(traj, t_traj)):
+                if not await self._path_free(_remaining(traj, t_traj)):
                     log.info("leg %d: the path ahead crosses a newly mapped obstacle; re-planning", leg.seq)
                     return "invalid"
             await asyncio.sleep(FEED_PERIOD_S)

@@ -11,7 +11,10 @@ autopilot's pose would give them.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
+import multiprocessing as mp
 import time
 from dataclasses import dataclass, replace
 from types import TracebackType
@@ -33,6 +36,8 @@ log = logging.getLogger(__name__)
 
 #: How far inside the first doorway the vehicle boots (metres).
 START_INSIDE_M = 0.9
+#: How often the vehicle pose is handed to the simulated camera (the mock's physics runs at 100 Hz).
+POSE_PERIOD_S = 0.01
 
 
 def start_point_room_m(room: Room) -> tuple[float, float]:
@@ -40,43 +45,6 @@ def start_point_room_m(room: Room) -> tuple[float, float]:
     if not room.doorways:
         raise SimulationError("the simulated room has no doorway to start from")
     return room.doorways[0].inside_point_m(START_INSIDE_M)
-
-
-class _MapFrameSource(FrameSource):
-    """Renders in the room frame, returns frames whose pose is in the map frame."""
-
-    def __init__(self, inner: SimFrameSource, T_map_room: NDArray[np.float64], world: SimWorld) -> None:
-        self.inner = inner
-        self.T_map_room = T_map_room
-        self.world = world
-        self.dropped_frames = 0
-
-    @property
-    def intrinsics(self) -> CameraIntrinsics:
-        return self.inner.intrinsics
-
-    def open(self) -> None:
-        self.inner.open()
-
-    def close(self) -> None:
-        self.inner.close()
-
-    def read(self) -> Frame | None:
-        while self.world.camera_missing:
-            # A camera that delivers nothing: read() blocks, as a stalled USB camera does.
-            time.sleep(0.02)
-        frame = self.inner.read()
-        if frame is None or frame.T_map_camera is None:
-            return frame
-        frame = replace(frame, T_map_camera=self.T_map_room @ np.asarray(frame.T_map_camera))
-        if self.world.camera_corrupt:
-            # Garbage images: random colour, depth invalid or absurd.
-            rng = np.random.default_rng(frame.index)
-            depth = rng.uniform(-5.0, 50.0, frame.depth_m.shape).astype(np.float32)
-            depth[rng.random(depth.shape) < 0.5] = np.nan
-            frame = replace(frame, rgb=rng.integers(0, 255, frame.rgb.shape, dtype=np.uint8), depth_m=depth,
-                            masks={})
-        return frame
 
 
 @dataclass(frozen=True)
@@ -104,12 +72,119 @@ class SimPlacement:
         return T
 
 
+class SharedSimState:
+    """The simulated vehicle's pose and the camera fault switches in shared memory, so the
+    simulated camera can render in another process (the perception process) while the mock
+    autopilot flies in this one. Written by :class:`SimWorld`, read by :class:`SimCameraSource`;
+    picklable into a ``spawn`` child while it starts."""
+
+    def __init__(self) -> None:
+        ctx = mp.get_context("spawn")
+        # [valid, stamp_s, T_map_body (16, row-major)]; the array's lock keeps reads whole.
+        self._pose = ctx.Array("d", 18, lock=True)
+        self._missing = ctx.Value("b", 0, lock=False)
+        self._corrupt = ctx.Value("b", 0, lock=False)
+
+    def set_pose(self, stamp_s: float, T_map_body: NDArray[np.floating]) -> None:  # noqa: N803 - frame names
+        """Publish the vehicle pose (``T_map_body`` (4, 4), map frame) at ``stamp_s``."""
+        vals = [1.0, float(stamp_s), *np.asarray(T_map_body, dtype=np.float64).reshape(16).tolist()]
+        with self._pose.get_lock():
+            self._pose[:] = vals
+
+    def pose(self) -> tuple[float, NDArray[np.float64]] | None:
+        """``(stamp_s, T_map_body (4, 4))`` last published, or None before the first."""
+        with self._pose.get_lock():
+            vals = list(self._pose[:])
+        if vals[0] == 0.0:
+            return None
+        return vals[1], np.asarray(vals[2:], dtype=np.float64).reshape(4, 4)
+
+    @property
+    def camera_missing(self) -> bool:
+        return bool(self._missing.value)
+
+    @camera_missing.setter
+    def camera_missing(self, on: bool) -> None:
+        self._missing.value = int(on)
+
+    @property
+    def camera_corrupt(self) -> bool:
+        return bool(self._corrupt.value)
+
+    @camera_corrupt.setter
+    def camera_corrupt(self, on: bool) -> None:
+        self._corrupt.value = int(on)
+
+
+class SimCameraSource(FrameSource):
+    """The simulated RealSense on the mock vehicle: renders ``room`` from the pose in
+    ``shared`` and returns frames posed in the map frame (``T_map_room`` applied), exactly as
+    a real camera with the autopilot's pose gives them. Picklable: the renderer is built on
+    first use, in whichever process reads the camera."""
+
+    def __init__(self, cfg: CompanionConfig, placement: SimPlacement, shared: SharedSimState) -> None:
+        self.cfg = cfg
+        self.placement = placement
+        self.shared = shared
+        self.dropped_frames = 0
+        self._inner: SimFrameSource | None = None
+
+    def _source(self) -> SimFrameSource:
+        if self._inner is None:
+            T_room_map = np.linalg.inv(self.placement.T_map_room)
+
+            def pose_room() -> tuple[float, NDArray[np.float64]] | None:
+                p = self.shared.pose()
+                while p is None:  # the world has not published a pose yet
+                    time.sleep(0.02)
+                    p = self.shared.pose()
+                return p[0], T_room_map @ p[1]
+
+            self._inner = SimFrameSource(renderer_from_config(self.placement.room, self.cfg), pose_room,
+                                         self.cfg.camera.extrinsics.T_body_camera())
+        return self._inner
+
+    def __getstate__(self) -> dict[str, object]:
+        return {**self.__dict__, "_inner": None}
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        return self.cfg.camera.intrinsics()
+
+    def open(self) -> None:
+        self._source().open()
+
+    def close(self) -> None:
+        if self._inner is not None:
+            self._inner.close()
+
+    def read(self) -> Frame | None:
+        while self.shared.camera_missing:
+            # A camera that delivers nothing: read() blocks, as a stalled USB camera does.
+            time.sleep(0.02)
+        src = self._source()
+        frame = src.read()
+        self.frames_read = src.frames_read
+        if frame is None or frame.T_map_camera is None:
+            return frame
+        frame = replace(frame, T_map_camera=self.placement.T_map_room @ np.asarray(frame.T_map_camera))
+        if self.shared.camera_corrupt:
+            # Garbage images: random colour, depth invalid or absurd.
+            rng = np.random.default_rng(frame.index)
+            depth = rng.uniform(-5.0, 50.0, frame.depth_m.shape).astype(np.float32)
+            depth[rng.random(depth.shape) < 0.5] = np.nan
+            frame = replace(frame, rgb=rng.integers(0, 255, frame.rgb.shape, dtype=np.uint8), depth_m=depth,
+                            masks={})
+        return frame
+
+
 class SimWorld:
     """Mock autopilot + simulated camera for ``cfg`` (async context manager).
 
     ``autopilot_port``: the mock's UDP port (0 = any free port); ``remote_ports``: where it
     sends (the service's link, MAVSDK, a ground station). Read ``autopilot.local_port``
-    after entering.
+    after entering. While entered, the vehicle's pose is published to the camera every
+    ``POSE_PERIOD_S`` (shared memory, so the camera may render in the perception process).
     """
 
     def __init__(self, cfg: CompanionConfig, *, autopilot_port: int | None = None,
@@ -124,16 +199,34 @@ class SimWorld:
             params={"COM_DISARM_PRFLT": -1.0, **(params or {})}, seed=s.seed,
         )
         self.cfg = cfg
-        #: Fault injection: the camera delivers nothing / garbage while these are True.
-        self.camera_missing = False
-        self.camera_corrupt = False
+        self.shared = SharedSimState()
+        self._pose_task: asyncio.Task[None] | None = None
 
     @property
     def room(self) -> Room:
         return self.placement.room
 
+    # Fault injection: the camera delivers nothing / garbage while these are True.
+    @property
+    def camera_missing(self) -> bool:
+        return self.shared.camera_missing
+
+    @camera_missing.setter
+    def camera_missing(self, on: bool) -> None:
+        self.shared.camera_missing = on
+
+    @property
+    def camera_corrupt(self) -> bool:
+        return self.shared.camera_corrupt
+
+    @camera_corrupt.setter
+    def camera_corrupt(self, on: bool) -> None:
+        self.shared.camera_corrupt = on
+
     async def __aenter__(self) -> SimWorld:
         await self.autopilot.__aenter__()
+        self._publish_pose()
+        self._pose_task = asyncio.create_task(self._pose_loop(), name="sim-camera-pose")
         log.info("simulated world: room seed %d (%.1f x %.1f m, %d objects), mock autopilot on UDP %d",
                  self.room.seed, self.room.width_m, self.room.depth_m, len(self.room.objects),
                  self.autopilot.local_port)
@@ -141,15 +234,23 @@ class SimWorld:
 
     async def __aexit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                         tb: TracebackType | None) -> None:
+        task, self._pose_task = self._pose_task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
         await self.autopilot.__aexit__(exc_type, exc, tb)
 
-    def _pose_room(self) -> tuple[float, NDArray[np.float64]] | None:
+    def _publish_pose(self) -> None:
         stamp, T_map_body = self.autopilot.T_map_body()
-        T_room_body = np.linalg.inv(self.placement.T_map_room) @ np.asarray(T_map_body)
-        return float(stamp), T_room_body
+        self.shared.set_pose(float(stamp), np.asarray(T_map_body))
 
-    def frame_source(self) -> FrameSource:
-        """The simulated camera on the mock vehicle, frames posed in the map frame."""
-        inner = SimFrameSource(renderer_from_config(self.room, self.cfg), self._pose_room,
-                               self.cfg.camera.extrinsics.T_body_camera())
-        return _MapFrameSource(inner, self.placement.T_map_room, self)
+    async def _pose_loop(self) -> None:
+        while True:
+            self._publish_pose()
+            await asyncio.sleep(POSE_PERIOD_S)
+
+    def frame_source(self) -> SimCameraSource:
+        """The simulated camera on the mock vehicle, frames posed in the map frame
+        (picklable: it may render in the perception process)."""
+        return SimCameraSource(self.cfg, self.placement, self.shared)

@@ -99,7 +99,7 @@ def test_camera_link_and_ground_faults_mid_flight(tmp_path: Path) -> None:
         world.camera_corrupt = True
         await asyncio.sleep(2.0)
         world.camera_corrupt = False
-        events["failed_after_corrupt"] = svc.pipeline.frames_failed if svc.pipeline else 0
+        events["failed_after_corrupt"] = svc.perception.counters()["failed"] if svc.perception else 0
         world.camera_missing = True
         t0 = time.monotonic()
         held = False
@@ -132,7 +132,7 @@ def test_stop_mid_flight_holds_saves_and_restart_restores(tmp_path: Path) -> Non
 
     async def stop_mid_flight(world: SimWorld, svc: CompanionService, broker: LocalBroker | None) -> None:
         await _until(lambda: _active(svc), 40.0)
-        await _until(lambda: svc.smap is not None and len(svc.smap.objects) >= 1, 30.0)
+        await _until(lambda: len(svc.objects) >= 1, 30.0)
         await asyncio.sleep(1.0)
         svc.request_stop()
 

@@ -1,0 +1,425 @@
+"""Perception and mapping in their own process, so they never hold the service's GIL.
+
+The service process runs the event loop: the setpoint stream, MAVLink, MQTT and the mission.
+Detection, tracking, geometry and the map update are CPU-heavy Python and numpy; in a thread
+of the same process they compete with the event loop for the GIL (and, on a loaded CPU, a
+preempted perception thread holding the GIL stalls every thread of the process), which
+showed as setpoint gaps of 130-210 ms. So the camera, the perception pipeline, the semantic
+map and its checkpoints live in a child process (``spawn``):
+
+* the child opens the frame source itself (a camera's frames never cross a process
+  boundary), runs :class:`~companion.service.perception_worker.PerceptionWorker` on the
+  newest frame (bounded queue, the oldest frame dropped) and saves map checkpoints;
+* after every frame it sends a :class:`PerceptionUpdate` through a pipe: counters, stage
+  timings, and - at most every ``COSTMAP_PERIOD_S`` - the costmap at the flight band and the
+  object list, with the capture time of the newest frame they include;
+* :class:`PerceptionProcess` (async context manager, in the service) starts the child, keeps
+  the latest update for the planner, the status and the freshness check, and on exit stops
+  the child, which saves the map one last time; the final map is then loaded from that save.
+
+A child that dies is logged; the map goes stale, so the offboard controller holds position,
+and the systemd watchdog (no frames through perception) restarts the service.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import multiprocessing as mp
+import os
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from types import TracebackType
+from typing import Any
+
+from companion.config import CompanionConfig
+from companion.service.checkpoint import Checkpointer, checkpoint_path, restore_map
+from companion.service.perception_worker import (
+    PerceptionPipeline,
+    PerceptionWorker,
+    flight_band,
+    new_semantic_map,
+)
+from companion.sources.base import FrameSource
+from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
+from semmap.errors import MapError, PerceptionError
+from semmap.grid import GridSpec
+from semmap.objects import ObjectMap
+from semmap.semantic_map import SemanticMap
+from semmap.types import Frame
+
+log = logging.getLogger(__name__)
+
+#: The costmap and objects are sent to the service at most this often (the planner checks
+#: its path every 0.5 s; a 400x400 costmap is ~0.5 MB).
+COSTMAP_PERIOD_S = 0.2
+#: The child sends an update at least this often, frames or not (it also notices a dead parent).
+KEEPALIVE_S = 1.0
+#: How long the child may take to start (imports, detector model, map restore).
+START_TIMEOUT_S = 120.0
+#: How long the child may take to stop (last frame, final map save).
+STOP_TIMEOUT_S = 30.0
+
+
+@dataclass(frozen=True)
+class PerceptionUpdate:
+    """What the perception process reports after a frame (or as a keep-alive).
+
+    Times are ``time.monotonic()`` seconds (one clock for every process on the machine).
+    ``capture_mono_s``: when the newest integrated frame was read from the camera.
+    ``costmap``/``objects``: the map at the flight band and its objects, or None when not
+    sent with this update (they are sent at most every ``COSTMAP_PERIOD_S``);
+    ``costmap_capture_mono_s`` is the capture time of the newest frame in that costmap.
+    """
+
+    kind: str  # "ready", "frame", "final"
+    restored: bool
+    frames_done: int
+    frames_failed: int
+    frames_dropped: int
+    last_frame_mono_s: float | None
+    capture_mono_s: float | None
+    timings_ms: dict[str, float]
+    timings_summary: dict[str, dict[str, float]]
+    checkpoints: int
+    costmap: Costmap | None = None
+    costmap_capture_mono_s: float | None = None
+    objects: tuple[ObjectFootprint, ...] | None = None
+    map_spec: GridSpec | None = None
+
+
+@dataclass(frozen=True)
+class _ChildSpec:
+    cfg: CompanionConfig
+    source: FrameSource
+    object_classes: Mapping[int, str] | None
+    log_level: int
+
+
+class _TimedSource(FrameSource):
+    """A frame source that remembers when each frame was read (its capture time)."""
+
+    def __init__(self, inner: FrameSource) -> None:
+        self.inner = inner
+        self.read_mono_s: deque[tuple[int, float]] = deque(maxlen=64)
+
+    @property
+    def intrinsics(self) -> Any:
+        return self.inner.intrinsics
+
+    def open(self) -> None:
+        self.inner.open()
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def read(self) -> Frame | None:
+        frame = self.inner.read()
+        if frame is not None:
+            self.read_mono_s.append((frame.index, time.monotonic()))
+        self.frames_read = self.inner.frames_read
+        self.dropped_frames = self.inner.dropped_frames
+        return frame
+
+    def capture_time(self, index: int) -> float | None:
+        for i, t in reversed(self.read_mono_s):
+            if i == index:
+                return t
+        return None
+
+
+class _TimedPipeline(PerceptionPipeline):
+    """The perception pipeline, remembering the capture time of the newest integrated frame."""
+
+    source: _TimedSource | None = None
+    capture_mono_s: float | None = None
+
+    def process(self, frame: Frame) -> dict[str, float]:
+        out = super().process(frame)
+        if out and self.source is not None:
+            self.capture_mono_s = self.source.capture_time(frame.index)
+        return out
+
+
+def _child_main(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
+    """The perception process's entry point (``spawn``)."""
+    # The service decides when perception stops (SIGTERM/Ctrl-C reach the whole process group).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    logging.basicConfig(level=spec.log_level,
+                        format="%(asctime)s %(levelname)-7s %(name)s [perception]: %(message)s")
+    try:
+        asyncio.run(_child(spec, conn, stop))
+    except Exception:
+        log.exception("perception process failed")
+        raise SystemExit(1) from None
+    finally:
+        conn.close()
+
+
+async def _child(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
+    cfg = spec.cfg
+    parent = os.getppid()
+    restored = restore_map(cfg, checkpoint_path(cfg))
+    smap = restored if restored is not None else new_semantic_map(cfg)
+    source = _TimedSource(spec.source)
+    pipeline = _TimedPipeline.from_config(cfg, smap, spec.object_classes)
+    pipeline.source = source
+    band = flight_band(cfg)
+    loop = asyncio.get_running_loop()
+    frame_seen = asyncio.Event()
+    stopping = asyncio.Event()
+    threading.Thread(target=lambda: (stop.wait(), loop.call_soon_threadsafe(stopping.set)),
+                     name="perception-stop", daemon=True).start()
+
+    worker = PerceptionWorker(pipeline, source, rate_hz=cfg.camera.rate_hz,
+                              queue_size=cfg.service.frame_queue_size, stale_after_s=cfg.map.stale_after_s)
+    ckpt = Checkpointer(smap, checkpoint_path(cfg), cfg.service.checkpoint_interval_s, pipeline.lock)
+
+    def update(kind: str, with_map: bool) -> PerceptionUpdate:
+        cm, cm_t, objs = None, None, None
+        if with_map:
+            cm_t = pipeline.capture_mono_s
+            with pipeline.lock:
+                cm = smap.costmap(band)
+                objs = smap.objects
+        return PerceptionUpdate(
+            kind, restored is not None, pipeline.frames_done, pipeline.frames_failed, worker.dropped_frames,
+            pipeline.last_frame_s, pipeline.capture_mono_s, dict(pipeline.timings.latest_ms),
+            pipeline.timings.summary(), ckpt.saves, cm, cm_t, objs, smap.spec)
+
+    async def send(u: PerceptionUpdate) -> None:
+        await asyncio.to_thread(conn.send, u)
+
+    async with worker, ckpt:
+        worker.on_frame = frame_seen.set
+        await send(update("ready", True))
+        last_map_s = time.monotonic()
+        sent_frames = pipeline.frames_done
+        while not stopping.is_set():
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(KEEPALIVE_S):
+                    await frame_seen.wait()
+            frame_seen.clear()
+            if os.getppid() != parent:
+                log.error("the service process is gone; perception stops")
+                return
+            now = time.monotonic()
+            with_map = pipeline.frames_done != sent_frames and now - last_map_s >= COSTMAP_PERIOD_S
+            u = await asyncio.to_thread(update, "frame", with_map)
+            if with_map:
+                last_map_s = now
+                sent_frames = u.frames_done
+            try:
+                await send(u)
+            except (BrokenPipeError, OSError):
+                log.error("the service process closed the pipe; perception stops")
+                return
+    # The checkpointer saved the map on exit: tell the service it may load it.
+    with contextlib.suppress(BrokenPipeError, OSError):
+        await send(update("final", True))
+
+
+class PerceptionProcess:
+    """The perception process, seen from the service (async context manager).
+
+    ``source`` must be picklable (it is opened in the child). ``object_classes``: the
+    simulator's object id -> class for the oracle detector. ``on_frame`` is called (on the
+    event loop) whenever the child reports that frames went through perception (the systemd
+    watchdog's heartbeat). The map lives in the child; :meth:`costmap`, :attr:`objects` and
+    :attr:`spec` give its latest state at the flight band.
+    """
+
+    def __init__(self, cfg: CompanionConfig, source: FrameSource,
+                 object_classes: Mapping[int, str] | None = None) -> None:
+        self.cfg = cfg
+        self.source = source
+        self.object_classes = dict(object_classes) if object_classes is not None else None
+        self.band = flight_band(cfg)
+        self.on_frame: Callable[[], None] | None = None
+        self.latest: PerceptionUpdate | None = None
+        self.final_map: SemanticMap | None = None
+        self._costmap: Costmap | None = None
+        self._objects: tuple[ObjectFootprint, ...] = ()
+        self._spec: GridSpec | None = None
+        #: Capture times of recent costmaps (by identity), for the frame-to-setpoint latency.
+        self._capture_by_costmap: deque[tuple[Costmap, float | None]] = deque(maxlen=16)
+        #: Frame capture -> costmap in the service (ms), recent values.
+        self.frame_to_map_ms: deque[float] = deque(maxlen=2000)
+        self._proc: Any = None
+        self._stop: Any = None
+        self._reader: threading.Thread | None = None
+        self._ready = asyncio.Event()
+        self._ended = asyncio.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    async def __aenter__(self) -> PerceptionProcess:
+        ctx = mp.get_context("spawn")
+        self._loop = asyncio.get_running_loop()
+        recv, send = ctx.Pipe(duplex=False)
+        self._stop = ctx.Event()
+        spec = _ChildSpec(self.cfg, self.source, self.object_classes, logging.getLogger().getEffectiveLevel())
+        self._proc = ctx.Process(target=_child_main, args=(spec, send, self._stop), name="companion-perception",
+                                 daemon=True)
+        await asyncio.to_thread(self._proc.start)
+        send.close()  # the child holds the only sending end: EOF here when it exits
+        self._reader = threading.Thread(target=self._read, args=(recv,), name="perception-updates", daemon=True)
+        self._reader.start()
+        ready, ended = asyncio.ensure_future(self._ready.wait()), asyncio.ensure_future(self._ended.wait())
+        done, pending = await asyncio.wait({ready, ended}, timeout=START_TIMEOUT_S,
+                                           return_when=asyncio.FIRST_COMPLETED)
+        for t in pending:
+            t.cancel()
+        if not self._ready.is_set():
+            await self._shutdown()
+            raise PerceptionError(f"the perception process did not start (exit code {self._proc.exitcode}); "
+                                  "see its log lines above")
+        log.info("perception process %d running", self._proc.pid)
+        return self
+
+    async def __aexit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                        tb: TracebackType | None) -> None:
+        await self._shutdown()
+        path = checkpoint_path(self.cfg)
+        if path.is_file():
+            try:
+                self.final_map = await asyncio.to_thread(SemanticMap.load, path,
+                                                         object_map=ObjectMap(self.cfg.classes, self.cfg.map))
+            except MapError as exc:
+                log.error("the perception process's final map %s cannot be loaded: %s", path, exc)
+
+    async def _shutdown(self) -> None:
+        proc = self._proc
+        if proc is None:
+            return
+        self._stop.set()
+        await asyncio.to_thread(proc.join, STOP_TIMEOUT_S)
+        if proc.is_alive():
+            log.error("perception process did not stop within %.0f s; terminating it", STOP_TIMEOUT_S)
+            proc.terminate()
+            await asyncio.to_thread(proc.join, 5.0)
+        elif proc.exitcode:
+            log.error("perception process exited with code %s", proc.exitcode)
+        if self._reader is not None:
+            await asyncio.to_thread(self._reader.join, 5.0)
+        self._proc = None
+
+    def _read(self, conn: Connection) -> None:
+        """The reader thread: hand each update to the event loop."""
+        loop = self._loop
+        assert loop is not None
+        try:
+            while True:
+                try:
+                    u = conn.recv()
+                except (EOFError, OSError):
+                    break
+                with contextlib.suppress(RuntimeError):  # the loop closed
+                    loop.call_soon_threadsafe(self._apply, u)
+        finally:
+            conn.close()
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self._on_end)
+
+    def _on_end(self) -> None:
+        self._ended.set()
+        if self._stop is not None and not self._stop.is_set():
+            log.error("the perception process ended unexpectedly: the map goes stale, the vehicle holds")
+
+    def _apply(self, u: PerceptionUpdate) -> None:
+        prev = self.latest
+        self.latest = u
+        if u.map_spec is not None:
+            self._spec = u.map_spec
+        if u.costmap is not None:
+            self._costmap = u.costmap
+            self._capture_by_costmap.append((u.costmap, u.costmap_capture_mono_s))
+            if u.costmap_capture_mono_s is not None:
+                self.frame_to_map_ms.append(1e3 * (time.monotonic() - u.costmap_capture_mono_s))
+        if u.objects is not None:
+            self._objects = u.objects
+        if u.kind == "ready":
+            self._ready.set()
+        handled = u.frames_done + u.frames_failed
+        if self.on_frame is not None and (prev is None or handled != prev.frames_done + prev.frames_failed):
+            self.on_frame()
+
+    # --- the latest state ---------------------------------------------------------------
+
+    def costmap(self, band: VerticalBand | None = None) -> Costmap:
+        """The latest costmap at the flight band (the only band the child computes)."""
+        if band is not None and band != self.band:
+            raise MapError(f"the perception process maps the flight band {self.band}, not {band}")
+        if self._costmap is None:
+            raise MapError("no costmap from the perception process yet")
+        return self._costmap
+
+    def capture_time(self, costmap: Costmap) -> float | None:
+        """The capture time (monotonic s) of the newest frame in ``costmap``, if known."""
+        for cm, t in reversed(self._capture_by_costmap):
+            if cm is costmap:
+                return t
+        return None
+
+    @property
+    def objects(self) -> tuple[ObjectFootprint, ...]:
+        """The map's objects as last reported."""
+        return self._objects
+
+    @property
+    def spec(self) -> GridSpec | None:
+        """The map's grid as last reported (it grows with the map)."""
+        return self._spec
+
+    @property
+    def restored(self) -> bool:
+        return self.latest is not None and self.latest.restored
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def is_fresh(self) -> bool:
+        """True while frames keep being integrated (within ``map.stale_after_s``)."""
+        u = self.latest
+        if u is None or u.last_frame_mono_s is None or not self.running:
+            return False
+        return time.monotonic() - u.last_frame_mono_s <= self.cfg.map.stale_after_s
+
+    def counters(self) -> dict[str, int]:
+        """``{"processed", "failed", "dropped", "checkpoints"}`` as last reported."""
+        u = self.latest
+        if u is None:
+            return {"processed": 0, "failed": 0, "dropped": 0, "checkpoints": 0}
+        return {"processed": u.frames_done, "failed": u.frames_failed, "dropped": u.frames_dropped,
+                "checkpoints": u.checkpoints}
+
+
+@dataclass
+class LatencyStats:
+    """Recent latencies (ms) with percentiles for status messages and reports."""
+
+    values_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
+
+    def add(self, ms: float) -> None:
+        self.values_ms.append(ms)
+
+    def summary(self) -> dict[str, float | int]:
+        """``{"count", "p50_ms", "p95_ms", "max_ms"}`` (empty values -> count 0 only)."""
+        v = sorted(self.values_ms)
+        if not v:
+            return {"count": 0}
+
+        def pct(q: float) -> float:
+            return round(v[min(len(v) - 1, int(round(q * (len(v) - 1))))], 1)
+
+        return {"count": len(v), "p50_ms": pct(0.5), "p95_ms": pct(0.95), "max_ms": round(v[-1], 1)}
+
