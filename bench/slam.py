@@ -11,8 +11,12 @@ Figures per room and overall:
 * ATE RMSE (absolute trajectory error, metres, no alignment: both start at the true pose) of
   the drifting odometry, of SLAM's live poses and of SLAM's final re-anchored trajectory;
 * loop closures found, odometry fallbacks;
-* map agreement with ground truth (observed cells whose occupancy equals
-  ``occupancy_at_band``), for the grid rebuilt at SLAM poses and at odometry poses;
+* map agreement with ground truth as the semantic map issue measures it (``bench/_grid.py``):
+  the semantic map's occupancy grid (its band, tables and scan extraction) built from every
+  third frame, fraction of observed cells whose occupancy equals ``occupancy_at_band``. Built
+  at the final (re-anchored) SLAM poses, at the live SLAM poses (what a map that is never
+  re-anchored holds), at the drifting odometry's poses, and at the true poses (the ceiling:
+  what depth noise and the grid itself allow);
 * local SLAM time per scan (the live path), p50 / p95, milliseconds: wall time and the live
   thread's CPU time (the latter is what a scan costs on an otherwise idle core).
 
@@ -22,6 +26,7 @@ Figures per room and overall:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -40,13 +45,20 @@ from companion.sim.trajectory import fly_route, plan_route  # noqa: E402
 from companion.sim.world import generate_room  # noqa: E402
 from semmap.config import ExtrinsicsConfig, SlamConfig, default_classes  # noqa: E402
 from semmap.costmap import VerticalBand  # noqa: E402
-from semmap.grid import GridSpec  # noqa: E402
-from semmap.occupancy import ProbabilityGrid  # noqa: E402
-from semmap.slam import LevelScan, Slam2D, SlamStatus, level_scan_from_depth  # noqa: E402
+from semmap.scan import BandScan, extract_band_scan  # noqa: E402
+from semmap.semantic_map import SemanticMap, SemanticMapSettings  # noqa: E402
+from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth  # noqa: E402
+from semmap.slam.pose2d import interpolate, transform_xy  # noqa: E402
+from semmap.slam.scan2d import T_level_camera  # noqa: E402
 from semmap.types import CameraIntrinsics  # noqa: E402
 
 ALTITUDE_M = 0.6
+#: The SLAM's scan band.
 BAND = VerticalBand.for_altitude(ALTITUDE_M, 0.3, 0.1)
+#: The semantic map's band and settings, as bench/_grid.py measures the occupancy grid.
+MAP_BAND = VerticalBand.for_altitude(ALTITUDE_M, 0.15, 0.10)
+#: Every this many frames goes into the agreement maps.
+MAP_EVERY = 3
 
 
 def loop_trajectory(room: Any, laps: int, speed_m_s: float, inset_m: float = 1.0) -> Any:
@@ -64,11 +76,47 @@ def ate_rmse(est_xy: np.ndarray, true_xy: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((est_xy - true_xy) ** 2, axis=1))))
 
 
-def agreement(grid: ProbabilityGrid, truth: np.ndarray) -> float:
-    """Fraction of observed cells whose occupancy (p > 0.5) equals the ground truth."""
-    known = grid.known
-    occ = grid.probability() > 0.5
+def map_settings(room: Any, offset_xy_m: tuple[float, float]) -> SemanticMapSettings:
+    """The semantic map's settings over the room (origin shifted by a fraction of a cell so
+    walls do not sit on cell boundaries)."""
+    classes = default_classes()
+    return SemanticMapSettings(
+        tuple(c.name for c in classes), MAP_BAND,
+        origin_xy_m=(-1.0 + offset_xy_m[0], -1.0 + offset_xy_m[1]),
+        size_xy_m=(room.width_m + 2.0, room.depth_m + 2.0),
+        class_margins_m=tuple((c.name, c.margin_m) for c in classes),
+    )
+
+
+def posed(scan: BandScan, pose: np.ndarray) -> BandScan:
+    """A band scan taken in the level body frame, placed with the 2D ``pose`` (x, y, yaw)."""
+    return dataclasses.replace(
+        scan, origin_xy_m=transform_xy(pose, scan.origin_xy_m)[0], near_xy_m=transform_xy(pose, scan.near_xy_m),
+        far_xy_m=transform_xy(pose, scan.far_xy_m), hit_xy_m=transform_xy(pose, scan.hit_xy_m))
+
+
+def map_agreement(room: Any, settings: SemanticMapSettings, scans: list[BandScan], poses: np.ndarray) -> float:
+    """Agreement with ground truth of the semantic map's occupancy grid built from the level
+    ``scans`` at (N, 3) ``poses``: observed cells whose occupancy (p > 0.5) equals
+    ``occupancy_at_band``."""
+    smap = SemanticMap(settings)
+    for sc, p in zip(scans, poses, strict=True):
+        smap.layers.update_scan(posed(sc, p))
+    truth = gt.occupancy_at_band(room, smap.spec, MAP_BAND)
+    known = smap.grid.known
+    occ = smap.grid.probability() > 0.5
     return float(((occ == truth) & known).sum() / max(1, int(known.sum())))
+
+
+def pose_at(traj: np.ndarray, stamp_s: float) -> np.ndarray:
+    """(3,) pose of an (M, 4) stamp, x, y, yaw trajectory at ``stamp_s`` (interpolated)."""
+    k = int(np.searchsorted(traj[:, 0], stamp_s))
+    if k <= 0:
+        return traj[0, 1:].copy()
+    if k >= len(traj):
+        return traj[-1, 1:].copy()
+    t0, t1 = traj[k - 1, 0], traj[k, 0]
+    return interpolate(traj[k - 1, 1:], traj[k, 1:], 0.0 if t1 <= t0 else (stamp_s - t0) / (t1 - t0))
 
 
 def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float = 10.0,
@@ -85,8 +133,11 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
     drift = drift or OdometryDriftModel(0.03, 0.5, seed=seed)
     duration = traj.duration_s if max_duration_s is None else min(traj.duration_s, max_duration_s)
     n = int(duration * rate_hz)
-    truth, odom, live, times, cpu_times, scans = [], [], [], [], [], []
-    n_fallback = 0
+    truth, odom, live, times, cpu_times, times_s = [], [], [], [], [], []
+    map_scans: list[BandScan] = []
+    map_index: list[int] = []
+    settings = map_settings(room, tuple(np.random.default_rng(seed).uniform(0.1, 0.9, 2) * 0.05))
+    n_fallback = n_partial = 0
     with Slam2D(cfg or SlamConfig()) as slam:
         for i in range(n):
             t = traj.start_s + i / rate_hz
@@ -103,18 +154,22 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
             # CPU time of the live thread alone: what a scan costs whatever else (the loop
             # closer, other processes) shares the CPU.
             cpu_times.append((time.thread_time() - c0) * 1e3)
-            n_fallback += est.status is not SlamStatus.OK
+            n_fallback += est.status is SlamStatus.DEGENERATE_FALLBACK_ODOMETRY
+            n_partial += est.status is SlamStatus.PARTIAL_ODOMETRY
             truth.append((xyz[0], xyz[1], yaw))
             odom.append(o)
             live.append(est.pose_map)
-            scans.append(scan)
+            times_s.append(t)
+            if i % MAP_EVERY == 0:
+                ms = settings
+                map_scans.append(extract_band_scan(
+                    frame.depth_m, intr, T_level_camera(T_body_camera, 0.0, 0.0, float(xyz[2])), ms.scan_band,
+                    ms.depth_min_m, ms.depth_max_m, ms.scan_stride_px, ms.scan_min_hit_points, stamp_s=t,
+                    column_stride_px=ms.scan_column_stride_px))
+                map_index.append(i)
         slam.drain(timeout_s=300.0)
         slam.optimize()
         final = slam.trajectory()
-        spec = gt.room_grid_spec(room, 0.05)
-        spec = GridSpec(spec.resolution_m, (spec.origin_xy_m[0] + 0.013, spec.origin_xy_m[1] + 0.021), spec.shape_rc)
-        true_occ = gt.occupancy_at_band(room, spec, BAND)
-        slam_grid = slam.rebuild_grid(spec)
         loops = slam.loop_closures
         # Closures against submaps built long before (not the neighbours of the node's own):
         # the revisits of the loop.
@@ -122,10 +177,10 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
         revisits = sum(1 for c in slam.global_.loop_closures
                        if nodes[c.node].submaps and c.submap < min(nodes[c.node].submaps) - 2)
     truth_a, odom_a, live_a = np.array(truth), np.array(odom), np.array(live)
-    odom_grid = ProbabilityGrid(spec, fixed_size=True)
-    for sc, p in zip(scans[::3], odom_a[::3], strict=True):
-        r: LevelScan = sc.transformed(p)
-        odom_grid.insert_scan(r.origin_xy_m, r.near_xy_m, r.far_xy_m, r.hit_xy_m, r.is_hit, r.valid)
+    idx = np.array(map_index)
+    final_at = np.array([pose_at(final, times_s[k]) for k in idx])
+    agree = {name: map_agreement(room, settings, map_scans, poses) for name, poses in (
+        ("slam", final_at), ("slam_live", live_a[idx]), ("odometry", odom_a[idx]), ("true_poses", truth_a[idx]))}
     return {
         "seed": seed, "duration_s": duration, "scans": n,
         "ate_odometry_m": ate_rmse(odom_a[:, :2], truth_a[:, :2]),
@@ -133,8 +188,8 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
         "ate_slam_m": ate_rmse(final[:, 1:3], truth_a[:, :2]),
         "yaw_err_slam_deg_rms": float(np.degrees(np.sqrt(np.mean(
             ((final[:, 3] - truth_a[:, 2] + np.pi) % (2 * np.pi) - np.pi) ** 2)))),
-        "loop_closures": loops, "revisit_closures": revisits, "fallbacks": n_fallback,
-        "agreement_slam": agreement(slam_grid, true_occ), "agreement_odometry": agreement(odom_grid, true_occ),
+        "loop_closures": loops, "revisit_closures": revisits, "fallbacks": n_fallback, "partial_odometry": n_partial,
+        **{f"agreement_{k}": v for k, v in agree.items()},
         "local_ms": times, "local_cpu_ms": cpu_times,
     }
 
@@ -153,11 +208,13 @@ def main(argv: list[str] | None = None) -> int:
             r = run_flight(seed)
         results.append(r)
     print(f"{'seed':>4} {'dur s':>6} {'scans':>5} {'ATE odom m':>10} {'ATE live m':>10} {'ATE SLAM m':>10} "
-          f"{'loops':>5} {'revis':>5} {'fallb':>5} {'agree slam':>10} {'agree odom':>10} {'local p50 ms':>12}")
+          f"{'loops':>5} {'revis':>5} {'fallb':>5} {'part':>5} {'agree slam':>10} {'live':>6} {'odom':>6} {'truth':>6} "
+          f"{'local p50 ms':>12}")
     for r in results:
         print(f"{r['seed']:>4} {r['duration_s']:6.1f} {r['scans']:5d} {r['ate_odometry_m']:10.3f} "
               f"{r['ate_slam_live_m']:10.3f} {r['ate_slam_m']:10.3f} {r['loop_closures']:5d} {r['revisit_closures']:5d} {r['fallbacks']:5d} "
-              f"{r['agreement_slam']:10.3f} {r['agreement_odometry']:10.3f} {np.percentile(r['local_ms'], 50):12.2f}")
+              f"{r['partial_odometry']:5d} {r['agreement_slam']:10.3f} {r['agreement_slam_live']:6.3f} "
+              f"{r['agreement_odometry']:6.3f} {r['agreement_true_poses']:6.3f} {np.percentile(r['local_ms'], 50):12.2f}")
     all_ms = np.concatenate([r["local_ms"] for r in results])
     all_cpu = np.concatenate([r["local_cpu_ms"] for r in results])
     summary = {
@@ -170,7 +227,12 @@ def main(argv: list[str] | None = None) -> int:
         "loop_closures_min": int(min(r["loop_closures"] for r in results)),
         "revisit_closures_min": int(min(r["revisit_closures"] for r in results)),
         "agreement_slam_mean": round(float(np.mean([r["agreement_slam"] for r in results])), 4),
+        "agreement_slam_min": round(float(np.min([r["agreement_slam"] for r in results])), 4),
+        "agreement_slam_live_mean": round(float(np.mean([r["agreement_slam_live"] for r in results])), 4),
         "agreement_odometry_mean": round(float(np.mean([r["agreement_odometry"] for r in results])), 4),
+        "agreement_true_poses_mean": round(float(np.mean([r["agreement_true_poses"] for r in results])), 4),
+        "fallbacks_total": int(sum(r["fallbacks"] for r in results)),
+        "partial_odometry_total": int(sum(r["partial_odometry"] for r in results)),
         "local_slam_ms_p50": round(float(np.percentile(all_ms, 50)), 3),
         "local_slam_ms_p95": round(float(np.percentile(all_ms, 95)), 3),
         "local_slam_cpu_ms_p50": round(float(np.percentile(all_cpu, 50)), 3),

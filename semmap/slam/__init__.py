@@ -9,6 +9,6 @@ matchers), :mod:`~semmap.slam.refine` (least-squares refinement), :mod:`~semmap.
 
 from semmap.slam.local import SlamStatus
 from semmap.slam.scan2d import LevelScan, level_scan_from_depth
-from semmap.slam.slam2d import Slam2D, SlamPose, SubmapView
+from semmap.slam.slam2d import Slam2D, SlamPose, SlamStats, SubmapView
 
-__all__ = ["LevelScan", "Slam2D", "SlamPose", "SlamStatus", "SubmapView", "level_scan_from_depth"]
+__all__ = ["LevelScan", "Slam2D", "SlamPose", "SlamStats", "SlamStatus", "SubmapView", "level_scan_from_depth"]

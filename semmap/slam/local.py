@@ -5,8 +5,11 @@ For each scan (gravity-aligned body frame, :class:`~semmap.slam.scan2d.LevelScan
 1. predict the pose from the previous estimate and the autopilot's odometry increment;
 2. match the voxel-filtered hits against the matching submap: a real-time correlative
    search over a small window, then the least-squares refinement with the prediction as prior;
-3. check the fit: too few hits, a low score, or information that leaves a direction free
-   (a corridor) -> the odometry prediction is used and the status says so;
+3. check the fit: too few hits or a low score -> the odometry prediction is used; otherwise
+   the translational information (the curvature of the match score) is eigen-decomposed: a
+   direction it does not constrain (along the only wall in view, along a corridor) is taken
+   from the odometry prediction and the constrained one from the match; if neither direction
+   is constrained the prediction is used. The status says which (:class:`SlamStatus`);
 4. insert the scan into the active submaps if the motion filter lets it through (moved far
    enough, turned enough or waited long enough since the last insertion).
 
@@ -40,6 +43,9 @@ class SlamStatus(enum.Enum):
 
     #: Matched against the submap.
     OK = "ok"
+    #: Matched, but one translational direction was unconstrained (one wall in view, a
+    #: corridor): that direction came from the odometry prediction, the rest from the match.
+    PARTIAL_ODOMETRY = "partial_odometry"
     #: The scan did not constrain the pose (degenerate or no overlap): odometry used.
     DEGENERATE_FALLBACK_ODOMETRY = "degenerate_fallback_odometry"
     #: Pure-odometry mode (configured): the autopilot's pose is trusted.
@@ -81,6 +87,34 @@ def voxel_filter_xy(points_xy_m: NDArray[np.floating], voxel_m: float) -> NDArra
     out = np.zeros((len(cnt), 2))
     np.add.at(out, inv, pts)
     return out / cnt[:, None]
+
+
+def constrained_translation(
+    information: NDArray[np.float64], matched_xy_m: NDArray[np.float64], predicted_xy_m: NDArray[np.float64],
+    min_information: float, min_ratio: float,
+) -> tuple[NDArray[np.float64] | None, NDArray[np.float64] | None]:
+    """Split a match into the translational directions the scan constrains and the one it
+    does not (the per-direction degeneracy test).
+
+    ``information``: (3, 3) curvature of the match score at the matched pose (x, y, yaw;
+    1/m^2 in the translational block); ``matched_xy_m``/``predicted_xy_m``: (2,) the match's
+    and the odometry prediction's position, same frame. A direction is constrained when its
+    eigenvalue of the translational block is at least ``min_information`` and at least
+    ``min_ratio`` times the largest one. Returns ``(xy, free_direction)``: ``xy`` (2,) the
+    match along the constrained directions plus the prediction along the free one, and
+    the unit (2,) free direction (None when both are constrained); ``(None, None)`` when
+    neither direction is constrained (the caller falls back to odometry)."""
+    ev, vecs = np.linalg.eigh(0.5 * (information[:2, :2] + information[:2, :2].T))  # ascending
+    threshold = max(float(min_information), float(min_ratio) * float(ev[1]))
+    matched = np.asarray(matched_xy_m, dtype=np.float64)
+    if ev[1] < threshold or ev[1] <= 0.0:
+        return None, None
+    if ev[0] >= threshold:
+        return matched.copy(), None
+    u = vecs[:, 0]
+    pred = np.asarray(predicted_xy_m, dtype=np.float64)
+    d = matched - pred
+    return pred + d - u * float(u @ d), u.copy()
 
 
 class LocalSlam:
@@ -148,16 +182,24 @@ class LocalSlam:
         ref = refine_pose(grid, pts, rt_pose, prior_xy_m=init[:2], prior_yaw_rad=float(init[2]),
                           occupied_space_weight=cfg.occupied_space_weight,
                           translation_weight=cfg.translation_weight, rotation_weight=cfg.rotation_weight)
-        lo, hi = ref.translation_eigenvalues()
         score = ref.mean_probability
+        lo, hi = ref.translation_eigenvalues()
         if score < cfg.min_match_score:
             return pred, fallback, f"match score {score:.2f} < {cfg.min_match_score:.2f}", score, lo
-        if lo < cfg.min_translation_information or lo < cfg.min_information_ratio * hi:
+        xy, free_dir = constrained_translation(ref.information, ref.pose[:2], init[:2],
+                                               cfg.min_translation_information, cfg.min_information_ratio)
+        if xy is None:
             return pred, fallback, (f"degenerate fit: translational information {lo:.2f} "
                                     f"(largest {hi:.2f}) 1/m^2"), score, lo
-        pose = compose(target.local_pose, ref.pose)
+        status, reason = SlamStatus.OK, ""
+        if free_dir is not None:
+            # Direction in the local frame (the submap frame has no rotation).
+            status = SlamStatus.PARTIAL_ODOMETRY
+            reason = (f"direction ({free_dir[0]:+.2f}, {free_dir[1]:+.2f}) unconstrained "
+                      f"(information {lo:.2f} of {hi:.2f} 1/m^2): odometry along it")
+        pose = compose(target.local_pose, np.array([xy[0], xy[1], ref.pose[2]]))
         pose[2] = float(wrap(pose[2]))
-        return pose, SlamStatus.OK, "", score, lo
+        return pose, status, reason, score, lo
 
     def _motion_filter_passes(self, stamp_s: float, pose: Pose2) -> bool:
         if self._last_insert is None:

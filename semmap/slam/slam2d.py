@@ -4,7 +4,8 @@ Feed every scan with the autopilot's odometry pose; get the map-frame pose back 
 
     slam = Slam2D(SlamConfig())
     est = slam.add_scan(stamp_s, level_scan, (x_odom_m, y_odom_m, yaw_odom_rad))
-    est.pose_map, est.status          # (3,), SlamStatus.OK / DEGENERATE_FALLBACK_ODOMETRY
+    est.pose_map, est.status          # (3,), SlamStatus.OK / PARTIAL_ODOMETRY / DEGENERATE_...
+    slam.stats()                      # scans, fallbacks, loop closures (for status reports)
 
 The map frame is the odometry frame at the first scan. When loop closure moves poses,
 ``generation`` rises and listeners are called; :meth:`Slam2D.correction` then gives the
@@ -58,6 +59,28 @@ class SlamPose:
 
 
 @dataclass(frozen=True)
+class SlamStats:
+    """Counters for status reports: ``scans`` seen, how many were matched fully (``ok``),
+    with one direction from odometry (``partial``) or entirely from odometry
+    (``fallbacks``), the current run of consecutive fallbacks, the latest status and
+    fallback reason, nodes, submaps, loop closures, loop-closure searches dropped
+    (worker behind) and the optimisation ``generation``."""
+
+    scans: int
+    ok: int
+    partial: int
+    fallbacks: int
+    consecutive_fallbacks: int
+    last_status: str
+    last_reason: str
+    nodes: int
+    submaps: int
+    loop_closures: int
+    loop_searches_dropped: int
+    generation: int
+
+
+@dataclass(frozen=True)
 class SubmapView:
     """A submap as the map sees it: ``pose_map`` (3,) of its frame, its grid (shared: do not
     modify), whether it is finished and how many scans it holds."""
@@ -85,7 +108,12 @@ class Slam2D:
         self._local: list[Pose2] = []
         self._anchor: list[int] = []
         self._odom_origin: Pose2 | None = None
+        self.n_scans = 0
+        self.n_partial = 0
         self.n_fallback = 0
+        self._run_of_fallbacks = 0
+        self._last_status = ""
+        self._last_reason = ""
 
     @classmethod
     def from_config(cls, cfg: SlamConfig) -> "Slam2D":
@@ -124,8 +152,7 @@ class Slam2D:
             return SlamPose(stamp_s, odom.copy(), SlamStatus.ODOMETRY, odom.copy(), self.generation,
                             False, "odometry mode", 0.0, 0.0)
         res = self.local.add_scan(stamp_s, ls, odom)
-        if res.status is not SlamStatus.OK:
-            self.n_fallback += 1
+        self._count(stamp_s, res.status, res.reason)
         if res.inserted:
             pts = voxel_filter_xy(ls.hits_xy_m, self.cfg.voxel_filter_m)
             self.global_.add_node(stamp_s, res.pose_local, pts, ls, res.submaps)
@@ -137,6 +164,31 @@ class Slam2D:
         pose_map = self.global_.to_global(res.pose_local)
         return SlamPose(stamp_s, pose_map, res.status, res.pose_local, gen, res.inserted, res.reason,
                         res.score, res.min_information)
+
+    def _count(self, stamp_s: float, status: SlamStatus, reason: str) -> None:
+        self.n_scans += 1
+        self._last_status, self._last_reason = status.value, reason
+        if status is SlamStatus.PARTIAL_ODOMETRY:
+            self.n_partial += 1
+        if status is not SlamStatus.DEGENERATE_FALLBACK_ODOMETRY:
+            if self._run_of_fallbacks >= 10:
+                log.info("scan matching back at %.2f s after %d odometry fallbacks", stamp_s, self._run_of_fallbacks)
+            self._run_of_fallbacks = 0
+            return
+        self.n_fallback += 1
+        self._run_of_fallbacks += 1
+        # Not silent, not a flood: the first of a run and every 50th after it.
+        if self._run_of_fallbacks == 1 or self._run_of_fallbacks % 50 == 0:
+            log.log(logging.WARNING if self._run_of_fallbacks > 1 else logging.INFO,
+                    "SLAM: odometry fallback at %.2f s (%d in a row, %d of %d scans): %s",
+                    stamp_s, self._run_of_fallbacks, self.n_fallback, self.n_scans, reason)
+
+    def stats(self) -> SlamStats:
+        """The counters (see :class:`SlamStats`)."""
+        return SlamStats(self.n_scans, self.n_scans - self.n_partial - self.n_fallback, self.n_partial,
+                         self.n_fallback, self._run_of_fallbacks, self._last_status, self._last_reason,
+                         len(self.global_.nodes), len(self.local.submaps.all), self.loop_closures,
+                         self.global_.n_dropped, self.generation)
 
     # --- queries ---------------------------------------------------------------------
 
