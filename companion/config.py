@@ -180,6 +180,19 @@ class SimConfig(StageConfig):
     autopilot_local_port: int = Field(default=14580, ge=1, le=65535)
     autopilot_offboard_port: int = Field(default=14540, ge=1, le=65535)
     autopilot_gcs_port: int = Field(default=14550, ge=1, le=65535)
+    #: The mock autopilot's reported pose drifts (:class:`companion.sim.odometry.OdometryDriftModel`):
+    #: what an indoor EKF without GPS reports. Off = it reports the truth.
+    odometry_drift: bool = False
+    #: Travelled distances read this fraction long.
+    odometry_scale_error: float = Field(default=0.03, ge=-0.5, le=0.5)
+    #: Reported minus true heading grows at this rate (deg/s).
+    odometry_heading_drift_deg_s: float = Field(default=0.5, ge=-10.0, le=10.0)
+    #: Random-walk noise per unit of motion (m/sqrt(m), rad/sqrt(rad)).
+    odometry_noise_m_per_sqrt_m: float = Field(default=0.005, ge=0.0)
+    odometry_noise_rad_per_sqrt_rad: float = Field(default=0.005, ge=0.0)
+    #: Fraction of each external-vision innovation the mock's estimator applies (EKF2 fusing
+    #: VISION_POSITION_ESTIMATE / ODOMETRY); 0 = vision is recorded, not fused.
+    vision_fusion_gain: float = Field(default=0.5, ge=0.0, le=1.0)
     #: Mock autopilot home (the local NED / map origin); default = PX4 SITL's home.
     home_lat_deg: float = Field(default=47.397742, ge=-90.0, le=90.0)
     home_lon_deg: float = Field(default=8.545594, ge=-180.0, le=180.0)

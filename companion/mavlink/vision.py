@@ -10,19 +10,34 @@ flipping y and z::
 The message is ODOMETRY with ``frame_id = MAV_FRAME_LOCAL_NED``, ``child_frame_id =
 MAV_FRAME_BODY_FRD`` and ``estimator_type = MAV_ESTIMATOR_TYPE_VISION``; unknown velocities,
 rates and covariances are NaN, which PX4 reads as "not provided".
+
+:class:`VisionStream` sends the latest pose at a fixed rate (30 Hz by default) from its own
+task, stamped with the pose's capture time, so PX4's EKF2 fuses it at that time (it drops a
+sample no newer than the one before, so repeats of a pose between camera frames cost
+nothing). No pose, or a pose that is not from vision (the SLAM fell back to odometry), is not
+sent: PX4 then coasts on its own estimate instead of being fed its own odometry back.
 """
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import TracebackType
 
 import numpy as np
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation
 
+from companion.errors import LinkError
 from companion.mavlink.link import MavlinkLink
 from semmap.frames import Transform
+
+log = logging.getLogger(__name__)
 
 R_NED_ENU: NDArray[np.float64] = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 R_FLU_FRD: NDArray[np.float64] = np.diag([1.0, -1.0, -1.0])
@@ -76,3 +91,74 @@ def vision_odometry_message(
         vx, vy, vz, math.nan, math.nan, math.nan, _NAN21, _NAN21,
         reset_counter & 0xFF, mavlink.MAV_ESTIMATOR_TYPE_VISION, int(max(-1, min(100, quality_percent))),
     )
+
+
+@dataclass(frozen=True)
+class VisionPose:
+    """One pose for the autopilot: ``stamp_s`` capture time (seconds, the clock PX4 is
+    synchronised to), ``T_map_body`` (4, 4) FLU body in the map frame, ``quality_percent``
+    (0-100), ``reset_counter`` (bump when the estimate jumps, e.g. after a loop closure)."""
+
+    stamp_s: float
+    T_map_body: Transform
+    quality_percent: int = 100
+    reset_counter: int = 0
+
+
+class VisionStream:
+    """Streams the latest pose from ``source`` as external-vision ODOMETRY at ``rate_hz``
+    (async context manager). ``source()`` returns a :class:`VisionPose` or None (nothing to
+    send now). Counts what it sent (:attr:`sent`) and what it skipped (:attr:`skipped`)."""
+
+    def __init__(self, link: MavlinkLink, source: Callable[[], VisionPose | None], rate_hz: float = 30.0) -> None:
+        if rate_hz <= 0.0:
+            raise ValueError(f"vision rate must be > 0 Hz (got {rate_hz})")
+        self.link = link
+        self.source = source
+        self.period_s = 1.0 / rate_hz
+        self.sent = 0
+        self.skipped = 0
+        self._task: asyncio.Task[None] | None = None
+
+    async def __aenter__(self) -> "VisionStream":
+        self._task = asyncio.create_task(self._run(), name="vision-stream")
+        return self
+
+    async def __aexit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                        tb: TracebackType | None) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            try:
+                await task
+            except asyncio.CancelledError:
+                pass
+
+    def send_once(self) -> bool:
+        """Send the current pose now; False when there is none (or the link refused it)."""
+        pose = self.source()
+        if pose is None:
+            self.skipped += 1
+            return False
+        try:
+            self.link.send(vision_odometry_message(self.link, pose.T_map_body, int(pose.stamp_s * 1e6),
+                                                   quality_percent=pose.quality_percent,
+                                                   reset_counter=pose.reset_counter))
+        except (LinkError, ValueError) as exc:
+            self.skipped += 1
+            if self.skipped % 100 == 1:
+                log.warning("external vision not sent (%d so far): %s", self.skipped, exc)
+            return False
+        self.sent += 1
+        return True
+
+    async def _run(self) -> None:
+        next_t = time.monotonic()
+        while True:
+            self.send_once()
+            next_t += self.period_s
+            delay = next_t - time.monotonic()
+            if delay < 0.0:  # late (a busy loop): keep the rate, do not burst
+                next_t = time.monotonic()
+                delay = 0.0
+            await asyncio.sleep(delay)

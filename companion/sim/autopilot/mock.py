@@ -33,6 +33,7 @@ from companion.geo import GeoOrigin
 from companion.px4 import FlightMode
 from companion.sim.autopilot import offboard, telemetry
 from companion.sim.autopilot.commands import CommandHandler
+from companion.sim.autopilot.estimator import SimEstimator, T_map_body_of
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
@@ -43,6 +44,7 @@ from companion.sim.autopilot.vehicle import (
     VehicleLimits,
     VehicleState,
 )
+from companion.sim.odometry import OdometryDriftModel
 from semmap.frames import Transform
 
 log = logging.getLogger(__name__)
@@ -76,6 +78,8 @@ class MockAutopilot:
     ``local_port=0`` binds an ephemeral port (see :attr:`local_port`); ``remote_ports`` are
     sent to on ``remote_host``. All positions are local NED metres around ``home``, where the
     vehicle starts on the floor facing ``start_yaw_rad`` (NED yaw, from north, clockwise).
+    ``odometry_drift``: the reported pose drifts (None = it is the truth); ``vision_gain``:
+    how strongly external vision corrects it (0 = received vision is recorded only).
     """
 
     def __init__(
@@ -92,6 +96,8 @@ class MockAutopilot:
         stream_rates_hz: dict[str, float] | None = None,
         seed: int = 0,
         start_yaw_rad: float = 0.0,
+        odometry_drift: OdometryDriftModel | None = None,
+        vision_gain: float = 0.0,
     ) -> None:
         if physics_rate_hz <= 0:
             raise SimulationError(f"physics_rate_hz must be > 0 (got {physics_rate_hz})")
@@ -112,6 +118,9 @@ class MockAutopilot:
         self._task: asyncio.Task[None] | None = None
         self._t0 = time.monotonic()
         self.vehicle = KinematicMulticopter(self._limits_from_params(), yaw_rad=start_yaw_rad)
+        #: What the mock reports and flies by: the truth through ``odometry_drift``, corrected
+        #: by external vision (see :mod:`.estimator`).
+        self.estimator = SimEstimator(odometry_drift, vision_gain)
         self._mode = FlightMode.HOLD
         self._armed = False
         self._armed_at_s = 0.0
@@ -218,6 +227,17 @@ class MockAutopilot:
         NED origin = ``home`` given at construction), stamped on the mock clock."""
         return self.vehicle.stamp_s, self.vehicle.T_map_body()
 
+    def estimated_state(self) -> VehicleState:
+        """The state as the mock reports it (drifting odometry, vision-corrected)."""
+        return self.estimator.estimated(self.vehicle.state())
+
+    def poses_map_body(self) -> tuple[float, Transform, Transform]:
+        """``(stamp_s, T_map_body true, T_map_body estimated)`` at one instant: the simulated
+        camera renders from the first and reports the second, as a real camera posed by the
+        autopilot's telemetry would."""
+        state = self.vehicle.state()
+        return state.stamp_s, self.vehicle.T_map_body(), T_map_body_of(self.estimator.estimated(state))
+
     @property
     def home_ned_m(self) -> tuple[float, float, float]:
         """Home in local NED: the origin at start, then wherever the vehicle last armed."""
@@ -318,6 +338,7 @@ class MockAutopilot:
     def _tick(self, dt_s: float) -> None:
         now = self.now_s()
         self.vehicle.step(dt_s)
+        self.estimator.update(self.vehicle.state())
         self.navigator.tick(self.vehicle.stamp_s)
         self._check_offboard(now)
         self._update_landed(now)
@@ -396,7 +417,7 @@ class MockAutopilot:
             health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
         nav = self.navigator
         return telemetry.Snapshot(
-            time_boot_ms=int(now * 1000), time_usec=int(now * 1e6), vehicle=self.vehicle.state(),
+            time_boot_ms=int(now * 1000), time_usec=int(now * 1e6), vehicle=self.estimated_state(),
             home=self.home, home_ned_m=self.navigator.home_ned_m, mode=self._mode, armed=self._armed, landed_state=self.landed_state,
             sensors_health=health, mission_seq=nav.mission_seq, mission_total=nav.mission_count,
             mission_state=int(nav.mission_state), battery_remaining_pct=int(self._battery_pct),
@@ -537,8 +558,8 @@ class MockAutopilot:
         mtype = msg.get_type()
         try:
             if mtype == "SET_POSITION_TARGET_LOCAL_NED":
-                target = offboard.target_from_local_ned(msg, self.vehicle.position_ned_m,
-                                                        self.vehicle.yaw_rad)
+                est = self.estimated_state()
+                target = offboard.target_from_local_ned(msg, est.position_ned_m, est.yaw_rad)
             elif mtype == "SET_POSITION_TARGET_GLOBAL_INT":
                 target = offboard.target_from_global_int(msg, self.home)
             else:
@@ -546,6 +567,8 @@ class MockAutopilot:
         except offboard.UnsupportedSetpointError as exc:
             log.warning("%s ignored: %s", mtype, exc)
             return
+        # The controller flies the estimate to the setpoint: where the airframe really goes.
+        target = self.estimator.to_true(target)
         frame = int(getattr(msg, "coordinate_frame", 0))
         self.setpoints.append(offboard.ReceivedSetpoint(now, mtype, frame, int(msg.type_mask),
                                                         target))
@@ -559,11 +582,20 @@ class MockAutopilot:
             q = tuple(float(v) for v in msg.q)
             sample = VisionSample(now, "ODOMETRY", int(msg.time_usec),
                                   (float(msg.x), float(msg.y), float(msg.z)), q)  # type: ignore[arg-type]
+            w, x, y, z = q
+            yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
         else:
             q = telemetry.quaternion_wxyz(msg.roll, msg.pitch, msg.yaw)
             sample = VisionSample(now, "VISION_POSITION_ESTIMATE", int(msg.usec),
                                   (float(msg.x), float(msg.y), float(msg.z)), q)  # type: ignore[arg-type]
+            yaw = float(msg.yaw)
         self.vision.append(sample)
+        if not all(math.isfinite(v) for v in (*sample.position_ned_m[:2], yaw)):
+            log.warning("%s with a non-finite pose ignored", sample.msg_type)
+            return
+        # EKF2 fuses the sample at its timestamp (the vehicle clock here; PX4 maps the
+        # companion's clock with TIMESYNC).
+        self.estimator.fuse_vision(sample.time_usec * 1e-6, sample.position_ned_m[0], sample.position_ned_m[1], yaw)
 
     # --- mission callbacks ---------------------------------------------------------------
 
