@@ -245,6 +245,7 @@ def bench_map_update(quick: bool) -> dict[str, object]:
     out = {"frames": len(samples), "objects": len(truth_fps),
            "ms_p50": round(_pct(samples, 50), 3), "ms_p99": round(_pct(samples, 99), 3),
            "cpu_ms_p50": round(_pct(cpu, 50), 3), "cpu_ms_p99": round(_pct(cpu, 99), 3)}
+    print("\n== map update: band scan + grid + layers (no object geometry) ==")
     print(f"  scan + grid + layers (640x480, {len(truth_fps)} objects): p50 {out['ms_p50']:.3f} ms, "
           f"p99 {out['ms_p99']:.3f} ms wall; CPU p50 {out['cpu_ms_p50']:.3f} ms, "
           f"p99 {out['cpu_ms_p99']:.3f} ms; {len(samples)} frames")
