@@ -118,6 +118,8 @@ class FrameLatency:
     #: Frame handed to perception -> a setpoint computed on a map that includes it (None when
     #: a newer frame superseded it before the path was checked).
     e2e_ms: float | None = None
+    #: The frame's map made the path invalid: its latency includes a whole planner request.
+    replanned: bool = False
 
 
 @dataclass
@@ -134,6 +136,9 @@ class FlightLog:
     failed_plans: int = 0
     replans_invalid: int = 0
     plan_ms: list[float] = field(default_factory=list)
+    #: Map preparation + time to the planner's first valid path (the rest of a request
+    #: refines it within the time budget).
+    plan_first_ms: list[float] = field(default_factory=list)
     check_ms: list[float] = field(default_factory=list)
     frames: list[FrameLatency] = field(default_factory=list)
     objects_mapped: list[tuple[str, NDArray[np.float64]]] = field(default_factory=list)
@@ -311,12 +316,16 @@ class LockstepFlight:
         t0 = time.perf_counter()
         if self.planner.map_version != self.map_version:
             self.planner.set_map(self.costmap, self.map_version)
+        t1 = time.perf_counter()
         result = self.planner.plan(start, self.goal, None, snap or None)
         wall = time.perf_counter() - t0
         self.log.plans += 1
         self.log.plan_ms.append(1e3 * wall)
+        if math.isfinite(result.first_solution_time_s):
+            self.log.plan_first_ms.append(1e3 * (t1 - t0 + result.first_solution_time_s))
         if self._unchecked is not None and self._e2e_base_ms is not None:
             self._unchecked.e2e_ms = self._e2e_base_ms + 1e3 * wall
+            self._unchecked.replanned = True
             self._unchecked = None
         self._e2e_base_ms = None
         self._wait(wall)

@@ -46,7 +46,7 @@ def _legend(img: NDArray[np.uint8], x: int, y: int) -> None:
 def rates_chart(path: Path, groups: Sequence[tuple[str, Mapping[str, Mapping[str, float]]]]) -> Path:
     """Grouped bars, 0-100 %: for each ``(title, {map: {"collision_rate_pct", "success_rate_pct"}})``
     a panel with both rates per map type."""
-    panel_w, h, top, bottom = 300, 360, 50, 60
+    panel_w, h, top, bottom = 300, 380, 50, 80
     img = np.full((h, 60 + panel_w * len(groups) + 20, 3), 255, np.uint8)
     plot_h = h - top - bottom
     x0 = 60
@@ -68,7 +68,7 @@ def rates_chart(path: Path, groups: Sequence[tuple[str, Mapping[str, Mapping[str
                 _text(img, f"{v:.0f}%", (bx + 4, by - 6), 0.45)
             _text(img, label, (cx + 12, top + plot_h + 20), 0.5)
     cv2.line(img, (x0, top + plot_h), (img.shape[1] - 20, top + plot_h), (0, 0, 0), 1)
-    _legend(img, x0, h - 22)
+    _legend(img, x0, h - 32)
     return _write(path, img)
 
 
@@ -152,8 +152,8 @@ def example_room(path: Path, room: Room, band: VerticalBand, slice_band: Vertica
         q = px(np.array(xy))[0]
         cv2.circle(img, (int(q[0]), int(q[1])), 7, (0, 160, 0), 2, cv2.LINE_AA)
         _text(img, label, (int(q[0]) + 9, int(q[1]) - 9), 0.5, (0, 120, 0))
-    _text(img, title, (10, H - 40), 0.5)
+    _text(img, title, (10, H - 36), 0.5)
     _text(img, "dark: furniture in the flight band, black: what the depth slice sees, red: collisions",
-          (10, H - 20), 0.42, (60, 60, 60))
-    _legend(img, W - 190, 20)
+          (10, H - 14), 0.42, (60, 60, 60))
+    _legend(img, W - 190, H - 40)
     return _write(path, img)
