@@ -161,11 +161,14 @@ def time_parametrize(
     altitude_m: float,
     limits: TrajectoryLimits,
     initial_yaw_rad: float | None = None,
+    initial_speed_m_s: float = 0.0,
 ) -> Trajectory:
     """Trajectory along a (K, 2) map-frame polyline at ``altitude_m``, from rest to rest.
 
     ``initial_yaw_rad``: the vehicle's yaw at the start (default: the first segment's
-    heading); the first turn starts at t = 0.
+    heading); the first turn starts at t = 0. ``initial_speed_m_s``: start already moving
+    along the first segment at this speed (a re-plan spliced into a flight), capped by the
+    speed limit and by what the vehicle can still brake from within the path.
     """
     p = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
     if len(p) == 0 or not np.all(np.isfinite(p)):
@@ -181,7 +184,7 @@ def time_parametrize(
     vmax, a = limits.max_speed_m_s, limits.max_accel_m_s2
 
     v = np.full(n + 1, vmax)
-    v[0] = 0.0
+    v[0] = min(vmax, max(0.0, float(initial_speed_m_s))) if n else 0.0
     v[-1] = 0.0
     for k in range(1, n):
         cos_t = float(np.clip(np.dot(u[k - 1], u[k]), -1.0, 1.0))

@@ -5,7 +5,10 @@ link and turned into :class:`Leg` s (map-frame goals). Each leg is planned by th
 worker process on the semantic map's costmap at the flight band, time-parametrised, and flown
 by feeding the offboard controller's setpoint slot. While flying, the remaining path is
 re-checked against every new costmap; when it has become invalid (an object appeared on it)
-the leg is re-planned from where the vehicle is. A failed plan holds position and retries.
+the leg is re-planned without stopping: from a point a little ahead on the current
+trajectory, which the vehicle keeps flying towards until the new path is spliced in at its
+current speed (it stops and re-plans from where it is only when the obstacle is just ahead).
+A failed plan holds position and retries.
 So every leg avoids hollow-bottom furniture the mission author never knew about.
 """
 
@@ -47,6 +50,10 @@ FEED_PERIOD_S = 0.05
 CHECK_PERIOD_S = 0.5
 #: Hold this long after a failed plan before trying again.
 RETRY_HOLD_S = 1.0
+#: A re-plan in flight starts this far ahead on the current trajectory (seconds of flight),
+#: about 1.5 planning times, so the plan is back before the vehicle gets there.
+MIN_REPLAN_LOOKAHEAD_S = 0.6
+MAX_REPLAN_LOOKAHEAD_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -288,12 +295,10 @@ class MissionRunner:
                 goal = np.array(result.goal_xy_m)
                 rep.snapped_goal = True
             capture_s = self.capture_time(costmap) if self.capture_time is not None else None
-            outcome = await self._follow(traj, target, capture_mono_s=capture_s)
+            outcome = await self._follow(traj, target, capture_mono_s=capture_s, rep=rep)
             if outcome == "reached":
                 rep.reached = True
                 break
-            if outcome == "invalid":
-                rep.replans_invalid += 1
         rep.duration_s = time.monotonic() - t_leg
         pos = position_enu(self.vehicle.snapshot())
         if pos is not None:
@@ -324,54 +329,120 @@ class MissionRunner:
             raise MissionError(f"offboard control ended ({st.value}: {self.vehicle.offboard.failsafe.reason})")
 
     async def _follow(self, traj: Trajectory, leg: Leg, check: bool = True,
-                      capture_mono_s: float | None = None) -> str:
-        """Feed the trajectory; "reached", "invalid" (re-plan) or "late" (re-plan from here).
+                      capture_mono_s: float | None = None, rep: LegReport | None = None) -> str:
+        """Feed the trajectory; "reached", "invalid" (re-plan from here) or "late".
         ``capture_mono_s``: capture time of the newest frame in the map the trajectory was
         planned on (its first setpoint's latency is recorded).
 
         Trajectory time only advances while the controller flies our setpoints (ACTIVE), so
         after a hold (stale pose or map, link loss) the vehicle resumes where it stopped.
+
+        With ``check``, the rest of the path is checked on the newest costmap every
+        ``CHECK_PERIOD_S`` (in the planning process, off this loop). When it has become
+        blocked, the leg is re-planned *without stopping*: the new plan starts at a point a
+        little ahead on the current trajectory (where the vehicle will be when the plan
+        arrives, if that stretch is still free); the vehicle keeps flying towards it, and the
+        new path is spliced in at the current speed. Only when that stretch is blocked too,
+        or the re-plan fails, does the vehicle stop ("invalid") and re-plan from where it is.
         """
         goal = np.array(leg.goal_xy_m)
         t_traj = 0.0
+        t_cap = math.inf  # while a re-plan is pending, trajectory time stops at its start point
         last = time.monotonic()
         next_check = last + CHECK_PERIOD_S
         settle_s = 5.0
         ctl = self.vehicle.offboard
-        while True:
-            now = time.monotonic()
-            st = ctl.state
-            if st is OffboardState.ACTIVE:
-                t_traj += now - last
-            elif st is OffboardState.LINK_LOST and self.vehicle.connected:
-                log.warning("autopilot link back: re-engaging offboard")
-                try:
-                    await ctl.engage()
-                except Exception as exc:  # noqa: BLE001 - retried on the next tick
-                    log.warning("re-engaging offboard failed: %s", exc)
-            else:
-                self._check_offboard()
-            last = now
-            s = traj.sample(t_traj)
-            n, e, d = enu_to_ned(*(float(v) for v in s.position_m))
-            vn, ve, vd = enu_to_ned(*(float(v) for v in s.velocity_m_s))
-            ctl.set_setpoint(PositionSetpoint((n, e, d), yaw_rad=yaw_enu_to_ned(s.yaw_rad),
-                                              velocity_ned_m_s=(vn, ve, vd)))
-            if capture_mono_s is not None:
-                self.frame_to_setpoint_ms.append(1e3 * (time.monotonic() - capture_mono_s))
-                capture_mono_s = None
-            pos = position_enu(self.vehicle.snapshot())
-            if t_traj >= traj.duration_s and pos is not None:
-                if np.linalg.norm(pos[:2] - goal) <= leg.acceptance_m:
-                    return "reached"
-                if t_traj >= traj.duration_s + settle_s:
-                    return "late"
-            if check and now >= next_check and pos is not None and t_traj < traj.duration_s:
-                next_check = now + CHECK_PERIOD_S
-                if not await self._path_free(_remaining(traj, t_traj)):
-                    log.info("leg %d: the path ahead crosses a newly mapped obstacle; re-planning", leg.seq)
-                    return "invalid"
-            await asyncio.sleep(FEED_PERIOD_S)
+        checking: asyncio.Task[tuple[bool, float | None]] | None = None
+        replan: asyncio.Task[tuple[PlanResult, Costmap]] | None = None
+        try:
+            while True:
+                now = time.monotonic()
+                st = ctl.state
+                if st is OffboardState.ACTIVE:
+                    t_traj = min(t_traj + now - last, t_cap)
+                elif st is OffboardState.LINK_LOST and self.vehicle.connected:
+                    log.warning("autopilot link back: re-engaging offboard")
+                    try:
+                        await ctl.engage()
+                    except Exception as exc:  # noqa: BLE001 - retried on the next tick
+                        log.warning("re-engaging offboard failed: %s", exc)
+                else:
+                    self._check_offboard()
+                last = now
+                s = traj.sample(t_traj)
+                n, e, d = enu_to_ned(*(float(v) for v in s.position_m))
+                vn, ve, vd = enu_to_ned(*(float(v) for v in s.velocity_m_s))
+                ctl.set_setpoint(PositionSetpoint((n, e, d), yaw_rad=yaw_enu_to_ned(s.yaw_rad),
+                                                  velocity_ned_m_s=(vn, ve, vd)))
+                if capture_mono_s is not None:
+                    self.frame_to_setpoint_ms.append(1e3 * (time.monotonic() - capture_mono_s))
+                    capture_mono_s = None
+                pos = position_enu(self.vehicle.snapshot())
+                if replan is None and t_traj >= traj.duration_s and pos is not None:
+                    if np.linalg.norm(pos[:2] - goal) <= leg.acceptance_m:
+                        return "reached"
+                    if t_traj >= traj.duration_s + settle_s:
+                        return "late"
+                if replan is not None and replan.done():
+                    result, costmap = replan.result()
+                    replan = None
+                    if rep is not None:
+                        rep.plans += 1
+                        rep.plan_ms.append(1e3 * result.planning_time_s)
+                    if not result.ok or result.snapped_goal:
+                        log.info("leg %d: re-plan on the fly gave %s; stopping to re-plan from here",
+                                 leg.seq, result.status.value if not result.ok else "a moved goal")
+                        return "invalid"
+                    path = np.vstack([_between(traj, t_traj, t_cap), result.path_xy_m])
+                    speed = float(np.linalg.norm(s.velocity_m_s[:2]))
+                    traj = time_parametrize(path, leg.altitude_m, self.limits, initial_yaw_rad=s.yaw_rad,
+                                            initial_speed_m_s=speed)
+                    t_traj, t_cap = 0.0, math.inf
+                    next_check = now + CHECK_PERIOD_S
+                    capture_mono_s = self.capture_time(costmap) if self.capture_time is not None else None
+                    if self.on_path is not None:
+                        self.on_path(path)
+                    continue
+                if check and replan is None:
+                    if checking is None and now >= next_check and pos is not None and t_traj < traj.duration_s:
+                        checking = asyncio.create_task(self._check_ahead(traj, t_traj))
+                    elif checking is not None and checking.done():
+                        free, t_start = checking.result()
+                        checking = None
+                        next_check = now + CHECK_PERIOD_S
+                        if not free:
+                            if rep is not None:
+                                rep.replans_invalid += 1
+                            if t_start is None or t_start <= t_traj:
+                                log.info("leg %d: the path just ahead crosses a newly mapped obstacle; "
+                                         "stopping to re-plan", leg.seq)
+                                return "invalid"
+                            start = traj.sample(t_start).position_m[:2]
+                            log.info("leg %d: the path ahead crosses a newly mapped obstacle; re-planning "
+                                     "from (%.2f, %.2f) m, %.1f s ahead, while flying on", leg.seq,
+                                     start[0], start[1], t_start - t_traj)
+                            t_cap = t_start
+                            replan = asyncio.create_task(self._plan(np.asarray(start, dtype=np.float64),
+                                                                    leg.goal_xy_m))
+                await asyncio.sleep(FEED_PERIOD_S)
+        finally:
+            for task in (checking, replan):
+                if task is not None and not task.done():
+                    task.cancel()
+
+    async def _check_ahead(self, traj: Trajectory, t_s: float) -> tuple[bool, float | None]:
+        """Is the rest of ``traj`` from ``t_s`` free on the newest costmap? If not, also the
+        trajectory time from which to re-plan without stopping: the stretch up to it must be
+        free (None when even a short one is not)."""
+        if await self._path_free(_remaining(traj, t_s)):
+            return True, None
+        plan_s = self.last_plan_ms / 1e3 if self.last_plan_ms is not None else 0.5
+        lookahead = min(MAX_REPLAN_LOOKAHEAD_S, max(MIN_REPLAN_LOOKAHEAD_S, 1.5 * plan_s + 0.3))
+        for ahead in (lookahead, 0.5 * lookahead):
+            t_start = min(traj.duration_s, t_s + ahead)
+            if await self._path_free(_between(traj, t_s, t_start)):
+                return False, t_start
+        return False, None
 
     async def finish(self, then: FlightMode = FlightMode.LAND) -> None:
         """Hand the vehicle to ``then`` (LAND or HOLD) and stop streaming."""
@@ -386,3 +457,13 @@ def _remaining(traj: Trajectory, t_s: float) -> NDArray[np.float64]:
     ahead = traj.sample(t_ahead).position_m[:2]
     seg = max(0, int(np.searchsorted(traj.seg_t0_s, t_ahead, side="right")) - 1)
     return np.vstack([ahead[None, :], traj.waypoints_xy_m[seg + 1:]])
+
+
+def _between(traj: Trajectory, t0_s: float, t1_s: float) -> NDArray[np.float64]:
+    """(K, 2) the trajectory's path from time ``t0_s`` to ``t1_s`` (its corners in between)."""
+    t1_s = min(t1_s, traj.duration_s)
+    a = traj.sample(t0_s).position_m[:2]
+    b = traj.sample(t1_s).position_m[:2]
+    s0 = max(0, int(np.searchsorted(traj.seg_t0_s, t0_s, side="right")) - 1)
+    s1 = max(0, int(np.searchsorted(traj.seg_t0_s, t1_s, side="right")) - 1)
+    return np.vstack([a[None, :], traj.waypoints_xy_m[s0 + 1:s1 + 1], b[None, :]])

@@ -65,6 +65,9 @@ KEEPALIVE_S = 1.0
 START_TIMEOUT_S = 120.0
 #: How long the child may take to stop (last frame, final map save).
 STOP_TIMEOUT_S = 30.0
+#: The perception process's nice value relative to the service (an unprivileged process may
+#: lower its own priority): the setpoint stream gets the CPU first, perception the rest.
+PERCEPTION_NICE = 5
 
 
 @dataclass(frozen=True)
@@ -152,6 +155,9 @@ def _child_main(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
     # The service decides when perception stops (SIGTERM/Ctrl-C reach the whole process group).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # When the CPU is short, the service process (setpoints, MAVLink) runs first.
+    with contextlib.suppress(OSError):
+        os.nice(PERCEPTION_NICE)
     logging.basicConfig(level=spec.log_level,
                         format="%(asctime)s %(levelname)-7s %(name)s [perception]: %(message)s")
     try:

@@ -106,3 +106,17 @@ def test_bad_input_raises() -> None:
         time_parametrize(np.array([[0.0, np.nan], [1.0, 1.0]]), 1.0, LIMITS)
     with pytest.raises(PlanningError):
         TrajectoryLimits(0.0, 1.0, 1.0)
+
+
+def test_initial_speed_starts_moving_and_still_ends_at_rest() -> None:
+    # A re-plan spliced into a flight starts at the vehicle's speed along the first segment.
+    limits = TrajectoryLimits(max_speed_m_s=1.0, max_accel_m_s2=1.0, max_yaw_rate_rad_s=math.radians(60))
+    path = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 2.0]])
+    for v0, expect in ((0.0, 0.0), (0.6, 0.6), (5.0, 1.0)):
+        traj = time_parametrize(path, 1.0, limits, initial_speed_m_s=v0)
+        assert np.allclose(traj.sample(0.0).velocity_m_s[:2], [expect, 0.0])
+        assert np.allclose(traj.sample(traj.duration_s).velocity_m_s, 0.0)
+        assert np.allclose(traj.sample(traj.duration_s).position_m[:2], [3.0, 2.0])
+    # On a path too short to brake from that speed, it starts only as fast as it can stop.
+    short = time_parametrize(np.array([[0.0, 0.0], [0.1, 0.0]]), 1.0, limits, initial_speed_m_s=1.0)
+    assert float(np.linalg.norm(short.sample(0.0).velocity_m_s)) <= math.sqrt(2 * 1.0 * 0.1) + 1e-9

@@ -1,0 +1,92 @@
+"""A re-plan in flight does not stop the vehicle: when an obstacle appears on the path ahead,
+the mission runner plans from a point ahead on its trajectory while it keeps flying, and
+splices the new path in at speed (real mock autopilot, MAVLink link and planner process)."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.mavlink.vehicle import Vehicle
+from companion.service.demo import free_udp_port
+from companion.service.mission_runner import Leg, MissionRunner, position_enu
+from companion.service.perception_worker import flight_band
+from companion.sim.autopilot import MockAutopilot
+from planner.worker import PlanningService
+from semmap.costmap import LETHAL_OBSTACLE, Costmap
+from semmap.grid import GridSpec
+
+
+def _costmaps(cfg: CompanionConfig) -> tuple[Costmap, Costmap]:
+    """An empty room 10 x 6 m, and the same with a wall across the straight line y = 0 at x 4 m."""
+    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
+    band = flight_band(cfg)
+    free = np.zeros(spec.shape_rc, np.uint8)
+    blocked = free.copy()
+    rc = spec.cell_of(np.array([[4.0, -1.2], [4.3, 1.2]]))
+    blocked[rc[0, 0]:rc[1, 0] + 1, rc[0, 1]:rc[1, 1] + 1] = LETHAL_OBSTACLE
+    return Costmap(spec, free, band, stamp_s=1.0), Costmap(spec, blocked, band, stamp_s=2.0)
+
+
+def test_obstacle_ahead_is_avoided_without_stopping() -> None:
+    cfg = CompanionConfig()
+    free, blocked = _costmaps(cfg)
+    link_port = free_udp_port()
+    link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
+    altitude = cfg.planner.flight_altitude_m
+
+    async def main() -> tuple[object, list[tuple[float, float]], list[str]]:
+        current = [free]
+        samples: list[tuple[float, float]] = []  # (x_m, commanded horizontal speed m/s)
+        paths: list[str] = []
+        async with MockAutopilot(local_port=0, remote_ports=(link_port,),
+                                 params={"COM_DISARM_PRFLT": -1.0}) as ap, Vehicle(link) as v:
+            planning = PlanningService(cfg.planner)
+            await asyncio.to_thread(planning.start)
+            try:
+                runner = MissionRunner(v, planning, lambda: current[0], cfg.planner,
+                                       on_path=lambda p: paths.append(f"{len(p)} points"))
+                await v.wait_connected(timeout_s=15.0)
+                await v.state.wait_for(lambda s: s.home is not None and s.position_ned_m is not None, 15.0,
+                                       "home and position")
+                await runner.take_off(altitude)
+
+                async def watch() -> None:
+                    last = -math.inf
+                    while True:
+                        # Every setpoint the autopilot received since the last look, with the
+                        # vehicle's x: the speed the trajectory commanded there.
+                        sps = [sp for sp in list(ap.setpoints) if sp.stamp_s > last]
+                        last = sps[-1].stamp_s if sps else last
+                        _n, e, _d = ap.vehicle.position_ned_m
+                        for sp in sps:
+                            vel = sp.target.velocity_ned_m_s
+                            if vel is not None and current[0] is blocked:
+                                samples.append((e, math.hypot(vel[0], vel[1])))
+                        pos = position_enu(v.snapshot())
+                        if current[0] is free and pos is not None and pos[0] > 0.8:
+                            current[0] = blocked  # the wall is mapped ~3 m ahead of the vehicle
+                        await asyncio.sleep(0.05)
+
+                watcher = asyncio.create_task(watch())
+                try:
+                    report = await runner.fly_leg(Leg(0, (8.0, 0.0), altitude))
+                finally:
+                    watcher.cancel()
+                await runner.finish()
+            finally:
+                await asyncio.to_thread(planning.close)
+        return report, samples, paths
+
+    report, samples, paths = asyncio.run(main())
+    assert report.reached, report  # type: ignore[attr-defined]
+    assert report.replans_invalid >= 1 and report.plans >= 2  # type: ignore[attr-defined]
+    assert len(paths) >= 2
+    # From when the wall appeared until the vehicle passed it, the commanded speed never
+    # dropped to a stop (a stop-and-go re-plan starts the new path from rest).
+    between = [speed for x, speed in samples if x <= 6.0]
+    assert len(between) > 10
+    assert min(between) > 0.1, min(between)
