@@ -58,6 +58,9 @@ _WALL_MAX_BEHIND = 0.1
 _WALL_HYPOTHESES = 64
 #: A wall faces the camera: cosine between its normal and the line of sight at least this.
 _WALL_MIN_FACING = 0.35
+#: Columns of the per-point table in :func:`observe_object` after map x, y, z: height above
+#: the floor, camera z-depth, floor clearance at that depth, pixel u, v.
+_H, _RANGE, _CLEAR, _U = 3, 4, 5, 6
 
 
 @dataclass(frozen=True, eq=False)
@@ -359,12 +362,23 @@ def _ring_points(
     the image): what surrounds the object, for finding the wall behind it."""
     u0, v0, u1, v1 = xyxy_px
     g, w = _RING_GAP_PX, _RING_GAP_PX + _RING_WIDTH_PX
-    iu0, iv0, iu1, iv1 = int(u0) - g, int(v0) - g, int(math.ceil(u1)) + g, int(math.ceil(v1)) + g
-    ou0, ov0, ou1, ov1 = int(u0) - w, int(v0) - w, int(math.ceil(u1)) + w, int(math.ceil(v1)) + w
-    strips = [(ou0, ov0, ou1, iv0), (ou0, iv1, ou1, ov1), (ou0, iv0, iu0, iv1), (iu1, iv0, ou1, iv1)]
-    parts = [backproject(depth_m, intrinsics, depth_range_m[0], depth_range_m[1], s, _RING_STRIDE_PX)[0]
-             for s in strips]
-    return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
+    H, W = np.asarray(depth_m).shape
+    ou0, ov0 = max(0, int(u0) - w), max(0, int(v0) - w)
+    ou1, ov1 = min(W, int(math.ceil(u1)) + w), min(H, int(math.ceil(v1)) + w)
+    if ou1 <= ou0 or ov1 <= ov0:
+        return np.zeros((0, 3), np.float32)
+    s = _RING_STRIDE_PX
+    sub = np.asarray(depth_m)[ov0:ov1:s, ou0:ou1:s]
+    ok = valid_depth_mask(sub, depth_range_m[0], depth_range_m[1])
+    # The box grown by the gap is not ring: clear its samples (one sub-image, not four strips).
+    r0, r1 = -(-(int(v0) - g - ov0) // s), -(-(int(math.ceil(v1)) + g - ov0) // s)
+    c0, c1 = -(-(int(u0) - g - ou0) // s), -(-(int(math.ceil(u1)) + g - ou0) // s)
+    ok[max(0, r0):max(0, r1), max(0, c0):max(0, c1)] = False
+    vv, uu = np.nonzero(ok)
+    z = sub[vv, uu].astype(np.float32)
+    xn = ((np.arange(ou0, ou1, s) - intrinsics.cx_px) / intrinsics.fx_px).astype(np.float32)
+    yn = ((np.arange(ov0, ov1, s) - intrinsics.cy_px) / intrinsics.fy_px).astype(np.float32)
+    return np.stack([xn[uu] * z, yn[vv] * z, z], axis=1)
 
 
 def _noise_tolerance_m(range_m: NDArray[np.float64], params: GeometryConfig) -> NDArray[np.float64]:
@@ -475,15 +489,20 @@ def observe_object(
         return None
     R = T_map_camera[:3, :3]
     t = T_map_camera[:3, 3]
-    pts = pts_cam.astype(np.float64) @ R.T + t  # (N, 3) map frame
-    heights = floor.signed_distance_m(pts)  # (N,)
-    rng_cam = pts_cam[:, 2].astype(np.float64)  # (N,) z-depth
-    clearance = params.floor_clearance_m + params.floor_clearance_per_m2 * rng_cam**2
-    above = heights > clearance
-    pts, heights, rng_cam, clearance, uv = (
-        pts[above], heights[above], rng_cam[above], clearance[above], uv[above]
-    )
-    if len(pts) < params.min_cluster_points:
+    # One (N, 8) table per point - map xyz, height above the floor, z-depth, floor clearance,
+    # pixel u, v - so each filter below is a single gather instead of one per quantity.
+    n_all = len(pts_cam)
+    tab = np.empty((n_all, 8))
+    np.matmul(pts_cam, R.T, out=tab[:, :3])
+    tab[:, :3] += t
+    np.matmul(tab[:, :3], floor.normal_array, out=tab[:, _H])
+    tab[:, _H] += floor.offset_m
+    tab[:, _RANGE] = pts_cam[:, 2]
+    np.multiply(np.square(tab[:, _RANGE]), params.floor_clearance_per_m2, out=tab[:, _CLEAR])
+    tab[:, _CLEAR] += params.floor_clearance_m
+    tab[:, _U:] = uv
+    tab = tab[tab[:, _H] > tab[:, _CLEAR]]
+    if len(tab) < params.min_cluster_points:
         return None
     # A wall behind the object (found around the box) goes, with everything beyond it: an
     # object a few cm in front of a wall would otherwise cluster together with it.
@@ -493,20 +512,21 @@ def observe_object(
     if len(ring_cam) >= _WALL_MIN_POINTS:
         ring = ring_cam.astype(np.float64) @ R.T + t
         walls = background_walls(ring, ring_cam[:, 2].astype(np.float64), t[:2], floor, params, rng)
-        tol = _noise_tolerance_m(rng_cam, params)
-        front = np.ones(len(pts), dtype=bool)
-        for n_xy, off in walls:
-            dist = pts[:, :2] @ n_xy + off  # (N,) in front of the wall
-            # Nothing of the box stands behind a wall; a "wall" with the box's points behind
-            # it is an occluder in front of the object.
-            if float(np.mean(dist < -tol)) <= _WALL_MAX_BEHIND:
-                front &= dist > tol
-        if not front.all():
-            if front.sum() < params.min_cluster_points:
-                return None  # the box shows the wall only
-            pts, heights, rng_cam, clearance, uv = (
-                pts[front], heights[front], rng_cam[front], clearance[front], uv[front]
-            )
+        if walls:
+            tol = _noise_tolerance_m(tab[:, _RANGE], params)
+            front = np.ones(len(tab), dtype=bool)
+            for n_xy, off in walls:
+                dist = tab[:, :2] @ n_xy + off  # (N,) in front of the wall
+                # Nothing of the box stands behind a wall; a "wall" with the box's points
+                # behind it is an occluder in front of the object.
+                if np.count_nonzero(dist < -tol) <= _WALL_MAX_BEHIND * len(dist):
+                    front &= dist > tol
+            if not front.all():
+                if np.count_nonzero(front) < params.min_cluster_points:
+                    return None  # the box shows the wall only
+                tab = tab[front]
+    pts = tab[:, :3]
+    heights, rng_cam, clearance = tab[:, _H], tab[:, _RANGE], tab[:, _CLEAR]
 
     vox, inverse = voxel_downsample(pts, params.voxel_size_m)  # (M, 3), (N,)
     spacing_m = stride * _quantile_lower(rng_cam, 0.9) / min(intrinsics.fx_px, intrinsics.fy_px)
@@ -516,18 +536,19 @@ def observe_object(
     if cluster_by == "voxels":
         best = 0  # labels are ordered by voxel count
     else:
-        best = _pick_cluster(point_label, rng_cam, uv, window, params.cluster_min_pixel_frac,
-                             params.cluster_min_box_cover)
+        best = _pick_cluster(point_label, rng_cam, tab[:, _U:].astype(np.int64), window,
+                             params.cluster_min_pixel_frac, params.cluster_min_box_cover)
     obj_vox = vox[vox_label == best]
     if len(obj_vox) < params.min_cluster_points:
         return None
     on_obj = point_label == best
     obj_h = heights[on_obj]
     # Clearance at the object's lowest point: the floor cut removed up to that much of it.
-    lowest_clearance = float(clearance[on_obj][int(np.argmin(obj_h))])
+    lowest = int(np.argmin(obj_h))
+    lowest_clearance = float(clearance[on_obj][lowest])
 
     z_max = _quantile_lower(obj_h, params.height_quantile)
-    z_min = float(obj_h.min())
+    z_min = float(obj_h[lowest])
     # Standing on the floor: its lowest points were cut with the floor, so it reaches z = 0.
     if z_min <= lowest_clearance + params.voxel_size_m:
         z_min = 0.0

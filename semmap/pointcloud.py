@@ -13,10 +13,14 @@ from semmap.types import CameraIntrinsics
 
 
 def valid_depth_mask(depth_m: NDArray[np.floating], min_m: float, max_m: float) -> NDArray[np.bool_]:
-    """(H, W) True where depth is finite and within [min_m, max_m]."""
+    """(H, W) True where depth is finite and within [min_m, max_m] (and > 0)."""
     d = np.asarray(depth_m)
+    # NaN fails every comparison and +inf fails a finite upper bound, so two comparisons
+    # decide validity (this runs on every box of every frame).
     with np.errstate(invalid="ignore"):
-        return np.isfinite(d) & (d >= min_m) & (d <= max_m) & (d > 0)
+        low = d > 0 if min_m <= 0 else d >= min_m
+        high = d <= max_m if np.isfinite(max_m) else np.isfinite(d)
+        return low & high
 
 
 def backproject(
@@ -48,8 +52,16 @@ def backproject(
     ok = valid_depth_mask(sub, min_m, max_m)
     vv, uu = np.nonzero(ok)
     z = sub[vv, uu].astype(np.float32)
-    u = (uu * stride_px + u0).astype(np.int64)
-    v = (vv * stride_px + v0).astype(np.int64)
-    x = (u.astype(np.float32) - np.float32(intrinsics.cx_px)) * z / np.float32(intrinsics.fx_px)
-    y = (v.astype(np.float32) - np.float32(intrinsics.cy_px)) * z / np.float32(intrinsics.fy_px)
-    return np.stack([x, y, z], axis=1), np.stack([u, v], axis=1)
+    # Normalised image coordinates per used column / row, then one product per axis.
+    xn = ((np.arange(u0, u1, stride_px) - intrinsics.cx_px) / intrinsics.fx_px).astype(np.float32)
+    yn = ((np.arange(v0, v1, stride_px) - intrinsics.cy_px) / intrinsics.fy_px).astype(np.float32)
+    pts = np.empty((len(z), 3), np.float32)
+    np.multiply(xn[uu], z, out=pts[:, 0])
+    np.multiply(yn[vv], z, out=pts[:, 1])
+    pts[:, 2] = z
+    uv = np.empty((len(z), 2), np.int64)
+    np.multiply(uu, stride_px, out=uv[:, 0])
+    uv[:, 0] += u0
+    np.multiply(vv, stride_px, out=uv[:, 1])
+    uv[:, 1] += v0
+    return pts, uv
