@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
 from companion.ground import MqttBridge
-from companion.ground.schema import GoalCommand, MissionCommand, VehicleCommand
+from companion.ground.schema import GoalCommand, MissionCommand, VehicleCommand, command_kind_of
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.checkpoint import checkpoint_path, restore_map
@@ -67,6 +67,8 @@ log = logging.getLogger(__name__)
 SWITCH_INTERVAL_S = 0.001
 #: The systemd watchdog stops pinging when no frame went through perception for this long.
 PERCEPTION_SILENCE_S = 15.0
+#: On stop with ``service.on_sigterm: land``: wait this long for the touchdown before exiting.
+LAND_WAIT_S = 30.0
 
 
 @dataclass
@@ -119,6 +121,10 @@ class CompanionService:
         self.restored = False
         self.mission_done = asyncio.Event()
         self._mission_task: asyncio.Task[None] | None = None
+        #: The mission's legs not flown yet (the first is the one in progress); kept by a pause.
+        self.legs_left: list[Leg] = []
+        #: True between a ``pause`` and the ``start`` that resumes the mission.
+        self.mission_paused = False
         self._stop: asyncio.Event | None = None
         self._t0 = time.monotonic()
         self._path_xy: NDArray[np.float64] = np.zeros((0, 2))
@@ -249,22 +255,38 @@ class CompanionService:
                 log.error("stopping: could not switch to %s (%s); streaming ends, PX4's offboard-loss "
                           "failsafe takes over", then.name, exc)
                 await v.offboard.release(None)
+                return
+            if then is FlightMode.LAND:
+                # Exit (and let systemd count the stop done) once the vehicle is down.
+                try:
+                    await v.state.wait_for(lambda s: not s.in_air, LAND_WAIT_S, "the vehicle to land")
+                    log.info("stopping: landed")
+                except CompanionError as exc:
+                    log.warning("stopping: %s; the autopilot goes on landing by itself", exc)
 
     # --- the mission --------------------------------------------------------------------
 
-    async def _mission(self) -> None:
+    async def _mission(self, resume: bool = False) -> None:
+        """Fly the autopilot's mission (downloaded now), or with ``resume`` the legs a pause
+        left; each leg is dropped from :attr:`legs_left` once flown (reached or given up)."""
         v, runner = self.vehicle, self.runner
         assert v is not None and runner is not None
+        self.mission_paused = False
         try:
             await v.wait_connected(timeout_s=30.0)
-            state = await v.state.wait_for(lambda s: s.home is not None and s.position_ned_m is not None,
-                                           15.0, "the home position")
-            assert state.home is not None
-            items = await v.download_mission()
-            legs = mission_legs(items, state.home, self.cfg.planner.flight_altitude_m)
-            log.info("mission: %d legs at %.2f m", len(legs), self.cfg.planner.flight_altitude_m)
+            if not resume:
+                state = await v.state.wait_for(lambda s: s.home is not None and s.position_ned_m is not None,
+                                               15.0, "the home position")
+                assert state.home is not None
+                items = await v.download_mission()
+                self.legs_left = mission_legs(items, state.home, self.cfg.planner.flight_altitude_m)
+                log.info("mission: %d legs at %.2f m", len(self.legs_left), self.cfg.planner.flight_altitude_m)
+            else:
+                log.info("mission resumed: %d legs left", len(self.legs_left))
             await runner.take_off(self.cfg.planner.flight_altitude_m)
-            await runner.fly(legs)
+            while self.legs_left:
+                runner.reports.append(await runner.fly_leg(self.legs_left[0]))
+                self.legs_left.pop(0)
             if self.land_after_mission:
                 await runner.finish(FlightMode.LAND)
                 await v.state.wait_for(lambda s: not s.armed, 60.0, "the vehicle to land and disarm")
@@ -272,7 +294,8 @@ class CompanionService:
             self.report.mission_error = str(exc)
             log.error("mission: %s", exc)
         finally:
-            self.mission_done.set()
+            if not self.mission_paused:
+                self.mission_done.set()
 
     async def _fly_goal(self, cmd: GoalCommand) -> None:
         v, runner, ground = self.vehicle, self.runner, self.ground
@@ -303,7 +326,8 @@ class CompanionService:
             try:
                 await self._handle(cmd)
             except CompanionError as exc:
-                ground.publish_reply(type(cmd).__name__, False, cmd.request_id, str(exc))
+                log.warning("ground command %s refused: %s", command_kind_of(cmd), exc)
+                ground.publish_reply(command_kind_of(cmd), False, cmd.request_id, str(exc))
 
     async def _handle(self, cmd: GoalCommand | MissionCommand | VehicleCommand) -> None:
         v = self.vehicle
@@ -314,15 +338,7 @@ class CompanionService:
                 raise MissionError("a mission or goal is being flown; abort it first")
             self._mission_task = asyncio.create_task(self._fly_goal(cmd), name="goal")
         elif isinstance(cmd, MissionCommand):
-            if cmd.action == "start" and not busy:
-                self.mission_done.clear()
-                self._mission_task = asyncio.create_task(self._mission(), name="mission")
-            elif cmd.action in ("abort", "pause") and busy:
-                assert self._mission_task is not None
-                self._mission_task.cancel()
-                pos = position_enu(v.snapshot())
-                if pos is not None and v.offboard.state.streams and self.runner is not None:
-                    self.runner.hold_at(pos[:2], float(pos[2]))
+            await self._mission_command(cmd.action, busy)
         elif isinstance(cmd, VehicleCommand):
             if busy:
                 assert self._mission_task is not None
@@ -333,6 +349,36 @@ class CompanionService:
                 await v.commands.land()
             else:
                 await v.commands.hold()
+
+    async def _mission_command(self, action: str, busy: bool) -> None:
+        """``start`` (or resume after a pause), ``pause`` (hold here, keep the legs left) or
+        ``abort`` (hold here, forget the mission). Raises :class:`MissionError` when the
+        command does not fit the mission's state (answered on the reply topic)."""
+        v = self.vehicle
+        assert v is not None
+        if action == "start":
+            if busy:
+                raise MissionError("a mission or goal is already being flown")
+            resume = self.mission_paused and bool(self.legs_left)
+            self.mission_done.clear()
+            self._mission_task = asyncio.create_task(self._mission(resume=resume), name="mission")
+            return
+        if not busy and not (action == "abort" and self.mission_paused):
+            raise MissionError(f"no mission is being flown to {action}")
+        if busy:
+            assert self._mission_task is not None
+            self.mission_paused = action == "pause" and self._mission_task.get_name() == "mission"
+            self._mission_task.cancel()
+            await asyncio.wait({self._mission_task})
+        if action == "abort":
+            self.mission_paused = False
+            self.legs_left = []
+            self.mission_done.set()
+        pos = position_enu(v.snapshot())
+        if pos is not None and v.offboard.state.streams and self.runner is not None:
+            self.runner.hold_at(pos[:2], float(pos[2]))
+        log.info("mission %s: holding at the current position%s", "paused" if action == "pause" else "aborted",
+                 f" ({len(self.legs_left)} legs left)" if action == "pause" else "")
 
     async def _status_loop(self, watchdog: Watchdog) -> None:
         v, ground, perception = self.vehicle, self.ground, self.perception
