@@ -41,6 +41,7 @@ from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.flight_log import FlightLog
+from companion.service.localization import ServiceLocalization
 from companion.service.mission_runner import (
     Leg,
     LegReport,
@@ -87,6 +88,8 @@ class ServiceReport:
     #: {"frame_to_map": ..., "frame_to_setpoint": ...}: {"count", "p50_ms", "p95_ms", "max_ms"}
     #: (see :meth:`CompanionService.latency_summary`).
     latency: dict[str, dict[str, float | int]] = field(default_factory=dict)
+    #: SLAM counters when ``service.localization`` is ``slam`` (see :class:`ServiceLocalization`).
+    localization: dict[str, float | int | str] = field(default_factory=dict)
 
 
 class CompanionService:
@@ -116,6 +119,7 @@ class CompanionService:
         self.pipeline: PerceptionPipeline | None = None
         self.vehicle: Vehicle | None = None
         self.perception: PerceptionProcess | None = None
+        self.localization = ServiceLocalization(cfg)
         self.runner: MissionRunner | None = None
         self.ground: MqttBridge | None = None
         self.restored = False
@@ -154,13 +158,17 @@ class CompanionService:
         # Threads left in this process (MAVLink/MQTT helpers, the perception update reader)
         # are light; still hand the GIL over every millisecond rather than every 5.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
-        perception = self.perception = PerceptionProcess(cfg, self.frame_source, self.object_classes)
+        # Localization (SLAM on the camera's frames, in the perception process) re-poses the
+        # frames before perception when enabled; it streams its pose to PX4 from here.
+        loc = self.localization
+        perception = self.perception = PerceptionProcess(cfg, loc.source(self.frame_source), self.object_classes)
         async with contextlib.AsyncExitStack() as stack:
             planning = PlanningService(cfg.planner)
             await asyncio.to_thread(planning.start)
             stack.callback(planning.close)
             await stack.enter_async_context(perception)
             self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh))
+            await stack.enter_async_context(loc.vision_stream(self.vehicle.link))
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
             self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
             self._update_goal_fence()
@@ -205,6 +213,7 @@ class CompanionService:
         if perception.latest is not None:
             self.report.stage_timings = perception.latest.timings_summary
         self.report.latency = self.latency_summary()
+        self.report.localization = loc.summary()
         if perception.final_map is not None:
             self.smap = perception.final_map
         log.info("service stopped")
@@ -401,8 +410,10 @@ class CompanionService:
                 timings = self.status_timings_ms()
                 health = {"mavlink": v.connected, "camera": perception.is_fresh(),
                           "map_fresh": perception.is_fresh(), "perception": perception.running,
-                          "ground": ground.connected}
+                          "ground": ground.connected, **self.localization.health()}
                 detail = f"offboard {v.offboard.state.value}, {perception.counters()['processed']} frames"
+                if self.localization.enabled:
+                    detail += f"; {self.localization.detail()}"
                 ground.publish_status(self.state, time.monotonic() - self._t0, timings, health, detail)
                 self.notifier.status(f"{self.state}: {detail}")
                 self._update_goal_fence()

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from companion.config import CompanionConfig
 from companion.geo import GeoOrigin
 from companion.sim.autopilot import MockAutopilot
+from companion.sim.odometry import OdometryDriftModel
 from companion.sim.render import renderer_from_config
 from companion.sim.world import Room
 from companion.sources.base import FrameSource
@@ -45,6 +46,15 @@ def start_point_room_m(room: Room) -> tuple[float, float]:
     if not room.doorways:
         raise SimulationError("the simulated room has no doorway to start from")
     return room.doorways[0].inside_point_m(START_INSIDE_M)
+
+
+def drift_from_config(cfg: CompanionConfig) -> OdometryDriftModel | None:
+    """The mock autopilot's odometry drift of ``cfg.sim`` (None when ``odometry_drift`` is off)."""
+    s = cfg.sim
+    if not s.odometry_drift:
+        return None
+    return OdometryDriftModel(s.odometry_scale_error, s.odometry_heading_drift_deg_s,
+                              s.odometry_noise_m_per_sqrt_m, s.odometry_noise_rad_per_sqrt_rad, seed=s.seed)
 
 
 @dataclass(frozen=True)
@@ -80,14 +90,19 @@ class SharedSimState:
 
     def __init__(self) -> None:
         ctx = mp.get_context("spawn")
-        # [valid, stamp_s, T_map_body (16, row-major)]; the array's lock keeps reads whole.
-        self._pose = ctx.Array("d", 18, lock=True)
+        # [valid, stamp_s, T_map_body (16, row-major), estimated (0/1), the autopilot's
+        # estimated T_map_body (16)]; the array's lock keeps reads whole.
+        self._pose = ctx.Array("d", 35, lock=True)
         self._missing = ctx.Value("b", 0, lock=False)
         self._corrupt = ctx.Value("b", 0, lock=False)
 
-    def set_pose(self, stamp_s: float, T_map_body: NDArray[np.floating]) -> None:  # noqa: N803 - frame names
-        """Publish the vehicle pose (``T_map_body`` (4, 4), map frame) at ``stamp_s``."""
-        vals = [1.0, float(stamp_s), *np.asarray(T_map_body, dtype=np.float64).reshape(16).tolist()]
+    def set_pose(self, stamp_s: float, T_map_body: NDArray[np.floating],  # noqa: N803 - frame names
+                 T_map_body_estimated: NDArray[np.floating] | None = None) -> None:  # noqa: N803
+        """Publish the vehicle pose (``T_map_body`` (4, 4), map frame) at ``stamp_s``, and the
+        autopilot's estimate of it when that differs (odometry drift)."""
+        est = ([1.0, *np.asarray(T_map_body_estimated, dtype=np.float64).reshape(16).tolist()]
+               if T_map_body_estimated is not None else [0.0] * 17)
+        vals = [1.0, float(stamp_s), *np.asarray(T_map_body, dtype=np.float64).reshape(16).tolist(), *est]
         with self._pose.get_lock():
             self._pose[:] = vals
 
@@ -97,7 +112,17 @@ class SharedSimState:
             vals = list(self._pose[:])
         if vals[0] == 0.0:
             return None
-        return vals[1], np.asarray(vals[2:], dtype=np.float64).reshape(4, 4)
+        return vals[1], np.asarray(vals[2:18], dtype=np.float64).reshape(4, 4)
+
+    def poses(self) -> tuple[float, NDArray[np.float64], NDArray[np.float64] | None] | None:
+        """``(stamp_s, T_map_body, estimated T_map_body or None)`` published together, or None
+        before the first."""
+        with self._pose.get_lock():
+            vals = list(self._pose[:])
+        if vals[0] == 0.0:
+            return None
+        est = np.asarray(vals[19:35], dtype=np.float64).reshape(4, 4) if vals[18] else None
+        return vals[1], np.asarray(vals[2:18], dtype=np.float64).reshape(4, 4), est
 
     @property
     def camera_missing(self) -> bool:
@@ -128,16 +153,19 @@ class SimCameraSource(FrameSource):
         self.shared = shared
         self.dropped_frames = 0
         self._inner: SimFrameSource | None = None
+        #: The autopilot's estimate of the pose the latest frame was rendered from.
+        self._estimated: NDArray[np.float64] | None = None
 
     def _source(self) -> SimFrameSource:
         if self._inner is None:
             T_room_map = np.linalg.inv(self.placement.T_map_room)
 
             def pose_room() -> tuple[float, NDArray[np.float64]] | None:
-                p = self.shared.pose()
+                p = self.shared.poses()
                 while p is None:  # the world has not published a pose yet
                     time.sleep(0.02)
-                    p = self.shared.pose()
+                    p = self.shared.poses()
+                self._estimated = p[2]
                 return p[0], T_room_map @ p[1]
 
             self._inner = SimFrameSource(renderer_from_config(self.placement.room, self.cfg), pose_room,
@@ -167,7 +195,11 @@ class SimCameraSource(FrameSource):
         self.frames_read = src.frames_read
         if frame is None or frame.T_map_camera is None:
             return frame
-        frame = replace(frame, T_map_camera=self.placement.T_map_room @ np.asarray(frame.T_map_camera))
+        if self._estimated is not None:
+            # Rendered where the vehicle is, posed where the autopilot thinks it is.
+            frame = replace(frame, T_map_camera=self._estimated @ src.T_body_camera)
+        else:
+            frame = replace(frame, T_map_camera=self.placement.T_map_room @ np.asarray(frame.T_map_camera))
         if self.shared.camera_corrupt:
             # Garbage images: random colour, depth invalid or absurd.
             rng = np.random.default_rng(frame.index)
@@ -197,6 +229,7 @@ class SimWorld:
             remote_ports=(s.autopilot_offboard_port, s.autopilot_gcs_port) if remote_ports is None else remote_ports,
             home=GeoOrigin(s.home_lat_deg, s.home_lon_deg, s.home_alt_m),
             params={"COM_DISARM_PRFLT": -1.0, **(params or {})}, seed=s.seed,
+            odometry_drift=drift_from_config(cfg), vision_gain=s.vision_fusion_gain,
         )
         self.cfg = cfg
         self.shared = SharedSimState()
@@ -242,8 +275,9 @@ class SimWorld:
         await self.autopilot.__aexit__(exc_type, exc, tb)
 
     def _publish_pose(self) -> None:
-        stamp, T_map_body = self.autopilot.T_map_body()
-        self.shared.set_pose(float(stamp), np.asarray(T_map_body))
+        stamp, T_map_body, T_est = self.autopilot.poses_map_body()
+        self.shared.set_pose(float(stamp), np.asarray(T_map_body),
+                             np.asarray(T_est) if self.autopilot.estimator.active else None)
 
     async def _pose_loop(self) -> None:
         while True:

@@ -7,7 +7,9 @@ x north, y east, yaw from north towards east):
 
 * the *raw* estimate is the true pose through an optional
   :class:`~companion.sim.odometry.OdometryDriftModel` (scale error, heading drift, noise);
-  height, roll and pitch stay true (range finder and IMU keep them);
+  height, roll and pitch stay true (range finder and IMU keep them). The drift starts when
+  the vehicle first arms (on the ground at rest, EKF2's zero-velocity updates hold it), so
+  the frame the companion starts in is the true one;
 * external vision (VISION_POSITION_ESTIMATE / ODOMETRY from the companion) is fused as EKF2
   does it with a delayed horizon: the sample is compared with the estimate *at its
   timestamp* (a short history is kept), and a fraction ``vision_gain`` of the difference is
@@ -74,17 +76,21 @@ class SimEstimator:
         self._last_vision_s = -math.inf
         self.vision_fused = 0
         self._started = False
+        self._drifting = False
 
     @property
     def active(self) -> bool:
         """True when the estimate can differ from the truth (drift or fused vision)."""
         return self.drift is not None or self.vision_fused > 0
 
-    def update(self, state: VehicleState) -> VehicleState:
-        """The estimated state for the true ``state`` (call once per physics tick)."""
+    def update(self, state: VehicleState, armed: bool = True) -> VehicleState:
+        """The estimated state for the true ``state`` (call once per physics tick);
+        ``armed``: the drift starts at the first armed update."""
         n, e, _d = state.position_ned_m
         true = np.array([n, e, state.yaw_rad])
-        raw = self.drift.update(state.stamp_s, true) if self.drift is not None else true.copy()
+        self._drifting = self._drifting or armed
+        drifting = self.drift is not None and self._drifting
+        raw = self.drift.update(state.stamp_s, true) if drifting else true.copy()  # type: ignore[union-attr]
         self._true, self._raw, self._started = true, raw, True
         self._est = _compose(self._correction, raw)
         self._stamps.append(state.stamp_s)
@@ -93,6 +99,11 @@ class SimEstimator:
             self._stamps.popleft()
             self._history.popleft()
         return self.estimated(state)
+
+    @property
+    def raw_pose_ned(self) -> tuple[float, float, float]:
+        """(north_m, east_m, yaw_rad) of the drifting odometry alone (no vision correction)."""
+        return float(self._raw[0]), float(self._raw[1]), float(self._raw[2])
 
     def estimated(self, state: VehicleState) -> VehicleState:
         """``state`` (true) as the estimator reports it at the latest :meth:`update`."""

@@ -338,7 +338,7 @@ class MockAutopilot:
     def _tick(self, dt_s: float) -> None:
         now = self.now_s()
         self.vehicle.step(dt_s)
-        self.estimator.update(self.vehicle.state())
+        self.estimator.update(self.vehicle.state(), armed=self._armed)
         self.navigator.tick(self.vehicle.stamp_s)
         self._check_offboard(now)
         self._update_landed(now)
