@@ -73,6 +73,40 @@ def fill_dropouts(
     return np.where(fill, np.minimum(above, below), depth_m), valid | fill
 
 
+def recover_skipped(
+    depth_m: NDArray[np.floating], sub: NDArray[np.float32], valid: NDArray[np.bool_],
+    row_stride: int, col_stride: int, min_depth_m: float, max_depth_m: float,
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Replace each invalid sample of the subsampled image ``sub`` (h, w) by the nearest valid
+    depth among the full-resolution pixels its stride skipped (its ``row_stride`` x
+    ``col_stride`` block of ``depth_m``), when there is one.
+
+    A thin surface at band height (a 3 cm table top a few metres away) is one or two pixels
+    tall, and a depth camera drops pixels at depth edges, which such a sliver is made of: a
+    plain stride keeps it only when the sampled pixel happens to be on it and valid, and the
+    rays of the other columns then pass under the top and clear its footprint. Valid samples
+    are kept as they are (a block minimum would bias every surface towards the sensor); an
+    invalid sample says nothing, so the block's nearest valid depth (the conservative choice
+    at an edge, as :func:`fill_dropouts` takes) is better information in its place.
+    """
+    if row_stride <= 1 and col_stride <= 1:
+        return sub, valid
+    rr, cc = np.nonzero(~valid)
+    if not len(rr):
+        return sub, valid
+    H, W = depth_m.shape
+    rows = np.minimum(rr[:, None] * row_stride + np.arange(row_stride)[None, :], H - 1)  # (n, s)
+    cols = np.minimum(cc[:, None] * col_stride + np.arange(col_stride)[None, :], W - 1)  # (n, sc)
+    block = np.asarray(depth_m[rows[:, :, None], cols[:, None, :]], dtype=np.float32)  # (n, s, sc)
+    block = np.where(valid_depth_mask(block, min_depth_m, max_depth_m), block, np.float32(np.inf))
+    nearest = block.min(axis=(1, 2))
+    found = np.isfinite(nearest)
+    out, ok = sub.copy(), valid.copy()
+    out[rr[found], cc[found]] = nearest[found]
+    ok[rr[found], cc[found]] = True
+    return out, ok
+
+
 def extract_band_scan(
     depth_m: NDArray[np.floating],
     intrinsics: CameraIntrinsics,
@@ -89,13 +123,16 @@ def extract_band_scan(
     cluster_tol: float = 1.0,
     stamp_s: float = 0.0,
     column_stride_px: int | None = None,
+    recover_px: bool = True,
 ) -> BandScan:
     """Extract the band scan of one depth image.
 
     ``depth_m``: (H, W) metres along the optical axis. ``T_map_camera``: (4, 4) optical camera
     to map (z up, floor at z = 0); ``band`` in map-frame metres above the floor.
     ``stride_px`` subsamples rows, ``column_stride_px`` columns (default: the same), so
-    there is one ray per used column. Invalid pixels with valid depth within
+    there is one ray per used column; with ``recover_px`` an invalid sample takes the nearest
+    valid depth of the pixels its strides skipped (:func:`recover_skipped`). Invalid pixels
+    with valid depth within
     ``fill_px`` rows above and below take the nearer: sensors drop pixels at depth edges, and
     a dropped table edge must not let the rays under the table clear its footprint.
     ``min_hit_points``: a column's nearest in-band point is an obstacle only with this many
@@ -122,6 +159,8 @@ def extract_band_scan(
     sc = max(1, int(column_stride_px)) if column_stride_px is not None else s
     sub = d[::s, ::sc].astype(np.float32, copy=False)  # (h, w)
     valid = valid_depth_mask(sub, min_depth_m, max_depth_m)
+    if recover_px:
+        sub, valid = recover_skipped(d, sub, valid, s, sc, min_depth_m, max_depth_m)
     dep = np.where(valid, sub, np.float32(0.0))
     if fill_px > 0:
         dep, valid = fill_dropouts(dep, valid, max(1, int(round(fill_px / s))))

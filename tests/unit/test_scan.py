@@ -99,6 +99,25 @@ def test_a_single_flying_pixel_is_not_an_obstacle() -> None:
     assert single.hits_xy_m[:, 0].min() == pytest.approx(1.0, abs=1e-3)
 
 
+def test_a_thin_edge_between_dropouts_is_kept_by_the_strides() -> None:
+    # A table top 2 m ahead, one pixel row tall (row 51, z = 0.69 m, in the band), in front of
+    # a wall at 4 m; the sensor dropped the pixels above and below it (a depth edge). The
+    # strides sample rows 50 and 52 only: without looking at the skipped pixels the top is
+    # lost and the rays pass under it to the wall, clearing its footprint.
+    T = camera_pose(1.0, 0.0, 0.6)
+    depth = np.full((K.height_px, K.width_px), 4.0, np.float32)
+    depth[50, :] = 0.0
+    depth[51, :] = 2.0
+    depth[52, :] = 0.0
+    band = VerticalBand(0.4, 0.8)
+    scan = extract_band_scan(depth, K, T, band, stride_px=2, column_stride_px=4)
+    assert scan.is_hit.all()
+    assert np.allclose(scan.hits_xy_m[:, 0], 3.0, atol=0.02)
+    assert np.all(scan.far_xy_m[:, 0] <= 3.0 + 1e-6)
+    plain = extract_band_scan(depth, K, T, band, stride_px=2, column_stride_px=4, recover_px=False)
+    assert np.allclose(plain.hits_xy_m[:, 0], 5.0, atol=0.02)
+
+
 def test_noisy_wall_hits_are_not_biased_towards_the_sensor() -> None:
     rng = np.random.default_rng(3)
     T = camera_pose(0.0, 0.0, 0.6)
