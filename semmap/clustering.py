@@ -6,13 +6,20 @@ points belong to the same cluster when a chain of occupied cells, each touching 
 neighbour search, slightly coarser than exact Euclidean clustering at ``distance_m``: two points
 closer than ``distance_m`` always share a cluster, points of different clusters are always more
 than ``distance_m`` apart (their cells do not touch), and one link of a chain may span up to
-2*sqrt(3)*``distance_m`` (opposite corners of touching cells). Clouds of small extent (the
-usual case: one object's box) are labelled on a dense occupancy grid with
-``scipy.ndimage.label``; clouds whose bounding grid would be large (a stray far point, a wall
-far behind the object: many more cells than points) keep
-their cells sparse (sorted keys, ``searchsorted``, a sparse graph), so the cost follows the
-number of occupied cells, not the extent. Several times faster than a k-d tree radius search
-followed by connected components on the few thousand points of one object.
+2*sqrt(3)*``distance_m`` (opposite corners of touching cells).
+
+The occupied cells are labelled on a dense occupancy grid with ``scipy.ndimage.label`` (one C
+pass). The grid is kept small by compressing each axis before labelling: every run of empty
+cell slices along an axis (the gap between an object and the wall far behind it, a stray far
+point) becomes a single empty slice. Whether two cells touch depends only on whether their
+indices differ by at most one along each axis, which this preserves exactly, so the labels are
+those of the uncompressed grid, at a cost that follows the occupied extent rather than the
+bounding box. Only a cloud whose compressed grid is still large falls back to sparse cells
+(sorted keys, ``searchsorted``, a sparse graph). Several times faster than a k-d tree radius
+search followed by connected components on the few thousand points of one object.
+
+Per-axis work runs on (3, N) coordinate rows: reductions over the points of one axis are then
+contiguous, where on (N, 3) they stride.
 """
 
 from __future__ import annotations
@@ -38,10 +45,47 @@ _HALF_NEIGHBOURS = np.array(
 
 #: 26-connectivity structuring element.
 _FULL_3X3X3 = np.ones((3, 3, 3), dtype=bool)
-#: Above this many cells in the cloud's bounding grid, components are found sparsely.
+#: Above this many cells in the (compressed) grid, components are found sparsely.
 _DENSE_MAX_CELLS = 300_000
 #: ... or more than this many cells per point (measured break-even of the two passes).
 _DENSE_CELLS_PER_POINT = 25
+#: A voxel key range up to this many cells per point is counted densely (no sort).
+_COMPACT_CELLS_PER_POINT = 4
+
+
+def _cell_indices(points_m: NDArray[np.floating], cell_m: float) -> NDArray[np.int64]:
+    """(3, N) int64 cell indices of (N, 3) points, shifted so each axis starts at 0."""
+    pts_t = np.ascontiguousarray(np.asarray(points_m, dtype=np.float64).reshape(-1, 3).T)  # (3, N)
+    ijk = np.floor(pts_t / cell_m).astype(np.int64)
+    ijk -= ijk.min(axis=1, keepdims=True)
+    return ijk
+
+
+def _compress_axes(ijk: NDArray[np.int64], keep_gaps: bool) -> NDArray[np.int64]:
+    """Renumber the (3, N) non-negative cell indices of each axis densely, preserving order.
+
+    ``keep_gaps``: a run of unoccupied indices between two occupied ones becomes exactly one
+    unoccupied index (so "differ by at most one" is preserved: adjacency survives); without,
+    occupied indices become consecutive (order alone survives: voxel identity and key order).
+    """
+    span = ijk.max(axis=1) + 2  # one unoccupied slot after each axis: no leak between axes
+    start = np.concatenate([[0], np.cumsum(span)[:-1]])  # (3,)
+    flat = ijk + start[:, None]
+    occ = np.zeros(int(span.sum()), dtype=bool)
+    occ[flat] = True
+    if keep_gaps:
+        occ[1:] |= occ[:-1].copy()  # also keep the first empty slot after each occupied run
+    new = np.cumsum(occ)
+    out = new[flat]
+    out -= new[start][:, None]
+    out -= out.min(axis=1, keepdims=True)
+    return out
+
+
+def _keys(ijk: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Row-major int64 key (N,) of (3, N) non-negative cell indices, and the span (3,)."""
+    span = ijk.max(axis=1) + 1
+    return (ijk[0] * span[1] + ijk[1]) * span[2] + ijk[2], span
 
 
 def _cell_keys(
@@ -49,10 +93,9 @@ def _cell_keys(
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """One int64 cell key per point (N,) and the key layout's span (3,) in cells; ``pad`` cells
     of slack on each side keep the keys of neighbouring cells distinct and non-negative."""
-    ijk = np.floor(np.asarray(points_m, dtype=np.float64) / cell_m).astype(np.int64)  # (N, 3)
-    ijk -= ijk.min(axis=0) - pad
-    span = ijk.max(axis=0) + 1 + pad  # (3,)
-    keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+    ijk = _cell_indices(points_m, cell_m) + pad
+    span = ijk.max(axis=1) + 1 + pad  # (3,)
+    keys = (ijk[0] * span[1] + ijk[1]) * span[2] + ijk[2]
     return keys, span
 
 
@@ -63,26 +106,34 @@ def voxel_downsample(
 
     ``points_m``: (N, 3) in any metric frame. Returns ``(centroids (M, 3) float64,
     inverse (N,) int64)`` where ``inverse[i]`` is the voxel (row of ``centroids``) of point i.
+    Voxels come in row-major order of their (x, y, z) cell indices.
     """
     if voxel_m <= 0.0:
         raise ValueError(f"voxel_m must be > 0 (got {voxel_m})")
-    pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
-    if len(pts) == 0:
+    pts_t = np.ascontiguousarray(np.asarray(points_m, dtype=np.float64).reshape(-1, 3).T)  # (3, N)
+    n = pts_t.shape[1]
+    if n == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64)
-    keys, span = _cell_keys(pts, voxel_m)
-    n_cells = int(np.prod(span))
-    if n_cells <= 4 * len(pts):
+    ijk = np.floor(pts_t / voxel_m).astype(np.int64)
+    ijk -= ijk.min(axis=1, keepdims=True)
+    keys, span = _keys(ijk)
+    n_cells = int(span[0] * span[1] * span[2])
+    if n_cells > _COMPACT_CELLS_PER_POINT * n:
+        # Renumbering each axis's occupied indices keeps the key order and usually makes the
+        # range compact again (a wall far behind the object leaves a gap, not new cells).
+        keys, span = _keys(_compress_axes(ijk, keep_gaps=False))
+        n_cells = int(span[0] * span[1] * span[2])
+    if n_cells <= _COMPACT_CELLS_PER_POINT * n:
         # Compact key range: count per cell and renumber occupied cells, no sort needed.
         per_cell = np.bincount(keys, minlength=n_cells)
         occupied = per_cell > 0
-        index = np.cumsum(occupied) - 1
-        inverse = index[keys]
+        inverse = (np.cumsum(occupied) - 1)[keys]
         counts = per_cell[occupied]
     else:
         _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
         inverse = inverse.reshape(-1)
     m = len(counts)
-    sums = np.stack([np.bincount(inverse, weights=pts[:, a], minlength=m) for a in range(3)], 1)
+    sums = np.stack([np.bincount(inverse, weights=pts_t[a], minlength=m) for a in range(3)], 1)
     return sums / counts[:, None], inverse
 
 
@@ -92,7 +143,8 @@ def euclidean_clusters(
     """Cluster label per point by voxel connectivity at ``distance_m`` (see the module doc).
 
     ``points_m``: (N, 3). Returns (N,) int64 labels ordered by size: 0 is the largest cluster,
-    1 the next, ...; clusters with fewer than ``min_points`` points get -1.
+    1 the next, ... (ties: the cluster whose first cell comes first in row-major (x, y, z)
+    order); clusters with fewer than ``min_points`` points get -1.
     """
     if distance_m <= 0.0:
         raise ValueError(f"distance_m must be > 0 (got {distance_m})")
@@ -100,30 +152,36 @@ def euclidean_clusters(
     n = len(pts)
     if n == 0:
         return np.zeros(0, np.int64)
-    keys, span = _cell_keys(pts, distance_m, pad=1)
-    n_cells = int(np.prod(span))
-    # The dense pass costs per cell of the bounding grid, the sparse one per point (with a
-    # higher constant): dense only while the grid is not much larger than the cloud.
+    ijk = _compress_axes(_cell_indices(pts, distance_m), keep_gaps=True)
+    keys, span = _keys(ijk)
+    n_cells = int(span[0] * span[1] * span[2])
+    # The dense pass costs per cell of the grid, the sparse one per point (with a higher
+    # constant): dense only while the grid is not much larger than the cloud.
     if n_cells <= min(_DENSE_MAX_CELLS, _DENSE_CELLS_PER_POINT * n):
-        # Small extent: label a dense occupancy grid (scipy.ndimage, one C pass).
-        occ = np.zeros(int(np.prod(span)), dtype=bool)
+        occ = np.zeros(n_cells, dtype=bool)
         occ[keys] = True
         grid, _ = ndimage.label(occ.reshape(tuple(int(v) for v in span)), structure=_FULL_3X3X3)
         point_label = grid.reshape(-1)[keys].astype(np.int64) - 1
     else:
-        point_label = _sparse_labels(keys, span)
+        # One cell of slack on each side keeps every neighbour's key distinct and >= 0.
+        span = ijk.max(axis=1) + 3
+        padded = ijk + 1
+        point_label = _sparse_labels((padded[0] * span[1] + padded[1]) * span[2] + padded[2], span)
     sizes = np.bincount(point_label)
     order = np.argsort(-sizes, kind="stable")  # label ids by decreasing size
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
-    out = rank[point_label].astype(np.int64)
-    out[sizes[point_label] < min_points] = -1
+    out = rank[point_label]
+    if min_points > 1:
+        out[sizes[point_label] < min_points] = -1
     return out
 
 
 def _sparse_labels(keys: NDArray[np.int64], span: NDArray[np.int64]) -> NDArray[np.int64]:
     """Connected components of occupied cells kept sparse (sorted keys, ``searchsorted``), for
-    clouds whose bounding box would make a dense grid too large. Returns a label per point."""
+    clouds whose grid would be too large even compressed. ``keys``: (N,) row-major keys with
+    at least one cell of slack on each side in the layout ``span`` (3,). Returns a label per
+    point, numbered in key order of the components' first cells (as ``ndimage.label``)."""
     # Key differences of the 13 forward neighbour cells in this key layout.
     offsets = (_HALF_NEIGHBOURS[:, 0] * span[1] + _HALF_NEIGHBOURS[:, 1]) * span[2] + _HALF_NEIGHBOURS[:, 2]
     cells, inverse = np.unique(keys, return_inverse=True)

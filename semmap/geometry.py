@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from semmap.clustering import euclidean_clusters, voxel_downsample
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform, invert
-from semmap.pointcloud import backproject, valid_depth_mask
+from semmap.pointcloud import backproject_rows, valid_depth_mask
 from semmap.ransac import Plane, fit_plane
 from semmap.types import CameraIntrinsics, Track
 
@@ -58,7 +58,7 @@ _WALL_MAX_BEHIND = 0.1
 _WALL_HYPOTHESES = 64
 #: A wall faces the camera: cosine between its normal and the line of sight at least this.
 _WALL_MIN_FACING = 0.35
-#: Columns of the per-point table in :func:`observe_object` after map x, y, z: height above
+#: Rows of the per-point table in :func:`observe_object` after map x, y, z: height above
 #: the floor, camera z-depth, floor clearance at that depth, pixel u, v.
 _H, _RANGE, _CLEAR, _U = 3, 4, 5, 6
 
@@ -484,25 +484,26 @@ def observe_object(
     if area == 0:
         return None
     stride = max(1, int(math.ceil(math.sqrt(area / params.max_box_points))))
-    pts_cam, uv = backproject(depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride)
-    if len(pts_cam) < params.min_cluster_points:
+    pts_cam, uv = backproject_rows(depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride)
+    n_all = pts_cam.shape[1]
+    if n_all < params.min_cluster_points:
         return None
     R = T_map_camera[:3, :3]
     t = T_map_camera[:3, 3]
-    # One (N, 8) table per point - map xyz, height above the floor, z-depth, floor clearance,
-    # pixel u, v - so each filter below is a single gather instead of one per quantity.
-    n_all = len(pts_cam)
-    tab = np.empty((n_all, 8))
-    np.matmul(pts_cam, R.T, out=tab[:, :3])
-    tab[:, :3] += t
-    np.matmul(tab[:, :3], floor.normal_array, out=tab[:, _H])
-    tab[:, _H] += floor.offset_m
-    tab[:, _RANGE] = pts_cam[:, 2]
-    np.multiply(np.square(tab[:, _RANGE]), params.floor_clearance_per_m2, out=tab[:, _CLEAR])
-    tab[:, _CLEAR] += params.floor_clearance_m
-    tab[:, _U:] = uv
-    tab = tab[tab[:, _H] > tab[:, _CLEAR]]
-    if len(tab) < params.min_cluster_points:
+    # One (8, N) table - map x, y, z, height above the floor, z-depth, floor clearance,
+    # pixel u, v; one row each - so each filter below is a single gather instead of one per
+    # quantity, and per-quantity arithmetic runs on contiguous rows.
+    tab = np.empty((8, n_all))
+    np.matmul(R, pts_cam, out=tab[:3])
+    tab[:3] += t[:, None]
+    np.matmul(floor.normal_array, tab[:3], out=tab[_H])
+    tab[_H] += floor.offset_m
+    tab[_RANGE] = pts_cam[2]
+    np.multiply(np.square(tab[_RANGE]), params.floor_clearance_per_m2, out=tab[_CLEAR])
+    tab[_CLEAR] += params.floor_clearance_m
+    tab[_U:] = uv
+    tab = tab[:, tab[_H] > tab[_CLEAR]]
+    if tab.shape[1] < params.min_cluster_points:
         return None
     # A wall behind the object (found around the box) goes, with everything beyond it: an
     # object a few cm in front of a wall would otherwise cluster together with it.
@@ -513,10 +514,10 @@ def observe_object(
         ring = ring_cam.astype(np.float64) @ R.T + t
         walls = background_walls(ring, ring_cam[:, 2].astype(np.float64), t[:2], floor, params, rng)
         if walls:
-            tol = _noise_tolerance_m(tab[:, _RANGE], params)
-            front = np.ones(len(tab), dtype=bool)
+            tol = _noise_tolerance_m(tab[_RANGE], params)
+            front = np.ones(tab.shape[1], dtype=bool)
             for n_xy, off in walls:
-                dist = tab[:, :2] @ n_xy + off  # (N,) in front of the wall
+                dist = n_xy @ tab[:2] + off  # (N,) in front of the wall
                 # Nothing of the box stands behind a wall; a "wall" with the box's points
                 # behind it is an occluder in front of the object.
                 if np.count_nonzero(dist < -tol) <= _WALL_MAX_BEHIND * len(dist):
@@ -524,9 +525,9 @@ def observe_object(
             if not front.all():
                 if np.count_nonzero(front) < params.min_cluster_points:
                     return None  # the box shows the wall only
-                tab = tab[front]
-    pts = tab[:, :3]
-    heights, rng_cam, clearance = tab[:, _H], tab[:, _RANGE], tab[:, _CLEAR]
+                tab = tab[:, front]
+    pts = tab[:3].T  # (N, 3) view
+    heights, rng_cam, clearance = tab[_H], tab[_RANGE], tab[_CLEAR]
 
     vox, inverse = voxel_downsample(pts, params.voxel_size_m)  # (M, 3), (N,)
     spacing_m = stride * _quantile_lower(rng_cam, 0.9) / min(intrinsics.fx_px, intrinsics.fy_px)
@@ -536,16 +537,16 @@ def observe_object(
     if cluster_by == "voxels":
         best = 0  # labels are ordered by voxel count
     else:
-        best = _pick_cluster(point_label, rng_cam, tab[:, _U:].astype(np.int64), window,
+        best = _pick_cluster(point_label, rng_cam, tab[_U:].T.astype(np.int64), window,
                              params.cluster_min_pixel_frac, params.cluster_min_box_cover)
     obj_vox = vox[vox_label == best]
     if len(obj_vox) < params.min_cluster_points:
         return None
-    on_obj = point_label == best
+    on_obj = np.flatnonzero(point_label == best)
     obj_h = heights[on_obj]
     # Clearance at the object's lowest point: the floor cut removed up to that much of it.
     lowest = int(np.argmin(obj_h))
-    lowest_clearance = float(clearance[on_obj][lowest])
+    lowest_clearance = float(clearance[on_obj[lowest]])
 
     z_max = _quantile_lower(obj_h, params.height_quantile)
     z_min = float(obj_h[lowest])
@@ -585,7 +586,7 @@ def observe_object(
         points_xy_m=obj_vox[:, :2].copy(),
         z_min_m=z_min,
         z_max_m=z_max,
-        n_points=int(on_obj.sum()),
+        n_points=len(on_obj),
         n_voxels=len(obj_vox),
         range_m=float(np.linalg.norm(centroid - cam_pos)),
         top_plane=top_plane,
