@@ -42,10 +42,10 @@ from semmap.geometry import (
     ObjectObservation,
     convex_footprint,
     convex_intersection,
-    min_area_rectangle,
     polygon_area_m2,
     simplify_polygon,
 )
+from semmap.object_evidence import FootprintEvidence, bounding_rectangle
 
 log = logging.getLogger(__name__)
 
@@ -57,16 +57,8 @@ _HISTORY = 30
 _MIN_CLASS_PROB = 1e-4
 #: Any-class merge: a new track over an object of another class merges at this IoU.
 _CROSS_CLASS_IOU = 0.6
-#: Cell size of the per-object footprint evidence, metres.
-_CELL_M = 0.02
-_KEY_SHIFT = np.int64(1 << 31)
 #: Weight of a view farther than ``footprint_max_range_m`` (noisier depth).
 _FAR_WEIGHT = 0.3
-
-
-def _cell_keys(xy_m: NDArray[np.float64]) -> NDArray[np.int64]:
-    ij = np.floor(xy_m / _CELL_M).astype(np.int64) + _KEY_SHIFT // 2
-    return ij[:, 0] * _KEY_SHIFT + ij[:, 1]
 
 
 def _quantile(values: Iterable[float], q: float) -> float:
@@ -76,19 +68,6 @@ def _quantile(values: Iterable[float], q: float) -> float:
     i = int(pos)
     j = min(i + 1, len(v) - 1)
     return float(v[i] + (pos - i) * (v[j] - v[i]))
-
-
-def _inside_convex(poly: NDArray[np.float64], xy: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """(N,) True where points (N, 2) lie inside a convex polygon (M, 2), either winding."""
-    e = np.roll(poly, -1, axis=0) - poly  # (M, 2)
-    cross = e[None, :, 0] * (xy[:, None, 1] - poly[None, :, 1]) - e[None, :, 1] * (xy[:, None, 0] - poly[None, :, 0])
-    return np.all(cross >= -1e-12, axis=1) | np.all(cross <= 1e-12, axis=1)
-
-
-def _cell_centres(keys: NDArray[np.int64]) -> NDArray[np.float64]:
-    i = keys // _KEY_SHIFT - _KEY_SHIFT // 2
-    j = keys % _KEY_SHIFT - _KEY_SHIFT // 2
-    return (np.stack([i, j], axis=1).astype(np.float64) + 0.5) * _CELL_M
 
 
 def _logit(p: float) -> float:
@@ -154,7 +133,7 @@ class MappedObject:
     @property
     def footprint_center_xy_m(self) -> NDArray[np.float64]:
         """Centre of the footprint's bounding box in its own orientation (a rectangle's centre)."""
-        return min_area_rectangle(self.footprint_xy_m).mean(axis=0)
+        return bounding_rectangle(self.footprint_xy_m).mean(axis=0)
 
     def to_footprint(self, margin_m: float = 0.0) -> ObjectFootprint:
         """The costmap's view of this object."""
@@ -203,9 +182,8 @@ class _State:
     z_max_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
     z_min_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
     top_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
-    #: Footprint evidence: sorted keys of map-plane cells (_CELL_M) and their weights.
-    cell_keys: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    cell_w: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    #: Footprint evidence: weighted map-plane cells the views saw the object in.
+    evidence: FootprintEvidence = field(default_factory=FootprintEvidence)
     footprint_cache: NDArray[np.float64] | None = None
     #: Last snapshot; dropped whenever the state changes (most objects do not, each frame).
     snapshot_cache: MappedObject | None = None
@@ -301,12 +279,7 @@ class ObjectMap:
             if top is not None:
                 s.top_hist.append(float(top))
             # The footprint becomes evidence: its cells, at full weight.
-            lo, hi = fp.min(axis=0), fp.max(axis=0)
-            gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + _CELL_M, _CELL_M),
-                                 np.arange(lo[1], hi[1] + _CELL_M, _CELL_M))
-            grid = np.column_stack([gx.ravel(), gy.ravel()])
-            inside = _inside_convex(fp, grid)
-            self._add_evidence(s, np.unique(_cell_keys(grid[inside] if inside.any() else fp)), 1.0)
+            s.evidence = FootprintEvidence.from_polygon(fp)
             objects[oid] = s
         self._objects = objects
         self._track_to_object = {}
@@ -425,9 +398,7 @@ class ObjectMap:
             keep.z_max_hist.extend(drop.z_max_hist)
             keep.z_min_hist.extend(drop.z_min_hist)
             keep.top_hist.extend(drop.top_hist)
-        keep.cell_keys, inv = np.unique(np.concatenate([keep.cell_keys, drop.cell_keys]), return_inverse=True)
-        keep.cell_w = np.bincount(inv.reshape(-1), weights=np.concatenate([keep.cell_w, drop.cell_w]),
-                                  minlength=len(keep.cell_keys)).astype(np.float64)
+        keep.evidence.merge(drop.evidence)
         keep.footprint_cache = None
         keep.snapshot_cache = None
         keep.n_observations += drop.n_observations
@@ -543,44 +514,20 @@ class ObjectMap:
         # not wrong); each cell counts once per view.
         pts = o.points_xy_m if len(o.points_xy_m) else fp
         near = o.range_m <= cfg.footprint_max_range_m
-        self._add_evidence(s, np.unique(_cell_keys(pts)), 1.0 if near else _FAR_WEIGHT)
-
-    @staticmethod
-    def _add_evidence(s: _State, keys: NDArray[np.int64], weight: float) -> None:
-        """Add ``weight`` to the cells ``keys`` (sorted, unique) of the object's evidence."""
-        pos = np.searchsorted(s.cell_keys, keys)  # (K,) a merge, not a re-sort of everything
-        known = pos < len(s.cell_keys)
-        known[known] = s.cell_keys[pos[known]] == keys[known]
-        w = s.cell_w.copy()
-        w[pos[known]] += weight
-        fresh = ~known
-        s.cell_keys = np.insert(s.cell_keys, pos[fresh], keys[fresh])
-        s.cell_w = np.insert(w, pos[fresh], weight)
+        s.evidence.add_view(pts, 1.0 if near else _FAR_WEIGHT)
         s.footprint_cache = None
-        s.snapshot_cache = None
 
     def _evidence_footprint(self, s: _State) -> NDArray[np.float64]:
-        """Footprint from the evidence cells holding at least ``footprint_evidence_frac`` of
-        the well-seen cells' weight (so stray noise cells do not grow it)."""
+        """The footprint from the evidence (:meth:`FootprintEvidence.footprint`), or from the
+        observed hull before there is any."""
         if s.footprint_cache is not None:
             return s.footprint_cache
         cfg = self.config
-        if len(s.cell_w) == 0:
-            poly = s.hull_xy_m
-        else:
-            k90 = int(0.9 * (len(s.cell_w) - 1))
-            p90 = float(np.partition(s.cell_w, k90)[k90])
-            keep = s.cell_w >= cfg.footprint_evidence_frac * p90
-            c = _cell_centres(s.cell_keys[keep])
-            h = _CELL_M / 2
-            hull = convex_footprint(c)  # of centres; each cell's half-width is added back
-            corners = np.concatenate([hull + [-h, -h], hull + [h, -h], hull + [h, h], hull + [-h, h]])
-            # The rectangle takes the hull of the corners itself: one hull, not two.
-            poly = corners if cfg.footprint_shape == "rectangle" else convex_footprint(corners)
-        s.footprint_cache = (
-            min_area_rectangle(poly) if cfg.footprint_shape == "rectangle" else poly
-        )
-        return s.footprint_cache
+        fp = s.evidence.footprint(cfg.footprint_evidence_frac, cfg.footprint_shape)
+        if fp is None:
+            fp = bounding_rectangle(s.hull_xy_m) if cfg.footprint_shape == "rectangle" else s.hull_xy_m
+        s.footprint_cache = fp
+        return fp
 
     def _negative_evidence(self, matched: set[int], view: CameraView | None) -> None:
         if view is None:
