@@ -306,8 +306,10 @@ class LockstepFlight:
             raise SimulationError("offboard refused")
         self.log.leg_start_s = self.ap.now_s()
 
-    def _plan(self, start: NDArray[np.float64], snap: bool) -> PlanResult:
-        """Plan on the released costmap; the vehicle holds its setpoint for the plan's wall time."""
+    def _plan(self, start: NDArray[np.float64], snap: bool, replan: bool = False) -> PlanResult:
+        """Plan on the released costmap; the vehicle holds its setpoint for the plan's wall time.
+        ``replan``: the path ahead became blocked; the planner's re-plan budget applies (as in
+        the service's mission runner)."""
         if self.costmap is None:
             # Nothing mapped yet: wait for the first frame as the service waits for a costmap.
             while self.costmap is None:
@@ -317,7 +319,8 @@ class LockstepFlight:
         if self.planner.map_version != self.map_version:
             self.planner.set_map(self.costmap, self.map_version)
         t1 = time.perf_counter()
-        result = self.planner.plan(start, self.goal, None, snap or None)
+        limit = self.planner.config.replan_time_limit_s if replan else None
+        result = self.planner.plan(start, self.goal, limit, snap or None)
         wall = time.perf_counter() - t0
         self.log.plans += 1
         self.log.plan_ms.append(1e3 * wall)
@@ -336,6 +339,7 @@ class LockstepFlight:
         end = lg.leg_start_s + self.time_limit_s
         acceptance = DEFAULT_ACCEPTANCE_M
         goal_blocked = False
+        replanning = False
         target = self.goal
         while self.ap.now_s() < end:
             pos = self._pos()
@@ -344,7 +348,8 @@ class LockstepFlight:
                 return
             start = self._plan_start(pos)
             self._note_frame_for_plan()
-            result = self._plan(start, goal_blocked)
+            result = self._plan(start, goal_blocked, replanning)
+            replanning = False
             goal_blocked = result.status is PlanStatus.GOAL_BLOCKED
             if result.status is PlanStatus.START_BLOCKED and self.costmap is not None:
                 self.checker.update(self.costmap)
@@ -372,6 +377,7 @@ class LockstepFlight:
                 return
             if outcome == "invalid":
                 lg.replans_invalid += 1
+                replanning = True
 
     def _note_frame_for_plan(self) -> None:
         # A plan on a map no check has looked at yet carries that frame to a setpoint.

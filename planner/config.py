@@ -19,6 +19,13 @@ class PlannerConfig(StageConfig):
     )
     #: Planning time budget; the best path found by then is used.
     time_limit_s: float = Field(default=0.5, gt=0.0, le=60.0)
+    #: Budget of a re-plan in flight (the path ahead became blocked by a newly mapped
+    #: object): the vehicle is moving towards the obstacle, so a near-optimal path now beats
+    #: a slightly shorter one half a second later. The first path (grid search + any-angle
+    #: smoothing, within a few percent of the shortest) takes about 10-20 ms; OMPL refines
+    #: for what is left of this budget. The first plan of a leg, made while holding, keeps
+    #: ``time_limit_s``.
+    replan_time_limit_s: float = Field(default=0.05, gt=0.0, le=60.0)
     flight_altitude_m: float = Field(default=0.6, gt=0.0, le=20.0)
     vehicle_radius_m: float = Field(default=0.25, gt=0.0, le=5.0)
     vehicle_height_m: float = Field(default=0.15, gt=0.0, le=5.0)

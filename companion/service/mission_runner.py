@@ -209,10 +209,13 @@ class MissionRunner:
             enu_to_ned(float(xy_m[0]), float(xy_m[1]), altitude_m), yaw_rad=yaw_ned))
 
     async def _plan(self, start_xy: NDArray[np.float64], goal_xy: tuple[float, float],
-                    snap_goal: bool = False) -> tuple[PlanResult, Costmap]:
+                    snap_goal: bool = False, replan: bool = False) -> tuple[PlanResult, Costmap]:
+        """Plan on the newest costmap; ``replan``: in flight, with the planner's
+        ``replan_time_limit_s`` budget instead of ``time_limit_s``."""
         costmap = await asyncio.to_thread(self.costmap_source)
+        limit = self.planning.config.replan_time_limit_s if replan else None
         result = await asyncio.to_thread(self.planning.plan, costmap, self._version_of(costmap), start_xy, goal_xy,
-                                         None, snap_goal or None)
+                                         limit, snap_goal or None)
         self.last_plan_ms = 1e3 * result.planning_time_s
         return result, costmap
 
@@ -247,6 +250,7 @@ class MissionRunner:
         t_leg = time.monotonic()
         goal = np.array(leg.goal_xy_m)
         goal_blocked = False
+        replanning = False  # a plan after the path ahead became blocked (re-plan budget)
         log.info("leg %d: to (%.2f, %.2f) m", leg.seq, *leg.goal_xy_m)
         while time.monotonic() - t_leg < self.leg_timeout_s:
             self._check_offboard()
@@ -260,7 +264,8 @@ class MissionRunner:
             start = self._plan_start(pos)
             # A waypoint that turned out to lie in (or too near) a mapped object is replaced
             # by the nearest point the vehicle fits (the planner's goal snapping).
-            result, costmap = await self._plan(start, leg.goal_xy_m, snap_goal=goal_blocked)
+            result, costmap = await self._plan(start, leg.goal_xy_m, snap_goal=goal_blocked, replan=replanning)
+            replanning = False
             goal_blocked = result.status is PlanStatus.GOAL_BLOCKED
             rep.plans += 1
             rep.plan_ms.append(1e3 * result.planning_time_s)
@@ -299,6 +304,7 @@ class MissionRunner:
             if outcome == "reached":
                 rep.reached = True
                 break
+            replanning = outcome == "invalid"
         rep.duration_s = time.monotonic() - t_leg
         pos = position_enu(self.vehicle.snapshot())
         if pos is not None:
@@ -423,7 +429,7 @@ class MissionRunner:
                                      start[0], start[1], t_start - t_traj)
                             t_cap = t_start
                             replan = asyncio.create_task(self._plan(np.asarray(start, dtype=np.float64),
-                                                                    leg.goal_xy_m))
+                                                                    leg.goal_xy_m, replan=True))
                 await asyncio.sleep(FEED_PERIOD_S)
         finally:
             for task in (checking, replan):
