@@ -63,14 +63,26 @@ def fill_dropouts(
     (same column) with the nearer of the two nearest values: a dropout sandwiched in a
     surface or at a thin edge. Pixels at the border of the valid region (beyond the sensor's
     range, the image edge) stay invalid. ``depth_m``/``valid``: (h, w)."""
-    inf = np.where(valid, depth_m, np.float32(np.inf))
-    above = np.full_like(inf, np.inf)
-    below = np.full_like(inf, np.inf)
-    for k in range(1, rows + 1):
-        np.minimum(above[k:], inf[:-k], out=above[k:])
-        np.minimum(below[:-k], inf[k:], out=below[:-k])
-    fill = ~valid & np.isfinite(above) & np.isfinite(below)
-    return np.where(fill, np.minimum(above, below), depth_m), valid | fill
+    # Only the invalid pixels (a few per cent) are looked at: their ``rows`` neighbours
+    # above and below are gathered as (rows, n) and reduced across the pixels.
+    rr, cc = np.nonzero(~valid)
+    out_d, out_v = np.array(depth_m, copy=True), np.array(valid, copy=True)
+    if not len(rr) or rows < 1:
+        return out_d, out_v
+    h = valid.shape[0]
+    ks = np.arange(1, rows + 1)[:, None]  # (rows, 1)
+    inf = np.float32(np.inf)
+    nearest = []
+    for nb in (rr[None, :] - ks, rr[None, :] + ks):  # (rows, n) above, below
+        inside = (nb >= 0) & (nb < h)
+        nb = np.clip(nb, 0, h - 1)
+        ok = inside & valid[nb, cc]
+        nearest.append(np.where(ok, depth_m[nb, cc], inf).min(axis=0))
+    above, below = nearest
+    fill = np.isfinite(above) & np.isfinite(below)
+    out_d[rr[fill], cc[fill]] = np.minimum(above, below)[fill]
+    out_v[rr[fill], cc[fill]] = True
+    return out_d, out_v
 
 
 def recover_skipped(
@@ -94,12 +106,22 @@ def recover_skipped(
     rr, cc = np.nonzero(~valid)
     if not len(rr):
         return sub, valid
-    H, W = depth_m.shape
-    rows = np.minimum(rr[:, None] * row_stride + np.arange(row_stride)[None, :], H - 1)  # (n, s)
-    cols = np.minimum(cc[:, None] * col_stride + np.arange(col_stride)[None, :], W - 1)  # (n, sc)
-    block = np.asarray(depth_m[rows[:, :, None], cols[:, None, :]], dtype=np.float32)  # (n, s, sc)
+    d = np.asarray(depth_m)
+    H, W = d.shape
+    # The block's pixels as (s * sc, n): the minimum then runs across the samples, one
+    # vectorised pass per pixel of the block, instead of a short reduction per sample
+    # (ten times the cost); a contiguous image is gathered by flat index.
+    rows = np.minimum(rr[None, :] * row_stride + np.arange(row_stride)[:, None], H - 1)  # (s, n)
+    cols = np.minimum(cc[None, :] * col_stride + np.arange(col_stride)[:, None], W - 1)  # (sc, n)
+    rows_b = np.broadcast_to(rows[:, None, :], (row_stride, col_stride, len(rr))).reshape(-1, len(rr))
+    cols_b = np.broadcast_to(cols[None, :, :], (row_stride, col_stride, len(rr))).reshape(-1, len(rr))
+    if d.flags.c_contiguous:
+        block = d.reshape(-1).take(rows_b * W + cols_b)  # (s * sc, n)
+    else:
+        block = d[rows_b, cols_b]
+    block = block.astype(np.float32, copy=False)
     block = np.where(valid_depth_mask(block, min_depth_m, max_depth_m), block, np.float32(np.inf))
-    nearest = block.min(axis=(1, 2))
+    nearest = block.min(axis=0)
     found = np.isfinite(nearest)
     out, ok = sub.copy(), valid.copy()
     out[rr[found], cc[found]] = nearest[found]
