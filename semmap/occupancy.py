@@ -246,11 +246,15 @@ class ProbabilityGrid:
         are ignored; a cell that is both a hit and a miss counts as a hit. Returns the window
         of touched cells.
         """
-        rows, cols = self.spec.shape_rc
         hit_flat = self._flat_unique(hit_rc)
         miss_flat = self._flat_unique(miss_rc)
         if len(hit_flat) and len(miss_flat):
             miss_flat = miss_flat[~np.isin(miss_flat, hit_flat, assume_unique=True)]
+        return self._apply_flat(hit_flat, miss_flat)
+
+    def _apply_flat(self, hit_flat: NDArray[np.int64], miss_flat: NDArray[np.int64]) -> Bounds:
+        """:meth:`apply` on flat cell indices already unique, inside the grid and disjoint."""
+        cols = self.spec.cols
         flat = self.values.reshape(-1)
         if len(hit_flat):
             flat[hit_flat] = self.tables.hit_table[flat[hit_flat]]
@@ -297,10 +301,17 @@ class ProbabilityGrid:
         if window.is_empty:
             return Bounds.empty()
         free = _fill_runs(spec, window, near, far, ok)  # (window rows, window cols) bool
+        hit_flat = self._flat_unique(spec.cell_of(hits[hit]))
+        # A hit cell is no miss (as in apply); the misses come from the window's mask, so
+        # they are unique, sorted and inside the grid without a sort of their own.
+        hr, hc = np.divmod(hit_flat, spec.cols)
+        hr -= window.r0
+        hc -= window.c0
+        in_window = (hr >= 0) & (hr < free.shape[0]) & (hc >= 0) & (hc < free.shape[1])
+        free[hr[in_window], hc[in_window]] = False
         fr, fc = np.nonzero(free)
-        miss_rc = np.stack([fr + window.r0, fc + window.c0], axis=1)
-        hit_rc = spec.cell_of(hits[hit])
-        return self.apply(hit_rc, miss_rc)
+        miss_flat = (fr + window.r0) * spec.cols + (fc + window.c0)
+        return self._apply_flat(hit_flat, miss_flat.astype(np.int64, copy=False))
 
 
 def _fill_runs(
