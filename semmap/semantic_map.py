@@ -373,9 +373,10 @@ class SemanticMap:
         """Read a map written by :meth:`save`. Raises :class:`MapError` naming the file and
         the missing or bad entry.
 
-        ``object_map``: the object map to keep feeding; its saved state is handed to its
-        ``load_state(dict)`` when it has one, else it starts empty and each restored object
-        (id + ``RESTORED_ID_OFFSET``) stays until the object map has one overlapping it.
+        ``object_map``: the object map to keep feeding; the saved object map is restored into
+        it (:meth:`ObjectMap.load_dict`: ids, class probabilities, existence, footprints). When
+        that dump does not fit (other classes, damaged), it starts empty instead and each saved
+        object (id + ``RESTORED_ID_OFFSET``) stays until the object map has one overlapping it.
         """
         path = Path(path)
         try:
@@ -398,13 +399,14 @@ class SemanticMap:
             spec = GridSpec(float(g["resolution_m"]), tuple(g["origin_xy_m"]), tuple(g["shape_rc"]))
             out = cls(settings, object_map)
             saved_objects = meta.get("object_map")
-            load_state = getattr(object_map, "load_state", None)
-            if object_map is not None and saved_objects and callable(load_state):
-                load_state(saved_objects)
-            restore_objects = object_map is not None and bool(saved_objects) and not callable(load_state)
-            if restore_objects:
-                log.warning("%s: the object map cannot restore its state; it starts empty and the "
-                            "saved objects stay until it sees them again", path)
+            restore_objects = False
+            if object_map is not None and saved_objects:
+                try:
+                    object_map.load_dict(saved_objects)
+                except MapError as exc:
+                    restore_objects = True
+                    log.warning("%s: the saved object map cannot be restored (%s); it starts empty and the "
+                                "saved objects stay until it sees them again", path, exc)
             out.grid.spec = spec
             out.grid.set_values(arrays["grid_values"])
             out.layers.sync_spec()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -145,15 +146,42 @@ def test_object_map_feeds_the_layers_and_survives_a_restart(tmp_path: Path) -> N
         m.integrate_frame(wall_frame(0.0, 1.0, 9), objects=[], observations=[])
 
     path = m.save(tmp_path / "map.npz")
+    saved_id = m.objects[0].object_id
     fresh = ObjectMap(classes)
     loaded = SemanticMap.load(path, object_map=fresh)
-    # The fresh object map knows nothing yet: the saved table is kept until it is seen again.
+    # The object map itself is restored: the table keeps its id, and a new track over it
+    # after the restart is the same table.
+    assert [(o.object_id, o.class_name) for o in fresh.objects()] == [(saved_id, "coffee_table")]
     loaded.integrate_frame(wall_frame(0.0, 1.0, 10), observations=[])
     assert [o.class_name for o in loaded.objects] == ["coffee_table"]
     assert loaded.costmap(VerticalBand(0.3, 0.5)).cost_at_xy(np.array([[1.4, -0.25]]))[0] == LETHAL_OBSTACLE
     for i in range(4):
         loaded.integrate_frame(wall_frame(0.0, 1.1 + 0.1 * i, 11 + i), observations=[table_observation(3, 1.1 + 0.1 * i)])
-    assert len(loaded.objects) == 1 and loaded.objects[0].object_id < 1_000_000
+    assert [o.object_id for o in loaded.objects] == [saved_id]
+
+
+def test_a_damaged_saved_object_map_keeps_its_objects_until_seen(tmp_path: Path) -> None:
+    classes = [c for c in default_classes() if c.name in CLASSES]
+    m = SemanticMap(settings(), ObjectMap(classes))
+    for i in range(4):
+        m.integrate_frame(wall_frame(0.0, 0.1 * i, i), observations=[table_observation(7, 0.1 * i)])
+    path = m.save(tmp_path / "map.npz")
+    # The saved object map loses a footprint: the object map cannot take the dump and starts
+    # empty, and the saved table stays in the layers until the object map sees it again.
+    data = dict(np.load(path))
+    meta = json.loads(data["meta"].tobytes().decode("utf-8"))
+    meta["object_map"]["objects"][0].pop("footprint_xy_m")
+    data["meta"] = np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8)
+    np.savez(tmp_path / "damaged.npz", **data)
+    empty = ObjectMap(classes)
+    loaded = SemanticMap.load(tmp_path / "damaged.npz", object_map=empty)
+    assert len(empty) == 0
+    loaded.integrate_frame(wall_frame(0.0, 1.0, 10), observations=[])
+    assert [o.class_name for o in loaded.objects] == ["coffee_table"]
+    assert loaded.objects[0].object_id >= sm_mod.RESTORED_ID_OFFSET
+    for i in range(4):
+        loaded.integrate_frame(wall_frame(0.0, 1.1 + 0.1 * i, 11 + i), observations=[table_observation(3, 1.1 + 0.1 * i)])
+    assert len(loaded.objects) == 1 and loaded.objects[0].object_id < sm_mod.RESTORED_ID_OFFSET
 
 
 def test_object_map_classes_must_match() -> None:
