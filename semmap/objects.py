@@ -9,13 +9,15 @@ Every object fuses:
 
 * class probabilities: a Bayesian update per observation with the detector's score as the
   likelihood of the reported class and the rest spread evenly over the other classes;
-* existence (log-odds): raised by each observation; lowered by the class's ``miss_decay``
+* existence (log-odds): raised by each observation (up to just below confirmation while
+  the object was only seen beyond ``footprint_max_range_m``); lowered by the class's ``miss_decay``
   each frame the object should be visible (its centroid projects into the image, in range,
   not occluded by nearer depth) but no observation matched it; clamped below
   ``existence_max`` so that even a long-seen object fades once it is gone;
 * position: inverse-variance fusion of observed centroids (noise grows with range);
-* footprint: the convex hull of every observed hull (views from different sides complete
-  each other), reported as that hull or its minimum-area rectangle;
+* footprint: weighted 2 cm cells where views saw the object's points (views from different
+  sides complete each other; :mod:`semmap.object_evidence`), reported as the hull of the
+  well-supported cells or their least-perimeter rectangle;
 * height range: robust quantiles over recent observations (partial views cut the top).
 
 Objects below ``existence_remove_below`` are removed, and unconfirmed ones not seen again
@@ -57,6 +59,9 @@ _HISTORY = 30
 _MIN_CLASS_PROB = 1e-4
 #: Any-class merge: a new track over an object of another class merges at this IoU.
 _CROSS_CLASS_IOU = 0.6
+#: Views beyond ``footprint_max_range_m`` alone keep an object this far (log-odds) below
+#: confirmation.
+_UNCONFIRMED_MARGIN = 0.01
 #: Weight of a view farther than ``footprint_max_range_m`` (noisier depth).
 _FAR_WEIGHT = 0.3
 
@@ -179,6 +184,8 @@ class _State:
     #: Quality of the views the shape comes from: 2 x (not cut by the image border) +
     #: (within footprint_max_range_m); -1 before the first.
     shape_tier: int = -1
+    #: Seen at least once within ``footprint_max_range_m``: far views alone do not confirm.
+    seen_near: bool = False
     z_max_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
     z_min_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
     top_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
@@ -266,7 +273,7 @@ class ObjectMap:
                     position_m=np.asarray(d["position_map_m"], dtype=np.float64).reshape(3),
                     position_var_m2=float(d["position_std_m"]) ** 2, hull_xy_m=fp,
                     first_seen_s=float(d["first_seen_s"]), last_seen_s=float(d["last_seen_s"]),
-                    n_observations=int(d["n_observations"]), shape_tier=0,
+                    n_observations=int(d["n_observations"]), shape_tier=0, seen_near=True,
                 )
                 z0, z1 = float(d["z_min_m"]), float(d["z_max_m"])
                 top = d.get("top_height_m")
@@ -385,6 +392,7 @@ class ObjectMap:
         p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
         keep.class_probs = p / p.sum()
         keep.logodds = max(keep.logodds, drop.logodds)
+        keep.seen_near = keep.seen_near or drop.seen_near
         va, vb = keep.position_var_m2, drop.position_var_m2
         keep.position_m = (keep.position_m * vb + drop.position_m * va) / (va + vb)
         keep.position_var_m2 = max(va * vb / (va + vb), 1e-4)
@@ -473,7 +481,12 @@ class ObjectMap:
         p = s.class_probs * self._class_likelihood(o.class_name, o.score)
         p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
         s.class_probs = p / p.sum()
-        s.logodds = min(s.logodds + cfg.existence_hit_logodds, _logit(cfg.existence_max))
+        # Beyond footprint_max_range_m depth noise blurs an object into what stands behind it
+        # (a half-hidden whiteboard's box then shows the wall): such views raise existence,
+        # but only a nearer one confirms the object (else it stays tentative and times out).
+        s.seen_near = s.seen_near or o.range_m <= cfg.footprint_max_range_m
+        cap = _logit(cfg.existence_max) if s.seen_near else _logit(cfg.existence_confirm) - _UNCONFIRMED_MARGIN
+        s.logodds = min(s.logodds + cfg.existence_hit_logodds, max(s.logodds, cap))
         s.n_observations += 1
         s.last_seen_s = max(s.last_seen_s, o.stamp_s)
         s.first_seen_s = min(s.first_seen_s, o.stamp_s)
