@@ -173,7 +173,7 @@ def convex_footprint(xy_m: NDArray[np.floating], min_width_m: float = 0.0) -> ND
     if len(xy) >= 3:
         # OpenCV's monotone chain is an order of magnitude faster than Qhull on small sets;
         # with clockwise=False it returns counter-clockwise vertices for y-up coordinates.
-        origin = xy.min(axis=0)
+        origin = _min_xy(xy)
         hull = cv2.convexHull((xy - origin).astype(np.float32), clockwise=False, returnPoints=False)
         poly = xy[np.asarray(hull).reshape(-1)]
         if len(poly) >= 3:
@@ -183,12 +183,19 @@ def convex_footprint(xy_m: NDArray[np.floating], min_width_m: float = 0.0) -> ND
     return _thin_rectangle(xy, min_width_m)
 
 
+def _min_xy(xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(2,) per-coordinate minimum of (N, 2) points: two contiguous-ish reductions, where
+    ``min(axis=0)`` over (N, 2) (often a view into (N, 3) points) strides at four times the
+    cost."""
+    return np.array([xy[:, 0].min(), xy[:, 1].min()])
+
+
 def simplify_polygon(polygon_xy_m: NDArray[np.float64], tolerance_m: float) -> NDArray[np.float64]:
     """Douglas-Peucker simplification of a closed polygon (M, 2) to within ``tolerance_m``
     (fewer vertices make every later overlap test cheaper). Keeps at least a triangle."""
     if len(polygon_xy_m) <= 4:
         return polygon_xy_m
-    origin = polygon_xy_m.min(axis=0)
+    origin = _min_xy(polygon_xy_m)
     idx = cv2.approxPolyDP((polygon_xy_m - origin).astype(np.float32).reshape(-1, 1, 2),
                            float(tolerance_m), True)
     out = np.asarray(idx, dtype=np.float64).reshape(-1, 2) + origin
