@@ -198,7 +198,11 @@ def extract_band_scan(
     oy = dep * (R[1, 0] * xn[None, :] + R[1, 1] * yn[:, None] + R[1, 2])
     oz = dep * (R[2, 0] * xn[None, :] + R[2, 1] * yn[:, None] + R[2, 2])
     z = oz + np.float32(tz)
-    rng = np.hypot(ox, oy)  # (h, w) horizontal range of each point
+    # Horizontal range of each point, (h, w). sqrt(x^2 + y^2) in float32 is within one ulp
+    # of np.hypot (0.5 um at 5 m) at a sixth of its cost (hypot has no vectorised loop).
+    rng = ox * ox
+    rng += oy * oy
+    np.sqrt(rng, out=rng)
 
     # The part of each ray s in [0, 1] (sensor -> point) inside the band, as [s_lo, s_hi].
     z0, z1 = np.float32(band.z_min_m), np.float32(band.z_max_m)
