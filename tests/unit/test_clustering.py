@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from semmap import clustering
 from semmap.clustering import euclidean_clusters, largest_cluster, voxel_downsample
 
 
@@ -81,6 +82,18 @@ def test_dense_and_sparse_labelling_agree() -> None:
     rng = np.random.default_rng(7)
     blobs = np.concatenate([rng.normal(c, 0.03, (80, 3)) for c in ([0, 0, 0], [0.5, 0, 0], [0, 0.6, 0.2])])
     dense = euclidean_clusters(blobs, 0.05)
-    # One far point makes the bounding grid huge: the sparse path runs.
+    # One far point makes the bounding grid huge (the axis compression keeps it small).
     far = euclidean_clusters(np.concatenate([blobs, [[500.0, 500.0, 500.0]]]), 0.05)
     assert np.array_equal(dense, far[:-1])
+
+
+def test_sparse_fallback_gives_the_compiled_labels(monkeypatch) -> None:
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        pts = rng.uniform(0.0, rng.choice([0.3, 3.0]), (int(rng.integers(2, 300)), 3))
+        d = float(rng.uniform(0.03, 0.3))
+        compiled = euclidean_clusters(pts, d)
+        monkeypatch.setattr(clustering, "_DENSE_MAX_CELLS", 0)
+        sparse = euclidean_clusters(pts, d)
+        monkeypatch.undo()
+        assert np.array_equal(compiled, sparse)
