@@ -1,9 +1,10 @@
-"""Plane fitting by RANSAC (vectorised), floor estimation and the gravity-aligned map frame.
+"""Plane fitting by RANSAC, floor estimation and the gravity-aligned map frame.
 
 A plane is ``normal . p + offset_m = 0`` with a unit ``normal``; for horizontal planes the
 normal points up, so ``normal . p + offset_m`` is the signed height of ``p`` above the plane.
-RANSAC evaluates all its hypotheses at once as one (N, H) distance matrix: a few hundred
-hypotheses on a thousand points is a single numpy expression, no Python loop per hypothesis.
+The hypotheses are built and voted on in one numba-compiled call (:func:`_best_hypothesis`;
+compiled once and cached, see :mod:`semmap.clustering`): a hundred hypotheses on a few
+hundred points, where a numpy expression per step cost more in calls than in arithmetic.
 With an ``up`` direction the hypotheses are constrained near horizontal (tilt at most
 ``max_tilt_rad``), and the best exactly-horizontal plane (every point's height tried, by a
 window count on sorted heights) joins them, so a seat or table top wins even when most points
@@ -15,19 +16,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from semmap.errors import MapError
 from semmap.frames import Transform, invert, make_transform
 
-#: Upper bound on the size of one (N, H) distance block, to bound memory.
-_MAX_BLOCK = 2_000_000
-#: Points on which hypotheses are scored.
+#: Points on which hypotheses are scored (an evenly strided subset: clouds come in spatial
+#: order, voxel keys or image rows, so it spreads over the whole cloud; the winner is then
+#: re-scored on every point). The inlier ratio, not the count, decides, and a few hundred
+#: points estimate it well.
 _SCORE_POINTS = 256
-#: Column orders for a cross product: (a x b) = a[YZX] * b[ZXY] - a[ZXY] * b[YZX].
-_YZX = np.array([1, 2, 0])
-_ZXY = np.array([2, 0, 1])
 
 
 @dataclass(frozen=True)
@@ -80,6 +80,84 @@ def _refine(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
     return n, -float(n @ c)
 
 
+@numba.njit(cache=True)
+def _best_hypothesis(
+    P: NDArray[np.float64], idx: NDArray[np.int64], distance_m: float, u: NDArray[np.float64],
+    use_up: bool, min_cos: float, stride: int, out_normal: NDArray[np.float64],
+) -> tuple[bool, float]:
+    """The winning plane hypothesis of :func:`fit_plane`: ``(found, offset)``, its normal
+    written to ``out_normal`` (3,).
+
+    ``P`` (N, 3) points, ``idx`` (H, 3) the drawn triples. Each triple's plane (normal by
+    the cross product; degenerate triples rejected), with ``use_up`` oriented towards the
+    unit ``u`` and rejected when ``|n . u| < min_cos``, followed by the best exactly
+    horizontal plane (every point's height tried, support by a window sweep on the sorted
+    heights). The vote counts, in float32, the points of the strided subset ``P[::stride]``
+    within ``distance_m``; the first hypothesis with most votes wins. Everything but the
+    random draw, compiled: a hundred hypotheses on a few hundred points, where numpy's
+    per-call cost exceeded the arithmetic.
+    """
+    n_pts = P.shape[0]
+    n_hyp = idx.shape[0]
+    normals = np.empty((n_hyp + 1, 3))
+    offsets = np.empty(n_hyp + 1)
+    valid = np.zeros(n_hyp + 1, np.bool_)
+    for h in range(n_hyp):
+        i0, i1, i2 = idx[h, 0], idx[h, 1], idx[h, 2]
+        ax, ay, az = P[i1, 0] - P[i0, 0], P[i1, 1] - P[i0, 1], P[i1, 2] - P[i0, 2]
+        bx, by, bz = P[i2, 0] - P[i0, 0], P[i2, 1] - P[i0, 1], P[i2, 2] - P[i0, 2]
+        nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if norm <= 1e-12:
+            continue
+        nx, ny, nz = nx / norm, ny / norm, nz / norm
+        if use_up:
+            dot = nx * u[0] + ny * u[1] + nz * u[2]
+            if dot < 0:
+                nx, ny, nz = -nx, -ny, -nz
+            if abs(dot) < min_cos:
+                continue
+        normals[h, 0], normals[h, 1], normals[h, 2] = nx, ny, nz
+        offsets[h] = -(nx * P[i0, 0] + ny * P[i0, 1] + nz * P[i0, 2])
+        valid[h] = True
+    if use_up:
+        hs = np.empty(n_pts)
+        for j in range(n_pts):
+            hs[j] = P[j, 0] * u[0] + P[j, 1] * u[1] + P[j, 2] * u[2]
+        hs.sort()
+        best_support, h_best = -1, 0.0
+        lo_j, hi_j = 0, 0
+        for j in range(n_pts):
+            while hs[lo_j] < hs[j] - distance_m:
+                lo_j += 1
+            while hi_j < n_pts and hs[hi_j] <= hs[j] + distance_m:
+                hi_j += 1
+            if hi_j - lo_j > best_support:
+                best_support, h_best = hi_j - lo_j, hs[j]
+        normals[n_hyp, 0], normals[n_hyp, 1], normals[n_hyp, 2] = u[0], u[1], u[2]
+        q0, q1, q2 = h_best * u[0], h_best * u[1], h_best * u[2]  # the plane's point on the up axis
+        offsets[n_hyp] = -(u[0] * q0 + u[1] * q1 + u[2] * q2)
+        valid[n_hyp] = True
+    d32 = np.float32(distance_m)
+    best, best_count = -1, -1
+    for h in range(n_hyp + 1):
+        if not valid[h]:
+            continue
+        n0, n1, n2 = np.float32(normals[h, 0]), np.float32(normals[h, 1]), np.float32(normals[h, 2])
+        o = np.float32(offsets[h])
+        count = 0
+        for j in range(0, n_pts, stride):
+            dist = n0 * np.float32(P[j, 0]) + n1 * np.float32(P[j, 1]) + n2 * np.float32(P[j, 2]) + o
+            if abs(dist) <= d32:
+                count += 1
+        if count > best_count:
+            best, best_count = h, count
+    if best < 0:
+        return False, 0.0
+    out_normal[0], out_normal[1], out_normal[2] = normals[best, 0], normals[best, 1], normals[best, 2]
+    return True, offsets[best]
+
+
 def fit_plane(
     points_m: NDArray[np.floating],
     distance_m: float,
@@ -103,56 +181,19 @@ def fit_plane(
         return None
     rng = rng if rng is not None else np.random.default_rng(0)
     idx = rng.integers(0, n_pts, size=(iterations, 3))
-    tri = P.take(idx, axis=0)  # (H, 3 points, 3)
-    p0 = tri[:, 0]
-    a, b = tri[:, 1] - p0, tri[:, 2] - p0
-    # a x b without np.cross's axis juggling (its per-call cost exceeds the arithmetic here).
-    normals = a[:, _YZX] * b[:, _ZXY] - a[:, _ZXY] * b[:, _YZX]  # (H, 3)
-    norms = np.sqrt(np.einsum("hj,hj->h", normals, normals))
-    # Rejected hypotheses stay in place, masked out of the vote (cheaper than compacting
-    # every array; the winner is the same first maximum).
-    valid = norms > 1e-12
-    normals /= np.where(valid, norms, 1.0)[:, None]
     u: NDArray[np.float64] | None = None
     if up is not None:
         u = np.asarray(up, dtype=np.float64)
         u = u / np.linalg.norm(u)
-        dots = normals @ u
-        normals *= np.where(dots < 0, -1.0, 1.0)[:, None]
-        valid &= np.abs(dots) >= math.cos(max_tilt_rad) - 1e-12
-        # The best exactly-horizontal plane, found exhaustively: every point's height is a
-        # hypothesis and its support is a window count on the sorted heights.
-        hs = np.sort(P @ u)
-        support = np.searchsorted(hs, hs + distance_m, "right") - np.searchsorted(hs, hs - distance_m, "left")
-        h_best = float(hs[int(np.argmax(support))])
-        normals = np.concatenate([normals, u[None, :]])
-        p0 = np.concatenate([p0, (h_best * u)[None, :]])
-        valid = np.append(valid, True)
-    elif not valid.any():
+    # Hypotheses from the drawn triples, the tilt constraint, the exhaustive horizontal
+    # hypothesis and the vote: one compiled call (see _best_hypothesis).
+    n = np.empty(3)
+    found, off = _best_hypothesis(
+        P, idx, float(distance_m), u if u is not None else np.zeros(3), u is not None,
+        math.cos(max_tilt_rad) - 1e-12, -(-n_pts // _SCORE_POINTS), n,
+    )
+    if not found:
         return None
-    offsets = -np.einsum("hj,hj->h", normals, p0)  # (H,)
-    # Hypotheses are scored on a subset (the winner is re-scored on every point):
-    # the inlier ratio, not the count, decides, and a few hundred points estimate it well.
-    # Scoring in float32 (sub-micrometre error at room scale) halves the (H, n) block, which
-    # then stays below the allocator's mmap threshold for the usual few hundred hypotheses.
-    # An evenly strided subset: clouds come in spatial order (voxel keys, image rows), so it
-    # spreads over the whole cloud, and costs nothing to draw.
-    S = P if n_pts <= _SCORE_POINTS else P[:: -(-n_pts // _SCORE_POINTS)]
-    S32 = S.T.astype(np.float32)  # (3, n)
-    n32, o32 = normals.astype(np.float32), offsets.astype(np.float32)
-    counts = np.zeros(len(normals), np.float32)
-    step = max(1, _MAX_BLOCK // max(1, len(S)))
-    d32 = np.float32(distance_m)
-    ones = np.ones(len(S), np.float32)
-    for s in range(0, len(normals), step):
-        d = n32[s : s + step] @ S32  # (h, n)
-        d += o32[s : s + step, None]
-        # Inliers counted by a matrix-vector product with ones: exact for integers below
-        # 2**24 and a third of count_nonzero(axis=1)'s cost on these small blocks.
-        counts[s : s + step] = (np.abs(d, out=d) <= d32).astype(np.float32) @ ones
-    counts[~valid] = -1.0
-    best = int(np.argmax(counts))
-    n, off = normals[best], float(offsets[best])
     inliers = np.abs(P @ n + off) <= distance_m
     n_in = int(np.count_nonzero(inliers))
     if n_in < max(3, min_inliers):
