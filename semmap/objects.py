@@ -181,8 +181,8 @@ class _State:
     first_seen_s: float
     last_seen_s: float
     n_observations: int = 0
-    #: Quality of the views the shape comes from: 2 x (not cut by the image border) +
-    #: (within footprint_max_range_m); -1 before the first.
+    #: Quality of the views the shape comes from: 2 x (within footprint_max_range_m) +
+    #: (not cut by the image border); -1 before the first.
     shape_tier: int = -1
     #: Seen at least once within ``footprint_max_range_m``: far views alone do not confirm.
     seen_near: bool = False
@@ -506,10 +506,13 @@ class ObjectMap:
             s.position_m = s.position_m + w * (x - s.position_m)
             # Floor on the variance: the estimate keeps following a slowly drifting pose.
             s.position_var_m2 = max(s.position_var_m2 * r2 / (s.position_var_m2 + r2), 1e-4)
-        # Shape and height come from the best class of views seen so far: whole ones before
-        # ones cut by the image border, then near ones before far ones (depth noise grows
-        # with range). A better view resets what worse ones said.
-        tier = 2 * int(not o.at_image_edge) + int(o.range_m <= cfg.footprint_max_range_m)
+        # Shape and height come from the best class of views seen so far: near ones before
+        # far ones, then whole ones before ones cut by the image border. A better view resets
+        # what worse ones said. Near first: beyond footprint_max_range_m depth noise (growing
+        # with range squared) joins neighbours into one blob, and a hull from such a view made
+        # near views of the neighbour associate to this object; a cut near view is partial
+        # but where it sees the object it is right.
+        tier = int(not o.at_image_edge) + 2 * int(o.range_m <= cfg.footprint_max_range_m)
         if tier > s.shape_tier:
             s.shape_tier = tier
             s.hull_xy_m = fp
