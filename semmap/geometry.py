@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from semmap.clustering import euclidean_clusters, voxel_downsample
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform, invert
-from semmap.pointcloud import backproject_rows, valid_depth_mask
+from semmap.pointcloud import valid_depth_mask, window_points_map
 from semmap.ransac import Plane, fit_plane
 from semmap.types import CameraIntrinsics, Track
 
@@ -512,26 +512,16 @@ def observe_object(
     if area == 0:
         return None
     stride = max(1, int(math.ceil(math.sqrt(area / params.max_box_points))))
-    pts_cam, uv = backproject_rows(depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride)
-    n_all = pts_cam.shape[1]
-    if n_all < params.min_cluster_points:
-        return None
+    # One (8, N) table - map x, y, z, height above the floor, z-depth, floor clearance,
+    # pixel u, v; one row each - of the box's points above the floor cut, so each filter
+    # below is a single gather instead of one per quantity.
     R = T_map_camera[:3, :3]
     t = T_map_camera[:3, 3]
-    # One (8, N) table - map x, y, z, height above the floor, z-depth, floor clearance,
-    # pixel u, v; one row each - so each filter below is a single gather instead of one per
-    # quantity, and per-quantity arithmetic runs on contiguous rows.
-    tab = np.empty((8, n_all))
-    np.matmul(R, pts_cam, out=tab[:3])
-    tab[:3] += t[:, None]
-    np.matmul(floor.normal_array, tab[:3], out=tab[_H])
-    tab[_H] += floor.offset_m
-    tab[_RANGE] = pts_cam[2]
-    np.multiply(np.square(tab[_RANGE]), params.floor_clearance_per_m2, out=tab[_CLEAR])
-    tab[_CLEAR] += params.floor_clearance_m
-    tab[_U:] = uv
-    tab = tab[:, tab[_H] > tab[_CLEAR]]
-    if tab.shape[1] < params.min_cluster_points:
+    tab, n_all = window_points_map(
+        depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride, T_map_camera,
+        floor.normal_array, floor.offset_m, params.floor_clearance_m, params.floor_clearance_per_m2,
+    )
+    if n_all < params.min_cluster_points or tab.shape[1] < params.min_cluster_points:
         return None
     # A wall behind the object (found around the box) goes, with everything beyond it: an
     # object a few cm in front of a wall would otherwise cluster together with it.

@@ -147,7 +147,10 @@ def _best_hypothesis(
         o = np.float32(offsets[h])
         count = 0
         for j in range(0, n_pts, stride):
-            dist = n0 * np.float32(P[j, 0]) + n1 * np.float32(P[j, 1]) + n2 * np.float32(P[j, 2]) + o
+            # float32 arithmetic as numpy's float32 block had it (numba computes float32
+            # products and sums in float64; each step is rounded back).
+            dist = np.float32(np.float32(n0 * np.float32(P[j, 0])) + np.float32(n1 * np.float32(P[j, 1])))
+            dist = np.float32(np.float32(dist + np.float32(n2 * np.float32(P[j, 2]))) + o)
             if abs(dist) <= d32:
                 count += 1
         if count > best_count:
