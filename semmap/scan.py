@@ -7,15 +7,21 @@ where a ray enters the band to where it leaves it, ends, or meets the column's n
 in-band obstacle. Rays with invalid depth (0, NaN, out of range) say nothing: a RealSense
 returns 0 for "no echo", which must not clear the map.
 
-Everything is vectorised over the (subsampled) image: the map-frame direction of every pixel
-is ``R @ [(u - cx)/fx, (v - cy)/fy, 1]``, so a point is ``t + depth * direction`` without
-building an (N, 3) cloud first.
+The map-frame direction of every pixel is ``R @ [(u - cx)/fx, (v - cy)/fy, 1]``, so a point
+is ``t + depth * direction`` without building an (N, 3) cloud first. Sampling, validity and
+the dropout repairs run vectorised on the (subsampled) image; the per-ray work (nearest
+in-band points, their support, the cluster mean, band entry and exit) runs in one
+numba-compiled pass per column (:func:`_scan_columns`, cached as in
+:mod:`semmap.clustering`), in the float32 arithmetic the vectorised version used.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Any
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -192,98 +198,168 @@ def extract_band_scan(
     yn = (vs - np.float32(intrinsics.cy_px)) / np.float32(intrinsics.fy_px)  # (h,)
     R = T[:3, :3].astype(np.float32)
     tx, ty, tz = (float(v) for v in T[:3, 3])
-
-    # Map-frame offset of each pixel's point from the sensor: depth * R @ [xn, yn, 1].
-    ox = dep * (R[0, 0] * xn[None, :] + R[0, 1] * yn[:, None] + R[0, 2])
-    oy = dep * (R[1, 0] * xn[None, :] + R[1, 1] * yn[:, None] + R[1, 2])
-    oz = dep * (R[2, 0] * xn[None, :] + R[2, 1] * yn[:, None] + R[2, 2])
-    z = oz + np.float32(tz)
-    # Horizontal range of each point, (h, w). sqrt(x^2 + y^2) in float32 is within one ulp
-    # of np.hypot (0.5 um at 5 m) at a sixth of its cost (hypot has no vectorised loop).
-    rng = ox * ox
-    rng += oy * oy
-    np.sqrt(rng, out=rng)
-
-    # The part of each ray s in [0, 1] (sensor -> point) inside the band, as [s_lo, s_hi].
-    z0, z1 = np.float32(band.z_min_m), np.float32(band.z_max_m)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sa = (z0 - np.float32(tz)) / oz
-        sb = (z1 - np.float32(tz)) / oz
-    flat = np.abs(oz) < 1e-6
-    sensor_in_band = bool(band.z_min_m <= tz <= band.z_max_m)
-    s_lo = np.where(flat, 0.0 if sensor_in_band else 1.0, np.clip(np.minimum(sa, sb), 0.0, 1.0))
-    s_hi = np.where(flat, 1.0 if sensor_in_band else 0.0, np.clip(np.maximum(sa, sb), 0.0, 1.0))
-    crosses = valid & (s_hi > s_lo)
-    in_band = valid & (z >= z0) & (z <= z1)
-
-    cols = np.arange(dep.shape[1])
-    hit_rng = np.where(in_band, rng, np.float32(np.inf))
-    # The nearest and second-nearest in-band point of each column (no full sort needed).
-    first_row = np.argmin(hit_rng, axis=0)  # (w,)
-    r1 = hit_rng[first_row, cols]
-    rest = hit_rng.copy()
-    rest[first_row, cols] = np.inf
-    second_row = np.argmin(rest, axis=0)
-    r2 = rest[second_row, cols]
-    # A column's nearest in-band point counts if enough points back it up within the range
-    # tolerance: the column's next point or the neighbouring columns' nearest. A thin table
-    # edge spans columns; a flying pixel is alone.
-    with np.errstate(invalid="ignore"):
-        tol1 = np.float32(range_tolerance_m) + np.float32(range_tolerance_per_m2) * r1**2
-        left = np.concatenate([[np.inf], r1[:-1]]).astype(np.float32)
-        right = np.concatenate([r1[1:], [np.inf]]).astype(np.float32)
-        support = sum((np.abs(o - r1) <= tol1).astype(np.int32) for o in (r2, left, right))
-    confirmed = support >= max(0, int(min_hit_points) - 1)
-    r_near = np.where(confirmed, r1, r2)
-    is_hit = np.isfinite(r_near)
-    hit_row = np.where(confirmed, first_row, second_row)
-    # The nearest minimum of noisy ranges is biased towards the sensor (by ~2 sigma for a
-    # wall seen by 50 pixels), so the obstacle is placed at the mean of the nearest cluster,
-    # [r_near, r_near + cluster_tol * tol] (1 tol measured best on simulated rooms: wider
-    # windows reach through thin parts to what lies behind them).
-    r_near_f = np.where(is_hit, r_near, np.float32(0.0))
-    tol = np.float32(range_tolerance_m) + np.float32(range_tolerance_per_m2) * r_near_f**2
-    in_cluster = (hit_rng >= r_near_f[None, :]) & (hit_rng <= (r_near_f + cluster_tol * tol)[None, :])
-    n_in = np.maximum(in_cluster.sum(axis=0), 1)
-    r_hit = np.where(is_hit, np.where(in_cluster, hit_rng, 0.0).sum(axis=0) / n_in, np.float32(0.0))
-
-    # Far end of the free part: near the obstacle, or the nearest in-band point when there is
-    # no confirmed obstacle (an unconfirmed point still blocks), else the farthest band exit
-    # of the column's rays.
-    blocked = np.isfinite(r1)
-    far_rng = np.where(crosses, s_hi * rng, np.float32(-1.0))
-    exit_row = np.argmax(far_rng, axis=0)
-    far_row = np.where(blocked, first_row, exit_row)
-    # The cluster pixel nearest the mean range gives the obstacle's bearing (columns of a
-    # tilted camera are not vertical planes).
-    med_row = np.argmin(np.abs(hit_rng - r_hit[None, :]), axis=0)
-    # Free space reaches to one noise sigma (tol / 3) before the obstacle, not just to the
-    # nearest (most negatively noisy) point, so cells in front of a surface that a noisy
-    # hit once marked get cleared again by later scans.
-    r_first = rng[first_row, cols]
-    r_free = np.where(is_hit, np.maximum(r1, r_hit - free_sigma * tol / 3.0), r1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        far_s = np.where(blocked, r_free / r_first, s_hi[far_row, cols])
-    far_s = np.nan_to_num(far_s, nan=0.0, posinf=0.0)
-    near_rng = np.where(crosses, s_lo * rng, np.float32(np.inf))
-    near_row = np.argmin(near_rng, axis=0)
-    near_s = s_lo[near_row, cols]
-    if sensor_in_band:
-        near_s = np.zeros_like(near_s)
-
-    ray_valid = np.any(crosses, axis=0) | blocked
+    w = dep.shape[1]
+    near, far, hit_xy = np.empty((w, 2)), np.empty((w, 2)), np.empty((w, 2))
+    is_hit, ray_valid, hit_z = np.empty(w, np.bool_), np.empty(w, np.bool_), np.empty(w)
+    _scan_columns(
+        dep, valid, xn, yn, R, tx, ty, tz, float(band.z_min_m), float(band.z_max_m),
+        bool(band.z_min_m <= tz <= band.z_max_m), max(0, int(min_hit_points) - 1),
+        float(range_tolerance_m), float(range_tolerance_per_m2), float(cluster_tol), float(free_sigma),
+        near, far, hit_xy, is_hit, ray_valid, hit_z,
+    )
     origin = np.array([tx, ty])
-    dxy_far = np.stack([ox[far_row, cols], oy[far_row, cols]], axis=1).astype(np.float64)
-    far = origin + dxy_far * far_s[:, None]
-    # That pixel's bearing at the cluster's mean range (the more precise estimate).
-    dxy_med = np.stack([ox[med_row, cols], oy[med_row, cols]], axis=1).astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(is_hit, r_hit / rng[med_row, cols], 1.0)
-    hit_xy = origin + dxy_med * np.nan_to_num(scale, nan=1.0, posinf=1.0)[:, None]
-    near = origin + np.stack([ox[near_row, cols], oy[near_row, cols]], axis=1) * near_s[:, None]
-    hit_z = np.where(is_hit, z[hit_row, cols], np.nan)
     return BandScan(
         stamp_s=stamp_s, band=band, origin_xy_m=origin,
-        near_xy_m=near.astype(np.float64), far_xy_m=far.astype(np.float64),
-        hit_xy_m=hit_xy.astype(np.float64), is_hit=is_hit & ray_valid, valid=ray_valid, hit_z_m=hit_z.astype(np.float64),
+        near_xy_m=near, far_xy_m=far, hit_xy_m=hit_xy, is_hit=is_hit & ray_valid, valid=ray_valid,
+        hit_z_m=hit_z,
     )
+
+
+@numba.njit(cache=True)
+def _f32(x: Any) -> Any:
+    """Round to float32: numba evaluates float32 arithmetic in float64, and rounding each
+    result back gives exactly the float32 operation (double rounding is innocuous for
+    +, -, *, / and sqrt from 53 to 24 bits)."""
+    return np.float32(x)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _scan_columns(
+    dep: NDArray[np.float32], valid: NDArray[np.bool_], xn: NDArray[np.float32], yn: NDArray[np.float32],
+    R: NDArray[np.float32], tx: float, ty: float, tz: float, band_lo: float, band_hi: float,
+    sensor_in_band: bool, min_support: int, range_tol: float, range_tol_per_m2: float,
+    cluster_tol: float, free_sigma: float,
+    near: NDArray[np.float64], far: NDArray[np.float64], hit_xy: NDArray[np.float64],
+    is_hit: NDArray[np.bool_], ray_valid: NDArray[np.bool_], hit_z: NDArray[np.float64],
+) -> None:
+    """The per-ray part of :func:`extract_band_scan` for the (h, w) filled depth ``dep``, one
+    ray per column, compiled (numba, cached as in :mod:`semmap.clustering`): the same numbers
+    as the vectorised numpy it replaces (float32 where that was float32, float64 where numpy
+    promoted), in one pass per column instead of ~60 whole-image array operations.
+
+    Writes, per column: ``near``/``far`` (w, 2) ends of the free part, ``hit_xy`` (w, 2),
+    ``is_hit``, ``ray_valid`` (w,) and ``hit_z`` (w,) (NaN without a hit).
+    """
+    h, w = dep.shape
+    f = _f32
+    inf32 = np.float32(np.inf)
+    z0, z1, tz32 = f(band_lo), f(band_hi), f(tz)
+    flat_eps = np.float32(1e-6)
+    rt, rtp = f(range_tol), f(range_tol_per_m2)
+    # Per pixel of one column: offsets from the sensor, height, range, band crossing.
+    ox = np.empty(h, np.float32)
+    oy = np.empty(h, np.float32)
+    zc = np.empty(h, np.float32)
+    rng = np.empty(h, np.float32)
+    s_lo = np.empty(h, np.float32)
+    s_hi = np.empty(h, np.float32)
+    crosses = np.empty(h, np.bool_)
+    hit_rng = np.empty((w, h), np.float32)
+    first_row = np.zeros(w, np.int64)
+    second_row = np.zeros(w, np.int64)
+    r1 = np.empty(w, np.float32)
+    r2 = np.empty(w, np.float32)
+    # Pass 1: each column's nearest and second-nearest in-band point (their ranges are
+    # needed by the neighbouring columns).
+    for c in range(w):
+        a0, a1, a2 = f(R[0, 0] * xn[c]), f(R[1, 0] * xn[c]), f(R[2, 0] * xn[c])
+        best, best_r = 0, inf32
+        for r in range(h):
+            d = dep[r, c]
+            oz = f(d * f(f(a2 + f(R[2, 1] * yn[r])) + R[2, 2]))
+            z = f(oz + tz32)
+            if valid[r, c] and z >= z0 and z <= z1:
+                x = f(d * f(f(a0 + f(R[0, 1] * yn[r])) + R[0, 2]))
+                y = f(d * f(f(a1 + f(R[1, 1] * yn[r])) + R[1, 2]))
+                v = f(math.sqrt(f(f(x * x) + f(y * y))))
+            else:
+                v = inf32
+            hit_rng[c, r] = v
+            if v < best_r:
+                best, best_r = r, v
+        first_row[c], r1[c] = best, best_r
+        best2, best2_r = 0, inf32
+        for r in range(h):
+            v = inf32 if r == best else hit_rng[c, r]
+            if v < best2_r:
+                best2, best2_r = r, v
+        second_row[c], r2[c] = best2, best2_r
+    for c in range(w):
+        a0, a1, a2 = f(R[0, 0] * xn[c]), f(R[1, 0] * xn[c]), f(R[2, 0] * xn[c])
+        any_cross = False
+        for r in range(h):
+            d = dep[r, c]
+            x = f(d * f(f(a0 + f(R[0, 1] * yn[r])) + R[0, 2]))
+            y = f(d * f(f(a1 + f(R[1, 1] * yn[r])) + R[1, 2]))
+            oz = f(d * f(f(a2 + f(R[2, 1] * yn[r])) + R[2, 2]))
+            ox[r], oy[r], zc[r] = x, y, f(oz + tz32)
+            rng[r] = f(math.sqrt(f(f(x * x) + f(y * y))))
+            if abs(oz) < flat_eps:
+                lo, hi = (0.0, 1.0) if sensor_in_band else (1.0, 0.0)
+            else:
+                sa = f(f(z0 - tz32) / oz)
+                sb = f(f(z1 - tz32) / oz)
+                lo = min(max(min(sa, sb), 0.0), 1.0)
+                hi = min(max(max(sa, sb), 0.0), 1.0)
+            s_lo[r], s_hi[r] = lo, hi
+            crosses[r] = valid[r, c] and s_hi[r] > s_lo[r]
+            any_cross = any_cross or crosses[r]
+        # A column's nearest in-band point counts if enough points back it up within the
+        # range tolerance: its next point or the neighbouring columns' nearest.
+        q1 = r1[c]
+        tol1 = f(rt + f(rtp * f(q1 * q1)))
+        left = r1[c - 1] if c > 0 else inf32
+        right = r1[c + 1] if c + 1 < w else inf32
+        support = 0
+        for o in (r2[c], left, right):
+            if abs(f(o - q1)) <= tol1:
+                support += 1
+        confirmed = support >= min_support
+        r_near = q1 if confirmed else r2[c]
+        hit = math.isfinite(r_near)
+        hit_row = first_row[c] if confirmed else second_row[c]
+        r_near_f = r_near if hit else np.float32(0.0)
+        tol = f(rt + f(rtp * f(r_near_f * r_near_f)))
+        upper = f(r_near_f + f(cluster_tol * tol))
+        acc = np.float32(0.0)
+        n_in = 0
+        for r in range(h):
+            v = hit_rng[c, r]
+            if v >= r_near_f and v <= upper:
+                acc = f(acc + v)
+                n_in += 1
+        # (numpy divided the float32 sum by an int64 count: float64 from here on.)
+        r_hit = np.float64(acc) / max(n_in, 1) if hit else 0.0
+        blocked = math.isfinite(q1)
+        exit_row, exit_v = 0, np.float32(-np.inf)
+        near_row, near_v = 0, inf32
+        med_row, med_v = 0, np.inf
+        for r in range(h):
+            fr = f(s_hi[r] * rng[r]) if crosses[r] else np.float32(-1.0)
+            if fr > exit_v:
+                exit_row, exit_v = r, fr
+            nr = f(s_lo[r] * rng[r]) if crosses[r] else inf32
+            if nr < near_v:
+                near_row, near_v = r, nr
+            md = abs(np.float64(hit_rng[c, r]) - r_hit)
+            if md < med_v:
+                med_row, med_v = r, md
+        far_row = first_row[c] if blocked else exit_row
+        r_first = rng[first_row[c]]
+        r_free = max(np.float64(q1), r_hit - f(f(free_sigma * tol) / 3.0)) if hit else np.float64(q1)
+        far_s = r_free / r_first if blocked else np.float64(s_hi[far_row])
+        if not math.isfinite(far_s):
+            far_s = 0.0
+        near_s = np.float32(0.0) if sensor_in_band else s_lo[near_row]
+        ray_valid[c] = any_cross or blocked
+        far[c, 0] = tx + np.float64(ox[far_row]) * far_s
+        far[c, 1] = ty + np.float64(oy[far_row]) * far_s
+        scale = r_hit / np.float64(rng[med_row]) if hit else 1.0
+        if not math.isfinite(scale):
+            scale = 1.0
+        hit_xy[c, 0] = tx + np.float64(ox[med_row]) * scale
+        hit_xy[c, 1] = ty + np.float64(oy[med_row]) * scale
+        near[c, 0] = tx + np.float64(f(ox[near_row] * near_s))
+        near[c, 1] = ty + np.float64(f(oy[near_row] * near_s))
+        is_hit[c] = hit
+        hit_z[c] = np.float64(zc[hit_row]) if hit else np.nan
