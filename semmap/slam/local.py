@@ -2,7 +2,9 @@
 
 For each scan (gravity-aligned body frame, :class:`~semmap.slam.scan2d.LevelScan`):
 
-1. predict the pose from the previous estimate and the autopilot's odometry increment;
+1. predict the pose from the previous estimate and the autopilot's odometry increment,
+   corrected for the odometry's systematic errors (heading drift rate, distance scale)
+   as :class:`OdometryCalibration` measures them against the matched poses;
 2. match the voxel-filtered hits against the matching submap: a real-time correlative
    search over a small window, then the least-squares refinement with the prediction as prior;
 3. check the fit: too few hits or a low score -> the odometry prediction is used; otherwise
@@ -22,6 +24,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -117,6 +120,94 @@ def constrained_translation(
     return pred + d - u * float(u @ d), u.copy()
 
 
+class OdometryCalibration:
+    """The odometry's systematic errors, measured against the matched poses of the last
+    ``window_s`` seconds: its heading drift rate (rad/s; an indoor EKF's yaw from an
+    uncorrected gyro bias) and its distance scale (an optical-flow scale error).
+
+    Why: the prediction composes the previous estimate with the odometry increment, and the
+    least-squares refinement keeps a prior at that prediction. Where the scans constrain the
+    yaw weakly (a narrow camera, one wall in view) every scan gives back only part of the
+    increment's bias, and a drift of ``w`` rad/s leaves the estimate lagging by a multiple of
+    ``w * dt``: degrees, which the vehicle flies into metres. Both errors are smooth, so they
+    are measured over seconds of matched scans and taken out of the increments.
+
+    The heading drift is the slope of (odometry yaw - matched yaw) over time (least squares
+    over the window: the matched yaw's per-scan noise averages out); the scale the
+    least-squares ratio of the odometry's body-frame displacements to the matched ones over
+    pairs of scans ``pair_s`` apart (long enough that the match noise does not shrink it).
+    Only fully matched scans (status OK) are used. Estimates are clamped to
+    ``max_drift_rad_s`` and ``max_scale_error`` and stay at zero until the window holds
+    ``min_span_s`` seconds of matches; the scale is kept while the pairs' RMS displacement is
+    below ``min_displacement_m`` (hovering).
+    """
+
+    def __init__(self, window_s: float, min_span_s: float = 3.0, pair_s: float = 1.0,
+                 max_drift_rad_s: float = math.radians(5.0), max_scale_error: float = 0.2,
+                 min_displacement_m: float = 0.1) -> None:
+        self.window_s = float(window_s)
+        self.min_displacement_m = float(min_displacement_m)
+        self.min_span_s = float(min_span_s)
+        self.pair_s = float(pair_s)
+        self.max_drift_rad_s = float(max_drift_rad_s)
+        self.max_scale_error = float(max_scale_error)
+        #: (stamp_s, odometry pose (3,), matched local pose (3,)) of recent OK scans.
+        self._samples: deque[tuple[float, Pose2, Pose2]] = deque()
+        #: Odometry yaw rate minus the true one (rad/s).
+        self.heading_drift_rad_s = 0.0
+        #: Odometry distance / true distance - 1.
+        self.scale_error = 0.0
+
+    def correct(self, increment: Pose2, dt_s: float) -> Pose2:
+        """An odometry body-frame increment (3,) over ``dt_s`` with the estimated errors
+        removed."""
+        out = np.asarray(increment, dtype=np.float64).copy()
+        out[:2] /= 1.0 + self.scale_error
+        out[2] -= self.heading_drift_rad_s * max(0.0, float(dt_s))
+        return out
+
+    def add(self, stamp_s: float, odometry_pose: Pose2, matched_pose: Pose2) -> None:
+        """Record a fully matched scan and update the estimates."""
+        if self.window_s <= 0.0:
+            return
+        s = self._samples
+        s.append((float(stamp_s), np.asarray(odometry_pose, np.float64).copy(),
+                  np.asarray(matched_pose, np.float64).copy()))
+        while s and s[0][0] < stamp_s - self.window_s:
+            s.popleft()
+        if len(s) < 10 or s[-1][0] - s[0][0] < self.min_span_s:
+            return
+        t = np.array([x[0] for x in s])
+        odo = np.array([x[1] for x in s])
+        mat = np.array([x[2] for x in s])
+        diff = np.unwrap(odo[:, 2] - mat[:, 2])
+        tc = t - t.mean()
+        rate = float((tc @ (diff - diff.mean())) / max(float(tc @ tc), 1e-12))
+        self.heading_drift_rad_s = float(np.clip(rate, -self.max_drift_rad_s, self.max_drift_rad_s))
+        # Pairs (k, j(k)) about pair_s apart: body-frame displacement in each frame.
+        j = np.searchsorted(t, t + self.pair_s)
+        k = np.flatnonzero(j < len(t))
+        if len(k) < 5:
+            return
+        j = j[k]
+        d_odo = _body_displacements(odo[k], odo[j])
+        d_mat = _body_displacements(mat[k], mat[j])
+        den = float(np.sum(d_mat * d_mat))
+        if den < len(k) * self.min_displacement_m**2:
+            # Hovering or turning on the spot: the displacements are noise, keep the estimate.
+            return
+        ratio = float(np.sum(d_odo * d_mat)) / den
+        self.scale_error = float(np.clip(ratio - 1.0, -self.max_scale_error, self.max_scale_error))
+
+
+def _body_displacements(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(K, 2) displacement from each pose of (K, 3) ``a`` to the matching pose of ``b``, in
+    ``a``'s frame."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1)
+
+
 class LocalSlam:
     """The local trajectory builder. Not thread-safe: one caller (the live pipeline)."""
 
@@ -127,31 +218,37 @@ class LocalSlam:
         self._last_pose: Pose2 | None = None
         self._last_odom: Pose2 | None = None
         self._last_insert: tuple[float, Pose2] | None = None
+        self._last_stamp_s: float | None = None
+        self.calibration = OdometryCalibration(cfg.odometry_calibration_window_s)
 
     @property
     def last_pose(self) -> Pose2 | None:
         """The latest local pose (3,), None before the first scan."""
         return None if self._last_pose is None else self._last_pose.copy()
 
-    def predict(self, odometry_pose: Pose2) -> Pose2:
-        """The local pose the odometry increment since the previous scan predicts."""
+    def predict(self, odometry_pose: Pose2, stamp_s: float | None = None) -> Pose2:
+        """The local pose the odometry increment since the previous scan predicts (with the
+        measured heading drift and scale taken out; ``stamp_s`` gives the drift's interval)."""
         if self._last_pose is None or self._last_odom is None:
             return np.asarray(odometry_pose, dtype=np.float64).copy()
-        return compose(self._last_pose, relative(self._last_odom, odometry_pose))
+        dt = 0.0 if stamp_s is None or self._last_stamp_s is None else float(stamp_s) - self._last_stamp_s
+        return compose(self._last_pose, self.calibration.correct(relative(self._last_odom, odometry_pose), dt))
 
     def add_scan(self, stamp_s: float, scan: LevelScan, odometry_pose: Pose2) -> LocalResult:
         """Estimate the pose of one scan; ``odometry_pose`` (3,) is the autopilot's (x, y, yaw)
         in its own (drifting) frame at the scan's time."""
         cfg = self.cfg
         odom = np.asarray(odometry_pose, dtype=np.float64).reshape(3)
-        pred = self.predict(odom)
+        pred = self.predict(odom, stamp_s)
         pts = voxel_filter_xy(scan.hits_xy_m, cfg.voxel_filter_m)
         target = self.submaps.matching_submap
         status, reason, score, min_info = SlamStatus.OK, "", 0.0, 0.0
         pose = pred
         if target is not None and target.n_scans > 0:
             pose, status, reason, score, min_info = self._match(target, pts, pred)
-        self._last_pose, self._last_odom = pose, odom
+        self._last_pose, self._last_odom, self._last_stamp_s = pose, odom, float(stamp_s)
+        if status is SlamStatus.OK and target is not None and target.n_scans > 0:
+            self.calibration.add(stamp_s, odom, pose)
         inserted = False
         into: tuple[int, ...] = ()
         finished: tuple[int, ...] = ()

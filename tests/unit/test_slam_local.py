@@ -11,7 +11,8 @@ from _slam_world import cast, room_world, yaw_sweep_path
 from companion.sim.odometry import OdometryDriftModel
 from semmap.config import SlamConfig
 from semmap.slam import LevelScan, Slam2D, SlamStatus
-from semmap.slam.pose2d import matrix4, pose2
+from semmap.slam.local import OdometryCalibration
+from semmap.slam.pose2d import matrix4, pose2, relative
 
 
 def _fly(slam: Slam2D, n: int, drift: OdometryDriftModel, rate_hz: float = 5.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -82,3 +83,46 @@ def test_drift_model_drifts_as_specified() -> None:
     path = np.sum(np.linalg.norm(np.diff(np.array(out)[:, :2], axis=0), axis=1))
     assert path == pytest.approx(1.03, rel=1e-6)
     np.testing.assert_allclose(out[0], [0.0, 0.0, 0.0])
+
+
+def test_odometry_calibration_measures_heading_drift_and_scale() -> None:
+    # The odometry of a vehicle sweeping its yaw along a path drifts 2 deg/s and reads
+    # distances 3 % long; the matched poses are the truth with 1 cm / 0.3 deg of noise.
+    drift = OdometryDriftModel(scale_error=0.03, heading_drift_deg_s=2.0, seed=2)
+    cal = OdometryCalibration(window_s=10.0)
+    rng = np.random.default_rng(4)
+    rate_hz = 10.0
+    truth = yaw_sweep_path(150, rate_hz)
+    odom = []
+    for i, p in enumerate(truth):
+        o = drift.update(i / rate_hz, p)
+        odom.append(o)
+        matched = p + np.array([*rng.normal(0.0, 0.01, 2), rng.normal(0.0, math.radians(0.3))])
+        cal.add(i / rate_hz, o, matched)
+    assert math.degrees(cal.heading_drift_rad_s) == pytest.approx(2.0, abs=0.15)
+    assert cal.scale_error == pytest.approx(0.03, abs=0.01)
+    # The corrected increments of the last 3 s carry neither error: their yaw adds up to the
+    # true turn (the raw ones to 6 deg more) and their lengths to the true distance.
+    k = range(len(truth) - 30, len(truth))
+    raw = [relative(odom[i - 1], odom[i]) for i in k]
+    true_inc = [relative(truth[i - 1], truth[i]) for i in k]
+    fixed = [cal.correct(r, 1.0 / rate_hz) for r in raw]
+
+    def turn_error_deg(incs: list[np.ndarray]) -> float:
+        return math.degrees(sum(float(a[2] - b[2]) for a, b in zip(incs, true_inc, strict=True)))
+
+    def length_ratio(incs: list[np.ndarray]) -> float:
+        return sum(float(np.hypot(*a[:2])) for a in incs) / sum(float(np.hypot(*b[:2])) for b in true_inc)
+
+    assert turn_error_deg(raw) == pytest.approx(6.0, abs=1.5)
+    assert abs(turn_error_deg(fixed)) < 1.0
+    assert length_ratio(raw) == pytest.approx(1.03, abs=0.005)
+    assert length_ratio(fixed) == pytest.approx(1.0, abs=0.01)
+
+
+def test_odometry_calibration_waits_for_enough_matches() -> None:
+    cal = OdometryCalibration(window_s=10.0, min_span_s=3.0)
+    for i in range(20):  # 1.9 s of matches whose odometry turns 10 deg/s faster
+        t = i / 10.0
+        cal.add(t, np.array([0.1 * t, 0.0, math.radians(10.0) * t]), np.array([0.1 * t, 0.0, 0.0]))
+    assert cal.heading_drift_rad_s == 0.0 and cal.scale_error == 0.0
