@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import cv2
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -407,6 +408,81 @@ def _noise_tolerance_m(range_m: NDArray[np.float64], params: GeometryConfig) -> 
     return params.ransac_distance_m + 0.5 * params.floor_clearance_per_m2 * range_m**2
 
 
+@numba.njit(cache=True)
+def _fit_wall(
+    xy: NDArray[np.float64], tol: NDArray[np.float64], remaining: NDArray[np.bool_], pairs: NDArray[np.int64],
+    min_support: float, cam_x: float, cam_y: float, max_behind: float, min_facing: float,
+    out_inliers: NDArray[np.bool_],
+) -> tuple[bool, float, float, float]:
+    """One wall search of :func:`background_walls`, compiled (numba, cached as in
+    :mod:`semmap.clustering`): ``(found, normal x, normal y, offset)``, the wall's points
+    written to ``out_inliers`` (N,).
+
+    ``xy`` (N, 2) above-floor ring points with tolerances ``tol`` (N,); ``pairs`` (Hy, 2) the
+    drawn point pairs, each a line hypothesis (pairs closer than 5 cm are none). The line with
+    most ``remaining`` points within their tolerance wins (first of equals) and is refitted by
+    least squares (the major axis of its points' 2x2 scatter), its normal turned towards the
+    camera. It is a wall with at least ``min_support`` remaining points on it, at most
+    ``max_behind`` of all points beyond it, and seen at least ``min_facing`` (cosine) face-on.
+    """
+    n_all = xy.shape[0]
+    best, best_support = -1, -1
+    best_nx, best_ny, best_off = 0.0, 0.0, 0.0
+    for hyp in range(pairs.shape[0]):
+        i, j = pairs[hyp, 0], pairs[hyp, 1]
+        dx, dy = xy[j, 0] - xy[i, 0], xy[j, 1] - xy[i, 1]
+        length = math.hypot(dx, dy)
+        if length <= 0.05:
+            continue
+        nx, ny = -dy / length, dx / length
+        off = -(nx * xy[i, 0] + ny * xy[i, 1])
+        support = 0
+        for k in range(n_all):
+            if remaining[k] and abs(xy[k, 0] * nx + xy[k, 1] * ny + off) <= tol[k]:
+                support += 1
+        if support > best_support:
+            best, best_support = hyp, support
+            best_nx, best_ny, best_off = nx, ny, off
+    if best < 0 or best_support < min_support:
+        return False, 0.0, 0.0, 0.0
+    # Least squares on the winner's points: centroid, then the scatter's major axis.
+    sx, sy, m = 0.0, 0.0, 0
+    for k in range(n_all):
+        if remaining[k] and abs(xy[k, 0] * best_nx + xy[k, 1] * best_ny + best_off) <= tol[k]:
+            sx += xy[k, 0]
+            sy += xy[k, 1]
+            m += 1
+    cx, cy = sx / m, sy / m
+    sxx, sxy, syy = 0.0, 0.0, 0.0
+    for k in range(n_all):
+        if remaining[k] and abs(xy[k, 0] * best_nx + xy[k, 1] * best_ny + best_off) <= tol[k]:
+            ex, ey = xy[k, 0] - cx, xy[k, 1] - cy
+            sxx += ex * ex
+            sxy += ex * ey
+            syy += ey * ey
+    theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+    nx, ny = -math.sin(theta), math.cos(theta)
+    off = -(nx * cx + ny * cy)
+    if nx * cam_x + ny * cam_y + off < 0:
+        nx, ny, off = -nx, -ny, -off
+    n_in, n_behind = 0, 0
+    for k in range(n_all):
+        dist = xy[k, 0] * nx + xy[k, 1] * ny + off
+        out_inliers[k] = remaining[k] and abs(dist) <= tol[k]
+        if out_inliers[k]:
+            n_in += 1
+        if dist < -tol[k]:
+            n_behind += 1
+    if n_in < min_support:
+        return False, 0.0, 0.0, 0.0
+    if n_behind / n_all > max_behind:
+        return False, 0.0, 0.0, 0.0  # things stand behind it: a piece of furniture, not the room's boundary
+    vx, vy = cx - cam_x, cy - cam_y
+    if abs(nx * vx + ny * vy) < min_facing * math.hypot(vx, vy):
+        return False, 0.0, 0.0, 0.0  # seen edge-on: a strip of something along the line of sight
+    return True, nx, ny, off
+
+
 def background_walls(
     ring_map_m: NDArray[np.float64], ring_range_m: NDArray[np.float64], camera_xy_m: NDArray[np.float64],
     floor: Plane, params: GeometryConfig, rng: np.random.Generator,
@@ -430,49 +506,18 @@ def background_walls(
     tol = _noise_tolerance_m(ring_range_m[above], params)  # (N,)
     remaining = np.ones(n_all, dtype=bool)
     walls: list[tuple[NDArray[np.float64], float]] = []
+    cam_x, cam_y = float(camera_xy_m[0]), float(camera_xy_m[1])
     for share in (_WALL_MIN_SHARE, _WALL_MIN_SHARE / 2):
         idx = np.nonzero(remaining)[0]
         if len(idx) < _WALL_MIN_POINTS:
             break
         pairs = idx[rng.integers(0, len(idx), size=(_WALL_HYPOTHESES, 2))]
-        d = xy[pairs[:, 1]] - xy[pairs[:, 0]]  # (Hy, 2)
-        length = np.hypot(d[:, 0], d[:, 1])
-        ok = length > 0.05
-        if not ok.any():
+        inl = np.empty(n_all, dtype=bool)
+        found, nx, ny, off = _fit_wall(xy, tol, remaining, pairs, max(_WALL_MIN_POINTS, share * n_all),
+                                       cam_x, cam_y, _WALL_MAX_BEHIND, _WALL_MIN_FACING, inl)
+        if not found:
             break
-        normals = np.stack([-d[ok, 1], d[ok, 0]], axis=1) / length[ok, None]
-        offsets = -np.einsum("hj,hj->h", normals, xy[pairs[ok, 0]])
-        dist = xy @ normals.T + offsets  # (N, Hy)
-        # Points a wall already took support no hypothesis (their tolerance is negative);
-        # the support counts come from a matrix-vector product (exact, and cheaper than
-        # a boolean sum down the columns).
-        tol_left = np.where(remaining, tol, -1.0)
-        within = np.abs(dist) <= tol_left[:, None]
-        support = np.ones(n_all, np.float32) @ within.astype(np.float32)
-        best = int(np.argmax(support))
-        if support[best] < max(_WALL_MIN_POINTS, share * n_all):
-            break
-        # Least-squares line through the inliers: its direction is the major axis of their
-        # 2x2 scatter, in closed form (an SVD of the (K, 2) residuals costs ten times more).
-        q = xy[within[:, best]]
-        c = q.mean(axis=0)
-        dq = q - c
-        sxx, sxy, syy = float(dq[:, 0] @ dq[:, 0]), float(dq[:, 0] @ dq[:, 1]), float(dq[:, 1] @ dq[:, 1])
-        theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
-        n = np.array([-math.sin(theta), math.cos(theta)])
-        off = -float(n @ c)
-        if float(n @ camera_xy_m) + off < 0:
-            n, off = -n, -off
-        dist_ref = xy @ n + off
-        inl = (np.abs(dist_ref) <= tol) & remaining
-        if inl.sum() < max(_WALL_MIN_POINTS, share * n_all):
-            break
-        if float(np.mean(dist_ref < -tol)) > _WALL_MAX_BEHIND:
-            break  # things stand behind it: a piece of furniture, not the room's boundary
-        view = c - camera_xy_m
-        if abs(float(n @ view)) < _WALL_MIN_FACING * float(np.hypot(view[0], view[1])):
-            break  # seen edge-on: a strip of something along the line of sight, not a wall
-        walls.append((n, off))
+        walls.append((np.array([nx, ny]), off))
         remaining &= ~inl
     return walls
 
