@@ -1,7 +1,8 @@
 """Mapping accuracy on seeded simulated rooms: object geometry and the object map.
 
 Run: ``python bench/mapping.py`` (20 rooms) or ``--quick`` (3 short rooms, under a minute on
-an idle machine). Each room is flown once around a loop at 1.0-1.5 m, the camera looking at
+an idle machine); ``--seed 2000`` for other rooms than the usual 1000-1019, ``--tail N`` to
+list the N objects with the largest position error. Each room is flown once around a loop at 1.0-1.5 m, the camera looking at
 the room's centre and tilted down; every frame is rendered (RGB-D and instance masks), boxes
 come from the masks (an oracle detector with box noise, misses, class confusions and false
 positives), track ids come from instance ids (a new id whenever an object was out of view for
@@ -30,7 +31,7 @@ import math
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -159,6 +160,9 @@ class RoomResult:
     n_in_room: int
     n_spurious: int
     geometry_ms: list[float]
+    #: Per scored object, in the order of the lists above: (ground-truth id, class, frames
+    #: seen whole, map object id, map object's observations), for ``--tail``.
+    labels: list[tuple[int, str, int, int, int]] = field(default_factory=list)
 
 
 def raster_iou(a_xy_m: np.ndarray, b_xy_m: np.ndarray, resolution_m: float = 0.01) -> float:
@@ -252,6 +256,7 @@ def score_room(room: Room, omap: ObjectMap, seen: dict[int, int], min_frames: in
         res.centroid_err_m.append(float(np.linalg.norm(np.array(m.position_map_m[:2]) - g.centroid_m()[:2])))
         res.height_err_m.append(abs(m.z_max_m - g.height_m))
         res.class_ok.append(m.class_name == g.class_name)
+        res.labels.append((g.object_id, g.class_name, seen.get(g.object_id, 0), m.object_id, m.n_observations))
     res.n_matched = len(used_g)
     # Spurious: confirmed objects that overlap no real object at all (real but unscored
     # objects, e.g. seen in fewer frames, are not spurious).
@@ -283,6 +288,17 @@ def objects_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]
             f"{_pct(r.position_err_m, 95) * 100:>10.1f} {_pct(r.iou, 50):>7.2f} "
             f"{_pct(r.height_err_m, 95) * 100:>8.1f} {100 * np.mean(r.class_ok) if r.class_ok else float('nan'):>7.0f}"
         )
+    if args.tail:
+        # The worst objects by position error: where to look first (seed, objects, ids).
+        rows = [(e, seed, r, i) for seed, r in zip(range(args.seed, args.seed + n_rooms), results, strict=True)
+                for i, e in enumerate(r.position_err_m)]
+        lines.append("")
+        lines.append(f"worst {args.tail} by position error: seed, gt id, class, frames seen whole, map id, "
+                     "observations, position cm, IoU, height cm")
+        for e, seed, r, i in sorted(rows, key=lambda t: -t[0])[: args.tail]:
+            gid, cname, n_seen, mid, n_obs = r.labels[i]
+            lines.append(f"  {seed:>4} gt {gid:>2} {cname:<16} seen {n_seen:>3} map {mid:>3} obs {n_obs:>3} "
+                         f"pos {100 * e:5.1f} IoU {r.iou[i]:.2f} h {100 * r.height_err_m[i]:4.1f}")
     pos = [e for r in results for e in r.position_err_m]
     cen = [e for r in results for e in r.centroid_err_m]
     iou = [e for r in results for e in r.iou]
@@ -339,6 +355,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rooms", type=int, default=20)
     ap.add_argument("--frames", type=int, default=80, help="frames per room")
     ap.add_argument("--seed", type=int, default=1000)
+    ap.add_argument("--tail", type=int, default=0, metavar="N",
+                    help="objects section: also list the N objects with the largest position error")
     ap.add_argument("--section", choices=sorted(SECTIONS), action="append",
                     help="run only these sections (default: all)")
     args = ap.parse_args(argv)
