@@ -244,15 +244,24 @@ class LocalSlam:
         target = self.submaps.matching_submap
         status, reason, score, min_info = SlamStatus.OK, "", 0.0, 0.0
         pose = pred
-        if target is not None and target.n_scans > 0:
+        # A submap that holds no obstacle yet (its scans came from the ground, where the
+        # camera sees nothing in the band) has nothing to match against: this scan is used
+        # at the prediction and inserted whatever the motion filter says, so the next one
+        # can be matched; waiting for the filter (up to motion_filter_time_s) would leave
+        # the scans in between on the drifting odometry and anchor the map to it.
+        starved = target is not None and target.n_hits < cfg.min_scan_points
+        if target is not None and target.n_scans > 0 and not starved:
             pose, status, reason, score, min_info = self._match(target, pts, pred)
+        elif starved:
+            status = SlamStatus.DEGENERATE_FALLBACK_ODOMETRY
+            reason = f"submap {target.index} holds {target.n_hits} hits: nothing to match against yet"
         self._last_pose, self._last_odom, self._last_stamp_s = pose, odom, float(stamp_s)
         if status is SlamStatus.OK and target is not None and target.n_scans > 0:
             self.calibration.add(stamp_s, odom, pose)
         inserted = False
         into: tuple[int, ...] = ()
         finished: tuple[int, ...] = ()
-        if self._motion_filter_passes(stamp_s, pose):
+        if (starved and len(pts) >= cfg.min_scan_points) or self._motion_filter_passes(stamp_s, pose):
             ins, fin = self.submaps.insert(scan, pose)
             into = tuple(s.index for s in ins)
             finished = tuple(s.index for s in fin)

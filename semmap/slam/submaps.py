@@ -37,6 +37,8 @@ class Submap:
         spec = GridSpec.covering(-half, -half, half, half, resolution_m)
         self.grid = ProbabilityGrid(spec, tables, grow_chunk_m=2.0)
         self.n_scans = 0
+        #: Obstacle points inserted so far (what a scan can be matched against).
+        self.n_hits = 0
         self.finished = False
         self.blur_sigma_cells = float(blur_sigma_cells)
         self._hits: list[np.ndarray] = []  # (K, 2) hits of each scan, submap frame
@@ -53,6 +55,7 @@ class Submap:
                               rays.is_hit, rays.valid)
         self._hits.append(rays.hits_xy_m)
         self.n_scans += 1
+        self.n_hits += len(rays.hits_xy_m)
         self._match = None
 
     def finish(self) -> None:

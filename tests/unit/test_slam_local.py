@@ -75,6 +75,27 @@ def test_too_few_points_is_reported_not_diverged() -> None:
     np.testing.assert_allclose(est.pose_map, [3.05, 2.0, 0.0], atol=1e-9)
 
 
+def test_a_first_scan_without_obstacles_does_not_leave_the_next_ones_on_the_odometry() -> None:
+    # On the ground the camera sees nothing in the band: the first scan has no hits. Then
+    # the vehicle is in the air, still, while the odometry's heading drifts 2 deg/s. The
+    # next scan must go into the empty submap at once; waiting for the motion filter (2 s)
+    # left every scan in between on the drifting odometry and the map rotated with it.
+    truth = pose2(3.0, 2.0, 0.3)
+    rng = np.random.default_rng(2)
+    with Slam2D(SlamConfig(), background=False) as slam:
+        slam.add_scan(0.0, LevelScan.from_points(np.zeros((0, 2))), truth)
+        statuses = []
+        for i in range(1, 29):
+            t = i / 15.0
+            odom = truth + np.array([0.0, 0.0, math.radians(2.0) * t])
+            est = slam.add_scan(t, LevelScan.from_points(cast(room_world(), truth, noise_m=0.005, rng=rng)), odom)
+            statuses.append(est.status)
+    assert statuses[0] is SlamStatus.DEGENERATE_FALLBACK_ODOMETRY  # used at the prediction
+    assert all(s is SlamStatus.OK for s in statuses[1:])
+    assert abs(math.degrees(est.pose_map[2] - truth[2])) < 0.5  # the odometry is 3.7 deg off
+    assert np.linalg.norm(est.pose_map[:2] - truth[:2]) < 0.02
+
+
 def test_drift_model_drifts_as_specified() -> None:
     m = OdometryDriftModel(scale_error=0.03, heading_drift_deg_s=0.5, noise_m_per_sqrt_m=0.0,
                            noise_rad_per_sqrt_rad=0.0)
