@@ -252,7 +252,7 @@ class LocalSlam:
         starved = target is not None and target.n_hits < cfg.min_scan_points
         if target is not None and target.n_scans > 0 and not starved:
             pose, status, reason, score, min_info = self._match(target, pts, pred)
-        elif starved:
+        elif starved and target is not None:
             status = SlamStatus.DEGENERATE_FALLBACK_ODOMETRY
             reason = f"submap {target.index} holds {target.n_hits} hits: nothing to match against yet"
         self._last_pose, self._last_odom, self._last_stamp_s = pose, odom, float(stamp_s)
