@@ -375,31 +375,21 @@ def _quantile_lower(values: NDArray[np.float64], q: float) -> float:
     return float(np.partition(values, k)[k])
 
 
-def _ring_points(
-    depth_m: NDArray[np.floating], intrinsics: CameraIntrinsics, xyxy_px: tuple[float, float, float, float],
-    depth_range_m: tuple[float, float],
-) -> NDArray[np.float32]:
-    """Camera-frame points (N, 3) of a sampled ring of pixels just outside a box (clipped to
-    the image): what surrounds the object, for finding the wall behind it."""
+def _ring_windows(
+    xyxy_px: tuple[float, float, float, float], width_px: int, height_px: int,
+) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]]:
+    """The ring of pixels just outside a box, for finding the wall behind the object: its
+    outer window (u0, v0, u1, v1), clipped to the image, and the hole in it (the box grown by
+    the gap), both half-open, the hole on the ring's sample grid (``_RING_STRIDE_PX``)."""
     u0, v0, u1, v1 = xyxy_px
-    g, w = _RING_GAP_PX, _RING_GAP_PX + _RING_WIDTH_PX
-    H, W = np.asarray(depth_m).shape
+    g, w, s = _RING_GAP_PX, _RING_GAP_PX + _RING_WIDTH_PX, _RING_STRIDE_PX
     ou0, ov0 = max(0, int(u0) - w), max(0, int(v0) - w)
-    ou1, ov1 = min(W, int(math.ceil(u1)) + w), min(H, int(math.ceil(v1)) + w)
-    if ou1 <= ou0 or ov1 <= ov0:
-        return np.zeros((0, 3), np.float32)
-    s = _RING_STRIDE_PX
-    sub = np.asarray(depth_m)[ov0:ov1:s, ou0:ou1:s]
-    ok = valid_depth_mask(sub, depth_range_m[0], depth_range_m[1])
-    # The box grown by the gap is not ring: clear its samples (one sub-image, not four strips).
+    ou1, ov1 = min(width_px, int(math.ceil(u1)) + w), min(height_px, int(math.ceil(v1)) + w)
+    # First and last-but-one sample index inside the grown box, per axis.
     r0, r1 = -(-(int(v0) - g - ov0) // s), -(-(int(math.ceil(v1)) + g - ov0) // s)
     c0, c1 = -(-(int(u0) - g - ou0) // s), -(-(int(math.ceil(u1)) + g - ou0) // s)
-    ok[max(0, r0):max(0, r1), max(0, c0):max(0, c1)] = False
-    vv, uu = np.nonzero(ok)
-    z = sub[vv, uu].astype(np.float32)
-    xn = ((np.arange(ou0, ou1, s) - intrinsics.cx_px) / intrinsics.fx_px).astype(np.float32)
-    yn = ((np.arange(ov0, ov1, s) - intrinsics.cy_px) / intrinsics.fy_px).astype(np.float32)
-    return np.stack([xn[uu] * z, yn[vv] * z, z], axis=1)
+    hole = (ou0 + s * max(0, c0), ov0 + s * max(0, r0), ou0 + s * max(0, c1), ov0 + s * max(0, r1))
+    return (ou0, ov0, ou1, ov1), hole
 
 
 def _noise_tolerance_m(range_m: NDArray[np.float64], params: GeometryConfig) -> NDArray[np.float64]:
@@ -484,26 +474,23 @@ def _fit_wall(
 
 
 def background_walls(
-    ring_map_m: NDArray[np.float64], ring_range_m: NDArray[np.float64], camera_xy_m: NDArray[np.float64],
-    floor: Plane, params: GeometryConfig, rng: np.random.Generator,
+    ring_xy_m: NDArray[np.float64], ring_range_m: NDArray[np.float64], camera_xy_m: NDArray[np.float64],
+    params: GeometryConfig, rng: np.random.Generator,
 ) -> list[tuple[NDArray[np.float64], float]]:
     """Vertical planes (walls) behind an object, from the points around its box.
 
-    ``ring_map_m``: (N, 3) map-frame points of the pixels around the box, ``ring_range_m`` (N,)
-    their camera z-depths, ``camera_xy_m`` (2,). A wall is a vertical plane (a line in the map
-    plane) holding a large share of the ring's above-floor points with almost none beyond it:
-    the room's boundary, which nothing stands behind. Returns up to two walls (a corner) as
-    ``(normal_xy (2,), offset_m)`` with the normal towards the camera, so ``normal . xy +
-    offset`` is the distance in front of the wall.
+    ``ring_xy_m``: (N, 2) map-plane positions of the pixels around the box that lie above
+    the floor cut, ``ring_range_m`` (N,) their camera z-depths, ``camera_xy_m`` (2,). A wall
+    is a vertical plane (a line in the map plane) holding a large share of those points with
+    almost none beyond it: the room's boundary, which nothing stands behind. Returns up to
+    two walls (a corner) as ``(normal_xy (2,), offset_m)`` with the normal towards the
+    camera, so ``normal . xy + offset`` is the distance in front of the wall.
     """
-    h = floor.signed_distance_m(ring_map_m)
-    clear = params.floor_clearance_m + params.floor_clearance_per_m2 * ring_range_m**2
-    above = h > clear
-    xy = ring_map_m[above, :2]  # (N, 2)
+    xy = np.ascontiguousarray(ring_xy_m, dtype=np.float64).reshape(-1, 2)
     n_all = len(xy)
     if n_all < _WALL_MIN_POINTS:
         return []
-    tol = _noise_tolerance_m(ring_range_m[above], params)  # (N,)
+    tol = _noise_tolerance_m(np.asarray(ring_range_m, dtype=np.float64), params)  # (N,)
     remaining = np.ones(n_all, dtype=bool)
     walls: list[tuple[NDArray[np.float64], float]] = []
     cam_x, cam_y = float(camera_xy_m[0]), float(camera_xy_m[1])
@@ -560,7 +547,6 @@ def observe_object(
     # One (8, N) table - map x, y, z, height above the floor, z-depth, floor clearance,
     # pixel u, v; one row each - of the box's points above the floor cut, so each filter
     # below is a single gather instead of one per quantity.
-    R = T_map_camera[:3, :3]
     t = T_map_camera[:3, 3]
     tab, n_all = window_points_map(
         depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride, T_map_camera,
@@ -571,11 +557,18 @@ def observe_object(
     # A wall behind the object (found around the box) goes, with everything beyond it: an
     # object a few cm in front of a wall would otherwise cluster together with it.
     rng = rng if rng is not None else np.random.default_rng(0)
-    ring_cam = (_ring_points(depth_m, intrinsics, track.xyxy_px, depth_range_m) if remove_walls
-                else np.zeros((0, 3), np.float32))
-    if len(ring_cam) >= _WALL_MIN_POINTS:
-        ring = ring_cam.astype(np.float64) @ R.T + t
-        walls = background_walls(ring, ring_cam[:, 2].astype(np.float64), t[:2], floor, params, rng)
+    n_ring = 0
+    if remove_walls:
+        # The ring's valid pixels (n_ring) and, as a table like the box's, those above the
+        # floor cut: what the wall is fitted on.
+        outer, hole = _ring_windows(track.xyxy_px, W, H)
+        ring_tab, n_ring = window_points_map(
+            depth_m, intrinsics, depth_range_m[0], depth_range_m[1], outer, _RING_STRIDE_PX, T_map_camera,
+            floor.normal_array, floor.offset_m, params.floor_clearance_m, params.floor_clearance_per_m2,
+            hole_px=hole,
+        )
+    if n_ring >= _WALL_MIN_POINTS:
+        walls = background_walls(ring_tab[:2].T, ring_tab[_RANGE], t[:2], params, rng)
         if walls:
             tol = _noise_tolerance_m(tab[_RANGE], params)
             front = np.ones(tab.shape[1], dtype=bool)

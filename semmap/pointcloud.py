@@ -98,9 +98,12 @@ def window_points_map(
     plane_offset_m: float,
     clearance_m: float,
     clearance_per_m2: float,
+    hole_px: tuple[int, int, int, int] | None = None,
 ) -> tuple[NDArray[np.float64], int]:
     """The valid pixels of a window (as :func:`backproject_rows` samples them) in the map
     frame, keeping those higher above a plane than a range-dependent clearance.
+    ``hole_px`` = (u0, v0, u1, v1), half-open: samples inside it are skipped (a ring
+    around a box).
 
     A point is kept when its height ``plane_normal . p + plane_offset_m`` exceeds
     ``clearance_m + clearance_per_m2 * z**2`` (``z`` its camera z-depth): the floor cut of
@@ -125,8 +128,9 @@ def window_points_map(
     if u1 <= u0 or v1 <= v0:
         return np.zeros((8, 0)), 0
     T = np.asarray(T_map_camera, dtype=np.float64)
+    hu0, hv0, hu1, hv1 = hole_px if hole_px is not None else (0, 0, 0, 0)
     return _window_table(
-        d, u0, v0, u1, v1, int(stride_px), float(min_m), float(max_m),
+        d, u0, v0, u1, v1, int(hu0), int(hv0), int(hu1), int(hv1), int(stride_px), float(min_m), float(max_m),
         float(intrinsics.cx_px), float(intrinsics.cy_px), float(intrinsics.fx_px), float(intrinsics.fy_px),
         np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]),
         np.asarray(plane_normal, dtype=np.float64), float(plane_offset_m), float(clearance_m), float(clearance_per_m2),
@@ -143,7 +147,8 @@ def _valid_depth(z: float | np.floating[Any], min_m: float, max_m: float) -> boo
 
 @numba.njit(cache=True)
 def _window_table(
-    d: NDArray[np.floating], u0: int, v0: int, u1: int, v1: int, stride: int, min_m: float, max_m: float,
+    d: NDArray[np.floating], u0: int, v0: int, u1: int, v1: int, hu0: int, hv0: int, hu1: int, hv1: int,
+    stride: int, min_m: float, max_m: float,
     cx: float, cy: float, fx: float, fy: float, R: NDArray[np.float64], t: NDArray[np.float64],
     nrm: NDArray[np.float64], off: float, clear_m: float, clear_per_m2: float,
 ) -> tuple[NDArray[np.float64], int]:
@@ -157,7 +162,9 @@ def _window_table(
         yn = np.float32((v - cy) / fy)
         for u in range(u0, u1, stride):
             z = np.float32(d[v, u])
-            if _valid_depth(z, min_m, max_m):
+            if hv0 <= v < hv1 and hu0 <= u < hu1:
+                pass  # in the hole
+            elif _valid_depth(z, min_m, max_m):
                 n_valid += 1
                 xn = np.float32((u - cx) / fx)
                 x, y, zz = np.float64(np.float32(xn * z)), np.float64(np.float32(yn * z)), np.float64(z)

@@ -53,3 +53,15 @@ def test_backproject_rows_is_backproject_transposed() -> None:
     np.testing.assert_array_equal(pts, rows.T)
     np.testing.assert_array_equal(uv, uv_rows.T)
     assert window_points_map(d, K, 0.3, 6.0, (50, 50, 50, 90), 1, np.eye(4), np.array([0, 0, 1.0]), 0.0, 0.0, 0.0)[1] == 0
+
+
+def test_window_table_skips_the_hole() -> None:
+    d = _depth(np.random.default_rng(5), np.float32)
+    up, off = np.array([0.0, 0.0, 1.0]), 0.0
+    full, n_full = window_points_map(d, K, 0.3, 6.0, (10, 10, 200, 150), 4, np.eye(4), up, off, -1e9, 0.0)
+    ring, n_ring = window_points_map(d, K, 0.3, 6.0, (10, 10, 200, 150), 4, np.eye(4), up, off, -1e9, 0.0,
+                                     hole_px=(50, 42, 130, 90))
+    u, v = full[6], full[7]
+    outside = ~((u >= 50) & (u < 130) & (v >= 42) & (v < 90))
+    np.testing.assert_array_equal(ring, full[:, outside])
+    assert n_ring == int(outside.sum()) < n_full
