@@ -18,7 +18,12 @@ depth noise) with 4 to 10 visible objects; boxes are the objects' mask boxes.
   the object and prefer the nearest cluster spanning the box, which Open3D's steps do not
   express). Remaining differences: voxel grid anchoring (Open3D
   anchors voxels at the cloud's minimum, we at the map origin) and DBSCAN on downsampled
-  points versus voxel connectivity.
+  points versus voxel connectivity. The second dominates: voxel connectivity links points
+  up to 2*sqrt(3) times the distance apart, so an object and the wall or neighbour 6-15 cm
+  behind it can be one cluster where DBSCAN keeps them apart, and the "largest cluster"
+  is then another thing (the metre-scale differences). Measured on the quick frames: 70 %
+  of centroids within 2 cm with our clustering, 91 % with exact single linkage at the same
+  distance (a k-d tree, five times slower), the rest from the voxel anchoring.
 """
 
 from __future__ import annotations
