@@ -500,7 +500,7 @@ def background_walls(
             break
         pairs = idx[rng.integers(0, len(idx), size=(_WALL_HYPOTHESES, 2))]
         inl = np.empty(n_all, dtype=bool)
-        found, nx, ny, off = _fit_wall(xy, tol, remaining, pairs, max(_WALL_MIN_POINTS, share * n_all),
+        found, nx, ny, off = _fit_wall(xy, tol, remaining, pairs, float(max(_WALL_MIN_POINTS, share * n_all)),
                                        cam_x, cam_y, _WALL_MAX_BEHIND, _WALL_MIN_FACING, inl)
         if not found:
             break
