@@ -75,10 +75,11 @@ def test_slam_keeps_the_pose_while_the_odometry_drifts(tmp_path: Path) -> None:
     assert s["waypoints_reached"] >= 2, s["legs"]
     assert len(samples) > 100
     errs = np.array([e for _, e, _ in samples])
-    print("DBG", np.percentile(errs, 95), errs.max(), result.report.localization)
     odo = np.array([o for _, _, o in samples])
     # The drifting odometry wanders off (about 1 m); the live SLAM pose stays within a bound
-    # (this 160 px camera at the demo's speed; bench/slam.py measures the accuracy).
+    # (this 160 px camera at the demo's speed; bench/slam.py measures the accuracy). Measured
+    # p95 over six runs: 0.073-0.147 m (it was 0.16-0.22 m while the scans after the first,
+    # obstacle-free one taken on the ground followed the odometry for two seconds).
     assert odo.max() > 0.5
     assert float(np.percentile(errs, 95)) < 0.15, errs.max()
     assert float(errs.max()) < 0.25
