@@ -50,6 +50,7 @@ from companion.sources.base import FrameSource
 from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import MapError, PerceptionError
 from semmap.grid import GridSpec
+from semmap.kernels import warm_up
 from semmap.objects import ObjectMap
 from semmap.semantic_map import SemanticMap
 from semmap.types import Frame
@@ -172,6 +173,9 @@ def _child_main(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
 async def _child(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
     cfg = spec.cfg
     parent = os.getppid()
+    # Compile (or load from numba's cache) the per-frame kernels before reporting ready, so
+    # the first real frame does not stall for seconds while the vehicle waits for a map.
+    log.info("map-update kernels ready in %.2f s", await asyncio.to_thread(warm_up))
     restored = restore_map(cfg, checkpoint_path(cfg))
     smap = restored if restored is not None else new_semantic_map(cfg)
     source = _TimedSource(spec.source)
