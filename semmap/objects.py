@@ -103,6 +103,9 @@ def _consistent(a_xy_m: NDArray[np.float64], b_xy_m: NDArray[np.float64]) -> boo
 _EDGE_VARIANCE_FACTOR = 9.0
 #: A same-class footprint mostly inside an object's is a partial view of it.
 _CONTAINED = 0.6
+#: An unassociated observation whose top plane is within this (metres) of a mapped object's
+#: top, reaching no higher, and lying mostly inside its footprint shows that object's surface.
+_SAME_SURFACE_M = 0.04
 
 
 @dataclass(frozen=True, eq=False)
@@ -314,19 +317,26 @@ class ObjectMap:
                     f"known classes: {self.class_names}"
                 )
         used: set[int] = set()
+        shown: set[int] = set()  # objects whose surface another track's box showed
         assigned: dict[int, int] = {}
         order = sorted(range(len(obs)), key=lambda i: -obs[i].score)
         for i in order:
             oid = self._associate(obs[i], used)
             if oid is None:
+                owner = self._surface_owner(obs[i])
+                if owner is not None:
+                    # Not fused (its class and track belong to something else) and no new object.
+                    assigned[i] = owner
+                    shown.add(owner)
+                    continue
                 oid = self._create(obs[i])
             else:
                 self._fuse(self._objects[oid], obs[i])
             used.add(oid)
             assigned[i] = oid
             self._track_to_object[obs[i].track_id] = oid
-        merged = self._merge_duplicates(used, {assigned[i] for i in range(len(obs))})
-        self._negative_evidence(used, view)
+        merged = self._merge_duplicates(used, used)
+        self._negative_evidence(used | shown, view)
         self._prune(stamp_s)
         return [merged.get(assigned[i], assigned[i]) for i in range(len(obs))]
 
@@ -445,6 +455,41 @@ class ObjectMap:
             if ok and (best is None or (score, -dist) > (best[0], best[1])):
                 best = (score, -dist, cand)
         return None if best is None else best[2]
+
+    def _surface_owner(self, o: ObjectObservation) -> int | None:
+        """The object whose surface an unassociated observation shows, or None.
+
+        A detector box of an object half-hidden behind another (a chair behind a coffee
+        table) often holds mostly the nearer object's points, and a detector may name one
+        object twice under two classes in one frame: such an observation's top plane is the
+        mapped object's top, it reaches no higher, and it lies inside the object's footprint.
+        It would become a phantom (a second, thinner object over the first, or the
+        nearer object again where the hidden one's track had been) that narrows passages.
+        A real object inside another's footprint (a chair tucked under a desk) has a top of
+        its own (its seat) and reaches higher (its backrest).
+        """
+        if o.top_height_m is None:
+            return None
+        fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
+        area = polygon_area_m2(fp)
+        if area <= 0.0:
+            return None
+        best: tuple[float, int] | None = None
+        for cand in self._nearby(fp.min(axis=0), fp.max(axis=0), o.centroid_xy_m):
+            s = self._objects[cand]
+            if not s.seen_near or not s.top_hist or not s.z_max_hist:
+                continue
+            if abs(o.top_height_m - _quantile(s.top_hist, 0.5)) > _SAME_SURFACE_M:
+                continue
+            if o.z_max_m > _quantile(s.z_max_hist, 0.8) + _SAME_SURFACE_M:
+                continue
+            inside = polygon_area_m2(convex_intersection(self._evidence_footprint(s), fp)) / area
+            if inside >= _CONTAINED and (best is None or inside > best[0]):
+                best = (inside, cand)
+        if best is not None:
+            log.debug("track %d (%s) shows the surface of object %d: not a new object", o.track_id,
+                      o.class_name, best[1])
+        return None if best is None else best[1]
 
     def _class_likelihood(self, class_name: str, score: float) -> NDArray[np.float64]:
         k = len(self.class_names)

@@ -161,3 +161,39 @@ def test_load_rejects_a_dump_of_other_classes() -> None:
     with pytest.raises(MapError, match="saved object #0"):
         ObjectMap(default_classes()).load_dict({"classes": [c.name for c in default_classes()],
                                                  "objects": [{"object_id": 1}]})
+
+
+def _rect_obs(track: int, cls: str, x0: float, y0: float, x1: float, y1: float, z: tuple[float, float],
+              top: float | None, stamp: float) -> ObjectObservation:
+    fp = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    gx, gy = np.meshgrid(np.arange(x0 + 0.01, x1, 0.02), np.arange(y0 + 0.01, y1, 0.02))
+    pts = np.column_stack([gx.ravel(), gy.ravel()])
+    return ObjectObservation(track, cls, 0.8, stamp, ((x0 + x1) / 2, (y0 + y1) / 2, 0.3), fp, z[0], z[1], 500, 100,
+                             2.0, top_height_m=top, points_xy_m=pts)
+
+
+def test_a_box_showing_another_objects_surface_is_not_a_new_object() -> None:
+    # Safety bench room 1037: a chair half-hidden behind a coffee table; the chair's box held
+    # the table's points (top 0.43 m, z 0.21-0.44 m), and became a "chair" over the table that
+    # closed the passage beside it. Also the table's own second track (its box on the table
+    # in front) in the same frame as the table's own detection.
+    m = ObjectMap(default_classes())
+    for t in range(4):
+        m.update([_rect_obs(1, "coffee_table", 3.0, 0.0, 4.0, 0.6, (0.0, 0.44), 0.43, float(t))], float(t))
+    (table,) = m.objects()
+    for t in range(4, 10):
+        ids = m.update([_rect_obs(1, "coffee_table", 3.0, 0.0, 4.0, 0.6, (0.0, 0.44), 0.43, float(t)),
+                        _rect_obs(7, "chair", 3.05, 0.3, 3.45, 0.62, (0.21, 0.44), 0.43, float(t)),
+                        _rect_obs(2, "coffee_table", 3.5, 0.05, 3.9, 0.5, (0.2, 0.45), 0.44, float(t))], float(t))
+        assert ids == [table.object_id] * 3
+    (o,) = m.objects()
+    assert o.class_name == "coffee_table" and o.class_probs["coffee_table"] > 0.99
+    # A chair tucked under a desk has a top of its own (its seat) and a backrest above the
+    # desk: it stays an object of its own.
+    m = ObjectMap(default_classes())
+    for t in range(4):
+        m.update([_rect_obs(1, "desk", 3.0, 0.0, 4.4, 0.7, (0.0, 0.73), 0.72, float(t))], float(t))
+    for t in range(4, 7):
+        m.update([_rect_obs(1, "desk", 3.0, 0.0, 4.4, 0.7, (0.0, 0.73), 0.72, float(t)),
+                  _rect_obs(5, "chair", 3.4, 0.1, 3.9, 0.6, (0.0, 0.88), 0.45, float(t))], float(t))
+    assert sorted(o.class_name for o in m.objects()) == ["chair", "desk"]
