@@ -78,14 +78,18 @@ def test_slam_keeps_the_pose_while_the_odometry_drifts(tmp_path: Path) -> None:
     odo = np.array([o for _, _, o in samples])
     # The drifting odometry wanders off (about 1 m); the live SLAM pose stays within a bound
     # (this 160 px camera at the demo's speed; bench/slam.py measures the accuracy). Measured
-    # p95 over six runs: 0.073-0.147 m (it was 0.16-0.22 m while the scans after the first,
-    # obstacle-free one taken on the ground followed the odometry for two seconds).
-    assert odo.max() > 0.5
-    assert float(np.percentile(errs, 95)) < 0.15, errs.max()
-    assert float(errs.max()) < 0.25
-    assert float(errs.max()) < 0.4 * float(odo.max())
+    # p95 over 13 runs on a busy 2-core machine: 0.063-0.147 m, max 0.08-0.15 m (it was
+    # 0.16-0.58 m while the scans after the first, obstacle-free one taken on the ground followed
+    # the odometry for two seconds). The bounds leave room for a loaded CI machine, where the
+    # service processes fewer frames, and still fail for a pose that follows the odometry.
     loc = result.report.localization
-    assert loc["scans"] > 50 and loc["vision_sent"] > 300
-    assert loc["fallbacks"] < 0.2 * loc["scans"]
-    assert statuses.count("ok") + statuses.count("partial_odometry") > 0.8 * len(statuses)
-    assert sum(health) > 0.8 * len(health)
+    detail = (f"SLAM error p95 {np.percentile(errs, 95):.3f} max {errs.max():.3f} m, odometry max "
+              f"{odo.max():.3f} m, {loc}")
+    assert odo.max() > 0.5, detail
+    assert float(np.percentile(errs, 95)) < 0.2, detail
+    assert float(errs.max()) < 0.3, detail
+    assert float(errs.max()) < 0.5 * float(odo.max()), detail
+    assert loc["scans"] > 50 and loc["vision_sent"] > 300, detail
+    assert loc["fallbacks"] < 0.25 * loc["scans"], detail
+    assert statuses.count("ok") + statuses.count("partial_odometry") > 0.75 * len(statuses), detail
+    assert sum(health) > 0.75 * len(health), detail
