@@ -1,30 +1,36 @@
 """Voxel downsampling and Euclidean clustering of point clouds, vectorised.
 
-Clustering is voxel connectivity: space is cut into cubic cells of side ``distance_m`` and two
-points belong to the same cluster when a chain of occupied cells, each touching the next in the
-26-neighbourhood, joins them. This is single-linkage clustering with the grid doing the
-neighbour search, slightly coarser than exact Euclidean clustering at ``distance_m``: two points
-closer than ``distance_m`` always share a cluster, points of different clusters are always more
-than ``distance_m`` apart (their cells do not touch), and one link of a chain may span up to
-2*sqrt(3)*``distance_m`` (opposite corners of touching cells).
+Clustering is exact single linkage at ``distance_m`` (Euclidean clustering as the reference
+design and PCL mean it, and what Open3D's ``cluster_dbscan(eps, min_points=1)`` computes): two
+points share a cluster exactly when a chain of points joins them in which each link is at most
+``distance_m`` long. Points of different clusters are therefore always more than
+``distance_m`` apart, however close their voxels or grid cells are.
 
-Each axis is compressed before labelling: every run of empty cell slices along an axis (the gap
-between an object and the wall far behind it, a stray far point) becomes a single empty slice.
-Whether two cells touch depends only on whether their indices differ by at most one along each
-axis, which this preserves exactly, so the labels are those of the uncompressed grid, at a cost
-that follows the occupied extent rather than the bounding box. The occupied cells of the
-compressed grid are then joined by a union-find over their 13 raster-earlier neighbours,
-compiled with numba (:func:`_grid_labels`, the whole step in one call: a few hundred cells per
-object, where numpy's per-call cost would dominate); components are numbered in raster order
-of their first cell, as ``scipy.ndimage.label`` numbers them. A cloud whose compressed grid is
-still large keeps its cells sparse (sorted keys, ``searchsorted``, a scipy sparse graph), with
-the same labels. Several times faster than a k-d tree radius search followed by connected
-components on the few thousand points of one object.
+The neighbour search is a grid of cubic cells of side ``distance_m / sqrt(3)`` (a hair less):
+any two points of one cell are within ``distance_m`` (the cell's diagonal), so a cell is a
+clique and the union-find runs over cells, not points. Points within ``distance_m`` of a
+cell's points lie in cells at most two apart along every axis; each cell looks at the
+raster-later ones of those (the others look at it), skips those already in its component,
+and joins the rest when some pair of points is within ``distance_m`` (squared distances, no
+square root; the scan stops at the first such pair). Each axis of the grid is compressed
+first: every run of more than two empty cell slices along an axis (the gap between an object
+and the wall far behind it, a stray far point) becomes two, which keeps "differ by at most
+two indices" exactly, so the tables follow the occupied extent rather than the bounding box.
+Points are bucketed by cell with counting sorts (z index, then the (x, y) column of cells),
+and each neighbour column's cells are found through a table over the columns and a binary
+search on z; a cloud whose compressed grid has too many columns for such a table (over
+``_DENSE_CELLS_PER_POINT`` per point) sorts its keys and hashes its columns instead, with
+the same labels. Components are numbered in raster (x, y, z) order of their first cell. The
+whole step is one numba call (:func:`_linkage_labels`): a few hundred to a few thousand
+voxels per object, where numpy's per-call cost would dominate. (Voxel connectivity - cells
+of side ``distance_m`` joined when they touch - is several times cheaper but links points up
+to 2*sqrt(3)*``distance_m`` apart: an object and the wall or neighbour 6-15 cm behind it
+became one cluster.)
 
 numba compiles the kernels on first use and caches them (``cache=True``): in ``__pycache__``
 beside this module, or, where that is read-only, in numba's per-user cache directory
 (``~/.cache/numba``), or in ``$NUMBA_CACHE_DIR`` when set. A cold compile takes about a second;
-a cached load a tenth of that.
+a cached load a tenth of that (:func:`semmap.kernels.warm_up` pays it at start).
 
 Per-axis work runs on (3, N) coordinate rows: reductions over the points of one axis are then
 contiguous, where on (N, 3) they stride.
@@ -37,52 +43,13 @@ import math
 import numba
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
-#: The 13 "forward" offsets of the 26-neighbourhood (the other 13 are their negatives).
-_HALF_NEIGHBOURS = np.array(
-    [
-        (di, dj, dk)
-        for di in (-1, 0, 1)
-        for dj in (-1, 0, 1)
-        for dk in (-1, 0, 1)
-        if (di, dj, dk) > (0, 0, 0)
-    ],
-    dtype=np.int64,
-)  # (13, 3)
-
-
-#: Above this many cells in the compressed grid (its cell index table), components are found
-#: sparsely.
-_DENSE_MAX_CELLS = 300_000
+#: Up to this many (x, y) columns of cells per point (plus a few thousand) in the compressed
+#: grid, points are bucketed by counting sorts and columns found through a table; beyond it
+#: by a merge sort and a hash table.
+_DENSE_CELLS_PER_POINT = 32
 #: A voxel key range up to this many cells per point is counted densely (no sort).
 _COMPACT_CELLS_PER_POINT = 4
-
-
-def _cell_indices(points_m: NDArray[np.floating], cell_m: float) -> NDArray[np.int64]:
-    """(3, N) int64 cell indices of (N, 3) points, shifted so each axis starts at 0."""
-    pts_t = np.ascontiguousarray(np.asarray(points_m, dtype=np.float64).reshape(-1, 3).T)  # (3, N)
-    ijk = np.floor(pts_t / cell_m).astype(np.int64)
-    ijk -= ijk.min(axis=1, keepdims=True)
-    return ijk
-
-
-def _compress_axes(ijk: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Renumber the (3, N) non-negative cell indices of each axis, preserving order: a run of
-    unoccupied indices between two occupied ones becomes exactly one unoccupied index, so
-    "differ by at most one" (touching cells) is preserved exactly."""
-    span = ijk.max(axis=1) + 2  # one unoccupied slot after each axis: no leak between axes
-    start = np.concatenate([[0], np.cumsum(span)[:-1]])  # (3,)
-    flat = ijk + start[:, None]
-    occ = np.zeros(int(span.sum()), dtype=bool)
-    occ[flat] = True
-    occ[1:] |= occ[:-1].copy()  # also keep the first empty slot after each occupied run
-    new = np.cumsum(occ)
-    out = new[flat]
-    out -= new[start][:, None]
-    out -= out.min(axis=1, keepdims=True)
-    return out
 
 
 def _keys(ijk: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -96,9 +63,13 @@ def voxel_downsample(
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Replace the points of each occupied voxel by their mean (Open3D's ``voxel_down_sample``).
 
-    ``points_m``: (N, 3) in any metric frame. Returns ``(centroids (M, 3) float64,
-    inverse (N,) int64)`` where ``inverse[i]`` is the voxel (row of ``centroids``) of point i.
-    Voxels come in row-major order of their (x, y, z) cell indices.
+    ``points_m``: (N, 3) in any metric frame. Voxels are the cells
+    ``floor(p / voxel_m)``: the grid is anchored at the frame's origin (Open3D's
+    ``voxel_down_sample`` anchors it at the cloud's minimum less half a voxel;
+    ``voxel_down_sample_and_trace`` with a ``min_bound`` on multiples of ``voxel_m`` gives
+    these voxels). Returns ``(centroids (M, 3) float64, inverse (N,) int64)`` where
+    ``inverse[i]`` is the voxel (row of ``centroids``) of point i. Voxels come in row-major
+    order of their (x, y, z) cell indices.
     """
     if voxel_m <= 0.0:
         raise ValueError(f"voxel_m must be > 0 (got {voxel_m})")
@@ -129,11 +100,13 @@ def voxel_downsample(
 def euclidean_clusters(
     points_m: NDArray[np.floating], distance_m: float, min_points: int = 1
 ) -> NDArray[np.int64]:
-    """Cluster label per point by voxel connectivity at ``distance_m`` (see the module doc).
+    """Cluster label per point by exact single linkage at ``distance_m`` (see the module doc):
+    points at most ``distance_m`` apart share a cluster, and so do chains of such links.
 
-    ``points_m``: (N, 3). Returns (N,) int64 labels ordered by size: 0 is the largest cluster,
-    1 the next, ... (ties: the cluster whose first cell comes first in row-major (x, y, z)
-    order); clusters with fewer than ``min_points`` points get -1.
+    ``points_m``: (N, 3), metres (any frame). Returns (N,) int64 labels ordered by size: 0 is
+    the largest cluster, 1 the next, ... (ties: the cluster whose first cell of side
+    ``distance_m`` comes first in row-major (x, y, z) order); clusters with fewer than
+    ``min_points`` points get -1.
     """
     if distance_m <= 0.0:
         raise ValueError(f"distance_m must be > 0 (got {distance_m})")
@@ -141,14 +114,11 @@ def euclidean_clusters(
     n = pts_t.shape[1]
     if n == 0:
         return np.zeros(0, np.int64)
-    point_label = _grid_labels(pts_t, float(distance_m), _DENSE_MAX_CELLS)
+    if not np.isfinite(pts_t).all():
+        raise ValueError("points_m must be finite")
+    point_label = _linkage_labels(pts_t, float(distance_m), _DENSE_CELLS_PER_POINT, _COLUMNS)
     if len(point_label) != n:
-        # The compressed grid is too large for a cell index table: sparse cells, with one
-        # cell of slack on each side so every neighbour's key is distinct and >= 0.
-        ijk = _compress_axes(_cell_indices(pts_t.T, distance_m))
-        span = ijk.max(axis=1) + 3
-        padded = ijk + 1
-        point_label = _sparse_labels((padded[0] * span[1] + padded[1]) * span[2] + padded[2], span)
+        raise ValueError(f"{n} points span too many cells of {distance_m} m to be keyed in int64")
     sizes = np.bincount(point_label)
     order = np.argsort(-sizes, kind="stable")  # label ids by decreasing size
     rank = np.empty_like(order)
@@ -172,15 +142,66 @@ def _find(parent: NDArray[np.int64], x: int) -> int:
     return root
 
 
-@numba.njit(cache=True)
-def _grid_labels(pts_t: NDArray[np.float64], cell_m: float, max_cells: int) -> NDArray[np.int64]:
-    """Component label (N,) of each point of ``pts_t`` (3, N) under 26-connectivity of cells
-    of side ``cell_m``, numbered in raster (x, y, z) order of each component's first cell.
+#: Cells are cubes of side distance / sqrt(3), a hair less, so any two points of one cell are
+#: within the distance (a cell's diagonal) whatever the rounding of the cell index.
+_CELL_SHRINK = 1.0 - 1e-9
 
-    The same cells, compression and numbering as :func:`_compress_axes` followed by
-    ``ndimage.label``; returns an empty array when the compressed grid has more than
-    ``max_cells`` cells (the caller then labels sparsely).
-    """
+
+def _forward_columns() -> NDArray[np.int64]:
+    """The raster-later neighbour cells within two cells on every axis, as 13 rows
+    (di, dj, first dk) of (di, dj) columns searched for dk from the first to 2: every such
+    cell can hold points within the distance of a cell's points (the nearest points of cells
+    two apart on every axis are just over a cell's diagonal apart)."""
+    rows = [(0, 0, 1)] + [(0, 1, -2), (0, 2, -2)] + [(di, dj, -2) for di in (1, 2) for dj in range(-2, 3)]
+    return np.array(rows, dtype=np.int64)
+
+
+_COLUMNS = _forward_columns()  # (13, 3)
+
+
+@numba.njit(cache=True)
+def _hash_slot(key: int, mask: int) -> int:
+    """Home slot of a key >= 0 in a table of ``mask + 1`` (a power of two) slots: the key's
+    bits mixed (splitmix64's finaliser) so keys that differ only in high bits spread too."""
+    h = np.uint64(key)
+    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    h = h ^ (h >> np.uint64(31))
+    return int(np.int64(h & np.uint64(mask)))
+
+
+@numba.njit(cache=True)
+def _hash_put(table_key: NDArray[np.int64], table_val: NDArray[np.int64], key: int, val: int) -> None:
+    """Insert ``key`` (>= 0, new) -> ``val`` into an open-addressing table (size a power of
+    two, empty slots -1) with linear probing."""
+    mask = table_key.shape[0] - 1
+    h = _hash_slot(key, mask)
+    while table_key[h] >= 0:
+        h = (h + 1) & mask
+    table_key[h] = key
+    table_val[h] = val
+
+
+@numba.njit(cache=True)
+def _hash_get(table_key: NDArray[np.int64], table_val: NDArray[np.int64], key: int) -> int:
+    """The value of ``key`` in the table of :func:`_hash_put`, -1 when absent."""
+    mask = table_key.shape[0] - 1
+    h = _hash_slot(key, mask)
+    while table_key[h] >= 0:
+        if table_key[h] == key:
+            return int(table_val[h])
+        h = (h + 1) & mask
+    return -1
+
+
+@numba.njit(cache=True)
+def _compressed_cells(
+    pts_t: NDArray[np.float64], cell_m: float, keep_empty: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(3, N) cell indices of side ``cell_m`` of the points ``pts_t`` (3, N), each axis
+    gap-compressed - every run of unoccupied indices longer than ``keep_empty`` becomes
+    ``keep_empty`` long, order kept, so index differences up to ``keep_empty + 1`` are
+    unchanged and larger ones stay larger - and starting at 0; and the span (3,)."""
     n = pts_t.shape[1]
     ijk = np.empty((3, n), np.int64)
     span = np.empty(3, np.int64)
@@ -194,18 +215,21 @@ def _grid_labels(pts_t: NDArray[np.float64], cell_m: float, max_cells: int) -> N
                 lo = v
             if v > hi:
                 hi = v
-        # Gap compression: keep each occupied index and the first empty one after a run.
-        occ = np.zeros(hi - lo + 2, np.bool_)
+        occ = np.zeros(hi - lo + 1, np.bool_)
         for p in range(n):
             occ[ijk[a, p] - lo] = True
-        new = np.empty(hi - lo + 2, np.int64)
+        new = np.empty(hi - lo + 1, np.int64)
         c = -1
-        prev = False
-        for i in range(hi - lo + 2):
-            if occ[i] or prev:
+        run = 0
+        for i in range(hi - lo + 1):
+            if occ[i]:
+                run = 0
                 c += 1
+            else:
+                run += 1
+                if run <= keep_empty:
+                    c += 1
             new[i] = c
-            prev = occ[i]
         top = 0
         for p in range(n):
             v = new[ijk[a, p] - lo]
@@ -213,86 +237,161 @@ def _grid_labels(pts_t: NDArray[np.float64], cell_m: float, max_cells: int) -> N
             if v > top:
                 top = v
         span[a] = top + 1
-    s1, s2 = span[1], span[2]
-    n_cells = span[0] * s1 * s2
-    if n_cells > max_cells:
+    return ijk, span
+
+
+@numba.njit(cache=True)
+def _linkage_labels(
+    pts_t: NDArray[np.float64], eps_m: float, max_cells_per_point: int, columns: NDArray[np.int64]
+) -> NDArray[np.int64]:
+    """Single-linkage component (N,) of each point of ``pts_t`` (3, N) at ``eps_m``, numbered
+    in raster (x, y, z) order of each component's first cell.
+
+    Cells have side ``eps_m / sqrt(3)`` (shrunk by ``_CELL_SHRINK``), so each is a clique;
+    the union-find runs over cells, and two cells at most two apart on every axis (the
+    raster-later ones: ``columns`` (13, 3) holds the forward (di, dj) columns of cells along
+    z and the first dk searched in each) join when any pair of their points is within
+    ``eps_m`` - checked only while they are still apart, stopping at the first such pair.
+    Points are sorted by cell key with two counting sorts (z index, then the (x, y) column)
+    when the compressed grid has at most ``max_cells_per_point`` columns per point (plus a
+    few thousand), and each column's cells are found through a table over the columns; else
+    by a merge sort and a hash of the occupied columns. Returns an empty array when the cell
+    keys would overflow int64.
+    """
+    n = pts_t.shape[1]
+    cell_m = eps_m / math.sqrt(3.0) * _CELL_SHRINK
+    ijk, span = _compressed_cells(pts_t, cell_m, 2)
+    s0, s1, s2 = span[0], span[1], span[2]
+    if float(s0) * float(s1) * float(s2) >= 4.0e18:
         return np.empty(0, np.int64)
-    # Occupied cells numbered in raster order: grid holds each cell's number, -1 if empty.
-    grid = np.full(n_cells, -1, np.int64)
-    keys = np.empty(n, np.int64)
-    for p in range(n):
-        k = (ijk[0, p] * s1 + ijk[1, p]) * s2 + ijk[2, p]
-        keys[p] = k
-        grid[k] = 0
+    n_cols = s0 * s1
+    dense = n_cols <= max_cells_per_point * n + 4096
+    # order: the points sorted by cell key (stable).
+    if dense:
+        cnt = np.zeros(s2 + 1, np.int64)
+        for p in range(n):
+            cnt[ijk[2, p] + 1] += 1
+        for k in range(s2):
+            cnt[k + 1] += cnt[k]
+        by_k = np.empty(n, np.int64)
+        for p in range(n):
+            by_k[cnt[ijk[2, p]]] = p
+            cnt[ijk[2, p]] += 1
+        cnt2 = np.zeros(n_cols + 1, np.int64)
+        for p in range(n):
+            cnt2[ijk[0, p] * s1 + ijk[1, p] + 1] += 1
+        for q in range(n_cols):
+            cnt2[q + 1] += cnt2[q]
+        order = np.empty(n, np.int64)
+        for r in range(n):
+            p = by_k[r]
+            q = ijk[0, p] * s1 + ijk[1, p]
+            order[cnt2[q]] = p
+            cnt2[q] += 1
+    else:
+        keys = np.empty(n, np.int64)
+        for p in range(n):
+            keys[p] = (ijk[0, p] * s1 + ijk[1, p]) * s2 + ijk[2, p]
+        order = np.argsort(keys, kind="mergesort")
+    # Cells: runs of equal (column, z index) in ``order``, in key order; cell c holds the
+    # points order[cell_start[c]:cell_start[c + 1]] and lies in column cell_col[c] at z
+    # index cell_k[c]. Coordinates are copied in that order, so a cell's are contiguous.
+    cell_start = np.empty(n + 1, np.int64)
+    cell_col = np.empty(n, np.int64)
+    cell_k = np.empty(n, np.int64)
+    x = np.empty(n)
+    y = np.empty(n)
+    z = np.empty(n)
     m = 0
-    for k in range(n_cells):
-        if grid[k] == 0:
-            grid[k] = m
+    last_col, last_k = -1, -1
+    for r in range(n):
+        p = order[r]
+        q, k = ijk[0, p] * s1 + ijk[1, p], ijk[2, p]
+        if q != last_col or k != last_k:
+            cell_start[m] = r
+            cell_col[m] = q
+            cell_k[m] = k
             m += 1
-    cell_key = np.empty(m, np.int64)
-    for k in range(n_cells):
-        if grid[k] >= 0:
-            cell_key[grid[k]] = k
-    # Union with the 13 raster-earlier neighbours; the root is the earliest cell.
+            last_col, last_k = q, k
+        x[r], y[r], z[r] = pts_t[0, p], pts_t[1, p], pts_t[2, p]
+    cell_start[m] = n
+    # Each occupied column's cells, contiguous and by z index: cells col_start[u] to
+    # col_start[u + 1] of column number u, found by a table over the columns or a hash.
+    col_start = np.empty(m + 1, np.int64)
+    col_table = np.full(n_cols if dense else 0, -1, np.int64)
+    size = 1
+    while size < 2 * m:
+        size *= 2
+    hash_key = np.full(0 if dense else size, -1, np.int64)
+    hash_val = np.empty(0 if dense else size, np.int64)
+    n_u = 0
+    for c in range(m):
+        if c == 0 or cell_col[c] != cell_col[c - 1]:
+            col_start[n_u] = c
+            if dense:
+                col_table[cell_col[c]] = n_u
+            else:
+                _hash_put(hash_key, hash_val, cell_col[c], n_u)
+            n_u += 1
+    col_start[n_u] = m
+    eps2 = eps_m * eps_m
     parent = np.arange(m)
-    for g in range(m):
-        k = cell_key[g]
-        i, j, kk0 = k // (s1 * s2), (k // s2) % s1, k % s2
-        for di in range(-1, 1):
-            ii = i + di
-            if ii < 0:
+    n_col = columns.shape[0]
+    for c in range(m):
+        q, k0 = cell_col[c], cell_k[c]
+        i, j = q // s1, q % s1
+        rc = _find(parent, c)  # kept current below: only this loop's unions move it
+        for o in range(n_col):
+            ii, jj = i + columns[o, 0], j + columns[o, 1]
+            if ii >= s0 or jj < 0 or jj >= s1:
                 continue
-            for dj in range(-1, 2):
-                jj = j + dj
-                if jj < 0 or jj >= s1:
-                    continue
-                for dk in range(-1, 2):
-                    if di == 0 and (dj > 0 or (dj == 0 and dk >= 0)):
-                        continue
-                    kk = kk0 + dk
-                    if kk < 0 or kk >= s2:
-                        continue
-                    h = grid[(ii * s1 + jj) * s2 + kk]
-                    if h >= 0:
-                        ra, rb = _find(parent, g), _find(parent, h)
-                        if ra < rb:
-                            parent[rb] = ra
-                        elif rb < ra:
-                            parent[ra] = rb
+            qq = ii * s1 + jj
+            u = col_table[qq] if dense else _hash_get(hash_key, hash_val, qq)
+            if u < 0:
+                continue
+            # The column's cells with z index in [k0 + first dk, k0 + 2]: binary search.
+            lo, hi = col_start[u], col_start[u + 1]
+            k_lo = k0 + columns[o, 2]
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if cell_k[mid] < k_lo:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            end = col_start[u + 1]
+            h = lo
+            while h < end and cell_k[h] <= k0 + 2:
+                rh = _find(parent, h)
+                if rc != rh:
+                    linked = False
+                    for a in range(cell_start[c], cell_start[c + 1]):
+                        xa, ya, za = x[a], y[a], z[a]
+                        for b in range(cell_start[h], cell_start[h + 1]):
+                            dx, dy, dz = x[b] - xa, y[b] - ya, z[b] - za
+                            if dx * dx + dy * dy + dz * dz <= eps2:
+                                linked = True
+                                break
+                        if linked:
+                            break
+                    if linked:
+                        # The root is the component's first cell in key order.
+                        if rc < rh:
+                            parent[rh] = rc
+                        else:
+                            parent[rc] = rh
+                            rc = rh
+                h += 1
     comp = np.full(m, -1, np.int64)
     n_comp = 0
-    for g in range(m):
-        r = _find(parent, g)
-        if comp[r] < 0:
-            comp[r] = n_comp
-            n_comp += 1
-        comp[g] = comp[r]
     out = np.empty(n, np.int64)
-    for p in range(n):
-        out[p] = comp[grid[keys[p]]]
+    for c in range(m):
+        root = _find(parent, c)
+        if comp[root] < 0:
+            comp[root] = n_comp
+            n_comp += 1
+        for r in range(cell_start[c], cell_start[c + 1]):
+            out[order[r]] = comp[root]
     return out
-
-
-def _sparse_labels(keys: NDArray[np.int64], span: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Connected components of occupied cells kept sparse (sorted keys, ``searchsorted``), for
-    clouds whose grid would be too large even compressed. ``keys``: (N,) row-major keys with
-    at least one cell of slack on each side in the layout ``span`` (3,). Returns a label per
-    point, numbered in key order of the components' first cells (as ``ndimage.label``)."""
-    # Key differences of the 13 forward neighbour cells in this key layout.
-    offsets = (_HALF_NEIGHBOURS[:, 0] * span[1] + _HALF_NEIGHBOURS[:, 1]) * span[2] + _HALF_NEIGHBOURS[:, 2]
-    cells, inverse = np.unique(keys, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    m = len(cells)
-    target = (cells[:, None] + offsets[None, :]).reshape(-1)  # (M * 13,)
-    pos = np.minimum(np.searchsorted(cells, target), m - 1)
-    hit = cells[pos] == target
-    r = np.nonzero(hit)[0] // len(offsets)
-    c = pos[hit]
-    # Rows come out sorted (row-major scan), so CSR is built directly without a COO detour.
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=m))])
-    graph = csr_matrix((np.ones(len(r), np.int8), c, indptr), shape=(m, m))
-    _, cell_label = connected_components(graph, directed=False)
-    return np.asarray(cell_label[inverse], dtype=np.int64)
 
 
 def largest_cluster(

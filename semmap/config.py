@@ -199,8 +199,9 @@ class GeometryConfig(StageConfig):
     #: Euclidean clustering distance threshold (epsilon of the reference design).
     cluster_distance_m: float = Field(default=0.05, gt=0.0, le=1.0)
     #: The distance grows to this many sampled-pixel spacings at the 90th-percentile range,
-    #: so a surface seen at a grazing angle (sparse rows) stays one cluster.
-    cluster_pixel_gaps: float = Field(default=3.0, ge=0.0)
+    #: so a surface seen at a grazing angle (rows spaced several pixel spacings apart on a
+    #: table top seen from its own height) stays one cluster under exact single linkage.
+    cluster_pixel_gaps: float = Field(default=6.0, ge=0.0)
     min_cluster_points: int = Field(default=20, ge=1)
     ransac_distance_m: float = Field(default=0.02, gt=0.0)
     ransac_iterations: int = Field(default=100, ge=1)

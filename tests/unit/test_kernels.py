@@ -8,6 +8,6 @@ from semmap.kernels import warm_up
 
 def test_warm_up_compiles_every_kernel() -> None:
     assert warm_up() >= 0.0
-    for kernel in (pointcloud._window_table, clustering._grid_labels, ransac._best_hypothesis,
+    for kernel in (pointcloud._window_table, clustering._linkage_labels, ransac._best_hypothesis,
                    geometry._fit_wall, scan._scan_columns):
         assert kernel.signatures, f"{kernel.__name__} was not compiled by warm_up"
