@@ -16,9 +16,10 @@ square root; the scan stops at the first such pair). Each axis of the grid is co
 first: every run of more than two empty cell slices along an axis (the gap between an object
 and the wall far behind it, a stray far point) becomes two, which keeps "differ by at most
 two indices" exactly, so the tables follow the occupied extent rather than the bounding box.
-Points are bucketed by cell with counting sorts (z index, then the (x, y) column of cells),
-and each neighbour column's cells are found through a table over the columns and a binary
-search on z; a cloud whose compressed grid has too many columns for such a table (over
+Points are bucketed by cell with counting sorts (z index, then the (x, y) column of cells);
+cells are visited in key order, so the candidates in each of the 13 neighbour columns (found
+through a table over the columns) are reached by a pointer that only moves forward. A cloud
+whose compressed grid has too many columns for such a table (over
 ``_DENSE_CELLS_PER_POINT`` per point) sorts its keys and hashes its columns instead, with
 the same labels. Components are numbered in raster (x, y, z) order of their first cell. The
 whole step is one numba call (:func:`_linkage_labels`): a few hundred to a few thousand
@@ -255,7 +256,8 @@ def _linkage_labels(
     Points are sorted by cell key with two counting sorts (z index, then the (x, y) column)
     when the compressed grid has at most ``max_cells_per_point`` columns per point (plus a
     few thousand), and each column's cells are found through a table over the columns; else
-    by a merge sort and a hash of the occupied columns. Returns an empty array when the cell
+    by a merge sort and a hash of the occupied columns. Within a column cells come by
+    increasing z index, so each neighbour column is scanned with a forward-only pointer. Returns an empty array when the cell
     keys would overflow int64.
     """
     n = pts_t.shape[1]
@@ -337,29 +339,33 @@ def _linkage_labels(
     eps2 = eps_m * eps_m
     parent = np.arange(m)
     n_col = columns.shape[0]
+    # Per neighbour column: the next candidate cell and the column's end. Within one column
+    # the cells come by increasing z index, so each pointer only moves forward.
+    ptr = np.zeros(n_col, np.int64)
+    pend = np.zeros(n_col, np.int64)
+    cur_q = -1
     for c in range(m):
         q, k0 = cell_col[c], cell_k[c]
-        i, j = q // s1, q % s1
+        if q != cur_q:
+            cur_q = q
+            i, j = q // s1, q % s1
+            for o in range(n_col):
+                ii, jj = i + columns[o, 0], j + columns[o, 1]
+                ptr[o], pend[o] = 0, 0
+                if ii >= s0 or jj < 0 or jj >= s1:
+                    continue
+                qq = ii * s1 + jj
+                u = col_table[qq] if dense else _hash_get(hash_key, hash_val, qq)
+                if u >= 0:
+                    ptr[o], pend[o] = col_start[u], col_start[u + 1]
         rc = _find(parent, c)  # kept current below: only this loop's unions move it
         for o in range(n_col):
-            ii, jj = i + columns[o, 0], j + columns[o, 1]
-            if ii >= s0 or jj < 0 or jj >= s1:
-                continue
-            qq = ii * s1 + jj
-            u = col_table[qq] if dense else _hash_get(hash_key, hash_val, qq)
-            if u < 0:
-                continue
-            # The column's cells with z index in [k0 + first dk, k0 + 2]: binary search.
-            lo, hi = col_start[u], col_start[u + 1]
+            # The column's cells with z index in [k0 + first dk, k0 + 2].
+            h, end = ptr[o], pend[o]
             k_lo = k0 + columns[o, 2]
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if cell_k[mid] < k_lo:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            end = col_start[u + 1]
-            h = lo
+            while h < end and cell_k[h] < k_lo:
+                h += 1
+            ptr[o] = h
             while h < end and cell_k[h] <= k0 + 2:
                 rh = _find(parent, h)
                 if rc != rh:
