@@ -13,9 +13,12 @@ The pipeline per track (one I/O-free step, :func:`observe_object`):
    (:func:`background_walls`) on a ring of pixels just outside the box, accepted only when
    nothing of the ring or the box stands behind it and it faces the camera. A chair a few
    centimetres in front of a wall would otherwise be one cluster with the wall.
-4. Voxel downsampling, then Euclidean clustering (:mod:`semmap.clustering`). The object is
-   the nearest large cluster spanning the box (:func:`_pick_cluster`): a tight box is
-   mostly its object, while a background far behind it can own more voxels than it does.
+4. Voxel downsampling, then Euclidean clustering (:mod:`semmap.clustering`: exact single
+   linkage) at a distance of ``cluster_distance_m`` or ``cluster_pixel_gaps`` sampled-pixel
+   spacings at the box's far range, whichever is larger: a table top seen at a grazing angle
+   has rows several spacings apart and must stay one cluster. The object is the nearest
+   large cluster spanning the box (:func:`_pick_cluster`): a tight box is mostly its
+   object, while a background far behind it can own more voxels than it does.
 5. Hollow-bottom classes: RANSAC finds the seat / top plane, constrained near horizontal.
 6. Footprint: the convex hull of the projection of the object's points (top and legs alike)
    onto the map plane, so the space between the legs is inside it. Heights are true heights
