@@ -216,6 +216,20 @@ def _compressed_cells(
                 lo = v
             if v > hi:
                 hi = v
+        if hi - lo + 1 > 8 * n + 1024:
+            # Sparse along this axis (a stray far point): walk the sorted indices instead of
+            # a table over the whole range.
+            order = np.argsort(ijk[a])
+            c = 0
+            prev = ijk[a, order[0]]
+            for r in range(n):
+                p = order[r]
+                v = ijk[a, p]
+                c += min(v - prev, keep_empty + 1)
+                prev = v
+                ijk[a, p] = c
+            span[a] = c + 1
+            continue
         occ = np.zeros(hi - lo + 1, np.bool_)
         for p in range(n):
             occ[ijk[a, p] - lo] = True
