@@ -118,8 +118,12 @@ class FrameLatency:
     #: Frame handed to perception -> a setpoint computed on a map that includes it (None when
     #: a newer frame superseded it before the path was checked).
     e2e_ms: float | None = None
-    #: The frame's map made the path invalid: its latency includes a whole planner request.
+    #: The frame's map made the path invalid: its latency includes a re-plan request
+    #: (``planner.replan_time_limit_s``).
     replanned: bool = False
+    #: The frame was carried by a plan made while holding (a leg's first plan, or a retry
+    #: after no path): its latency includes a full planner request (``time_limit_s``).
+    from_hold: bool = False
 
 
 @dataclass
@@ -136,6 +140,8 @@ class FlightLog:
     failed_plans: int = 0
     replans_invalid: int = 0
     plan_ms: list[float] = field(default_factory=list)
+    #: The requests among ``plan_ms`` that were re-plans in flight (re-plan budget).
+    replan_ms: list[float] = field(default_factory=list)
     #: Map preparation + time to the planner's first valid path (the rest of a request
     #: refines it within the time budget).
     plan_first_ms: list[float] = field(default_factory=list)
@@ -324,11 +330,14 @@ class LockstepFlight:
         wall = time.perf_counter() - t0
         self.log.plans += 1
         self.log.plan_ms.append(1e3 * wall)
+        if replan:
+            self.log.replan_ms.append(1e3 * wall)
         if math.isfinite(result.first_solution_time_s):
             self.log.plan_first_ms.append(1e3 * (t1 - t0 + result.first_solution_time_s))
         if self._unchecked is not None and self._e2e_base_ms is not None:
             self._unchecked.e2e_ms = self._e2e_base_ms + 1e3 * wall
-            self._unchecked.replanned = True
+            self._unchecked.replanned = replan
+            self._unchecked.from_hold = not replan
             self._unchecked = None
         self._e2e_base_ms = None
         self._wait(wall)

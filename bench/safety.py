@@ -63,11 +63,13 @@ STAGES = (
     ("grid", "grid", "depth band scan into the grid + layers"),
     ("costmap", "costmap", "combined costmap at the flight band"),
     ("plan", "planning", "one planner request (first path + refinement budget)"),
+    ("replan", "  re-planning in flight", "a re-plan request (planner.replan_time_limit_s budget)"),
     ("plan_first", "planning, first path", "map preparation + first valid path"),
     ("check", "path check", "remaining path against the new map"),
     ("e2e", "end-to-end", "frame handed to perception -> setpoint on a map that includes it"),
     ("e2e_keep", "  path still free", "end-to-end for frames after which the path stays valid"),
-    ("e2e_replan", "  re-planned", "end-to-end for frames that made the path invalid (+ one request)"),
+    ("e2e_replan", "  re-planned", "end-to-end for frames that made the path invalid (+ one re-plan)"),
+    ("e2e_hold", "  planned from a hold", "a leg's first plan or a retry while holding (+ one full request)"),
 )
 ACCEPTANCE_M = 0.3
 
@@ -192,8 +194,10 @@ def latency_table(logs: list[FlightLog]) -> dict[str, dict[str, float | int | No
             samples["costmap"].append(f.costmap_ms)
             if f.e2e_ms is not None:
                 samples["e2e"].append(f.e2e_ms)
-                samples["e2e_replan" if f.replanned else "e2e_keep"].append(f.e2e_ms)
+                key = "e2e_replan" if f.replanned else "e2e_hold" if f.from_hold else "e2e_keep"
+                samples[key].append(f.e2e_ms)
         samples["plan"].extend(lg.plan_ms)
+        samples["replan"].extend(lg.replan_ms)
         samples["plan_first"].extend(lg.plan_first_ms)
         samples["check"].extend(lg.check_ms)
     return {k: {"p50_ms": pct(v, 50), "p95_ms": pct(v, 95), "max_ms": pct(v, 100), "count": len(v)}
