@@ -78,16 +78,16 @@ def test_slam_keeps_the_pose_while_the_odometry_drifts(tmp_path: Path) -> None:
     odo = np.array([o for _, _, o in samples])
     # The drifting odometry wanders off (about 1 m); the live SLAM pose stays within a bound
     # (this 160 px camera at the demo's speed; bench/slam.py measures the accuracy). Measured
-    # p95 over 13 runs on a busy 2-core machine: 0.063-0.147 m, max 0.08-0.15 m (it was
-    # 0.16-0.58 m while the scans after the first, obstacle-free one taken on the ground followed
-    # the odometry for two seconds). The bounds leave room for a loaded CI machine, where the
-    # service processes fewer frames, and still fail for a pose that follows the odometry.
+    # over 10 runs on a busy 2-core machine: p95 0.049-0.177 m, max 0.067-0.194 m (a yaw error
+    # built while turning on the spot at the far waypoint carries through the return leg). It
+    # was 0.16-0.58 m while partly matched poses were fed back through PX4's vision fusion. The
+    # bounds leave room for a loaded CI machine and still fail a pose that follows the odometry.
     loc = result.report.localization
     detail = (f"SLAM error p95 {np.percentile(errs, 95):.3f} max {errs.max():.3f} m, odometry max "
               f"{odo.max():.3f} m, {loc}")
     assert odo.max() > 0.5, detail
-    assert float(np.percentile(errs, 95)) < 0.2, detail
-    assert float(errs.max()) < 0.3, detail
+    assert float(np.percentile(errs, 95)) < 0.25, detail
+    assert float(errs.max()) < 0.35, detail
     assert float(errs.max()) < 0.5 * float(odo.max()), detail
     assert loc["scans"] > 50 and loc["vision_sent"] > 300, detail
     assert loc["fallbacks"] < 0.25 * loc["scans"], detail
