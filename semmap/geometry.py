@@ -24,9 +24,8 @@ The pipeline per track (one I/O-free step, :func:`observe_object`):
    onto the map plane, so the space between the legs is inside it. Heights are true heights
    above the floor plane; the position is the centroid of the object's (downsampled) points.
 
-Also here: the polygon helpers the object map shares (convex hull, minimum-area rectangle,
-convex intersection / IoU) and :class:`CameraView`, which tells whether a map point should be
-visible in a frame (negative evidence for the object map).
+Also here: :class:`CameraView`, which tells whether a map point should be visible in a frame
+(negative evidence for the object map). The polygon helpers are in :mod:`semmap.polygons`.
 """
 
 from __future__ import annotations
@@ -35,7 +34,6 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-import cv2
 import numba
 import numpy as np
 from numpy.typing import NDArray
@@ -44,6 +42,7 @@ from semmap.clustering import euclidean_clusters, voxel_downsample
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform, invert
 from semmap.pointcloud import valid_depth_mask, window_points_map
+from semmap.polygons import convex_footprint, simplify_polygon
 from semmap.ransac import Plane, fit_plane
 from semmap.types import CameraIntrinsics, Track
 
@@ -167,108 +166,6 @@ def shrink_box(
     return a, b, c, d
 
 
-def convex_footprint(xy_m: NDArray[np.floating], min_width_m: float = 0.0) -> NDArray[np.float64]:
-    """Counter-clockwise convex hull (M, 2) of (N, 2) points.
-
-    Degenerate inputs (fewer than three points, all on a line: a board seen edge-on) give a
-    rectangle around the points at least ``min_width_m`` wide, never a zero-area polygon.
-    """
-    xy = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
-    if len(xy) >= 3:
-        # OpenCV's monotone chain is an order of magnitude faster than Qhull on small sets;
-        # with clockwise=False it returns counter-clockwise vertices for y-up coordinates.
-        origin = _min_xy(xy)
-        hull = cv2.convexHull((xy - origin).astype(np.float32), clockwise=False, returnPoints=False)
-        poly = xy[np.asarray(hull).reshape(-1)]
-        if len(poly) >= 3:
-            area = polygon_area_m2(poly)
-            if area >= (min_width_m * 0.5) ** 2 and area > 0:
-                return poly
-    return _thin_rectangle(xy, min_width_m)
-
-
-def _min_xy(xy: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(2,) per-coordinate minimum of (N, 2) points: two contiguous-ish reductions, where
-    ``min(axis=0)`` over (N, 2) (often a view into (N, 3) points) strides at four times the
-    cost."""
-    return np.array([xy[:, 0].min(), xy[:, 1].min()])
-
-
-def simplify_polygon(polygon_xy_m: NDArray[np.float64], tolerance_m: float) -> NDArray[np.float64]:
-    """Douglas-Peucker simplification of a closed polygon (M, 2) to within ``tolerance_m``
-    (fewer vertices make every later overlap test cheaper). Keeps at least a triangle."""
-    if len(polygon_xy_m) <= 4:
-        return polygon_xy_m
-    origin = _min_xy(polygon_xy_m)
-    idx = cv2.approxPolyDP((polygon_xy_m - origin).astype(np.float32).reshape(-1, 1, 2),
-                           float(tolerance_m), True)
-    out = np.asarray(idx, dtype=np.float64).reshape(-1, 2) + origin
-    return out if len(out) >= 3 and polygon_area_m2(out) > 0 else polygon_xy_m
-
-
-def _thin_rectangle(xy: NDArray[np.float64], min_width_m: float) -> NDArray[np.float64]:
-    """Oriented rectangle along the principal axis of (N, 2) points, each side at least
-    ``min_width_m`` long."""
-    if len(xy) == 0:
-        raise ValueError("no points to build a footprint from")
-    c = xy.mean(axis=0)
-    d = xy - c
-    if len(xy) >= 2 and np.ptp(d, axis=0).max() > 0:
-        _, _, vt = np.linalg.svd(d, full_matrices=False)
-        axis = vt[0]
-    else:
-        axis = np.array([1.0, 0.0])
-    perp = np.array([-axis[1], axis[0]])
-    a, b = d @ axis, d @ perp
-    half = min_width_m / 2.0
-    a0, a1 = min(a.min(), -half), max(a.max(), half)
-    b0, b1 = min(b.min(), -half), max(b.max(), half)
-    corners = np.array([[a0, b0], [a1, b0], [a1, b1], [a0, b1]])
-    return c + corners[:, :1] * axis + corners[:, 1:] * perp
-
-
-def min_area_rectangle(polygon_xy_m: NDArray[np.floating]) -> NDArray[np.float64]:
-    """Smallest-area oriented rectangle (4, 2), counter-clockwise, enclosing a polygon (M, 2).
-
-    Rotating calipers on the convex hull: the optimum has a side along a hull edge, so every
-    edge direction is tried at once (vectorised).
-    """
-    hull = convex_footprint(polygon_xy_m)
-    edges = np.roll(hull, -1, axis=0) - hull
-    lengths = np.linalg.norm(edges, axis=1)
-    edges = edges[lengths > 1e-12] / lengths[lengths > 1e-12, None]  # (E, 2) unit directions
-    if len(edges) == 0:
-        return hull
-    perp = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
-    a = hull @ edges.T  # (M, E)
-    b = hull @ perp.T
-    area = (a.max(0) - a.min(0)) * (b.max(0) - b.min(0))
-    k = int(np.argmin(area))
-    a0, a1, b0, b1 = a[:, k].min(), a[:, k].max(), b[:, k].min(), b[:, k].max()
-    corners = np.array([[a0, b0], [a1, b0], [a1, b1], [a0, b1]])
-    return corners[:, :1] * edges[k] + corners[:, 1:] * perp[k]
-
-
-def _signed_area(pts: list[list[float]]) -> float:
-    """Shoelace signed area (counter-clockwise positive) of a vertex list, in plain floats:
-    footprints have a handful of vertices, where numpy's per-call cost dominates."""
-    n = len(pts)
-    acc = 0.0
-    for i in range(n):
-        x0, y0 = pts[i]
-        x1, y1 = pts[(i + 1) % n]
-        acc += x0 * y1 - x1 * y0
-    return 0.5 * acc
-
-
-def polygon_area_m2(polygon_xy_m: NDArray[np.floating]) -> float:
-    """Area of a simple polygon (M, 2) by the shoelace formula, any winding."""
-    p = np.asarray(polygon_xy_m, dtype=np.float64).reshape(-1, 2)
-    if len(p) < 3:
-        return 0.0
-    return abs(_signed_area(p.tolist()))
-
-
 def _pick_cluster(
     labels: NDArray[np.int64], range_m: NDArray[np.float64], uv: NDArray[np.int64],
     window: tuple[int, int, int, int], min_frac: float, min_cover: float,
@@ -308,56 +205,6 @@ def _pick_cluster(
     med = np.array([float(np.median(sr[a : a + counts[c]])) for a, c in zip(starts, candidates, strict=True)])
     med[cover < min_cover * cover.max()] = np.inf
     return int(candidates[int(np.argmin(med))])
-
-
-def _ccw(poly: NDArray[np.float64]) -> NDArray[np.float64]:
-    return poly if _signed_area(poly.tolist()) >= 0 else poly[::-1]
-
-
-def convex_intersection(
-    a_xy_m: NDArray[np.floating], b_xy_m: NDArray[np.floating]
-) -> NDArray[np.float64]:
-    """Intersection (K, 2) of two convex polygons (M, 2), (L, 2) by Sutherland-Hodgman
-    clipping; empty (0, 2) when they do not overlap."""
-    a = np.asarray(a_xy_m, dtype=np.float64).reshape(-1, 2)
-    b = np.asarray(b_xy_m, dtype=np.float64).reshape(-1, 2)
-    if len(a) < 3 or len(b) < 3:
-        return np.zeros((0, 2))
-    if (a.max(axis=0) < b.min(axis=0)).any() or (b.max(axis=0) < a.min(axis=0)).any():
-        return np.zeros((0, 2))
-    # Plain floats: polygons have a handful of vertices, where numpy's per-call cost dominates.
-    out = [tuple(p) for p in _ccw(a).tolist()]
-    clip = [tuple(p) for p in _ccw(b).tolist()]
-    for i in range(len(clip)):
-        if not out:
-            break
-        px, py = clip[i]
-        qx, qy = clip[(i + 1) % len(clip)]
-        ex, ey = qx - px, qy - py
-        src = out
-        out = []
-        n = len(src)
-        for j in range(n):
-            x0, y0 = src[j]
-            x1, y1 = src[(j + 1) % n]
-            # Left of the directed edge (inside a counter-clockwise clip polygon) is >= 0.
-            s0 = ex * (y0 - py) - ey * (x0 - px)
-            s1 = ex * (y1 - py) - ey * (x1 - px)
-            if s0 >= 0:
-                out.append((x0, y0))
-            if (s0 >= 0) != (s1 >= 0):
-                t = s0 / (s0 - s1)
-                out.append((x0 + t * (x1 - x0), y0 + t * (y1 - y0)))
-    return np.array(out, dtype=np.float64).reshape(-1, 2)
-
-
-def convex_iou(a_xy_m: NDArray[np.floating], b_xy_m: NDArray[np.floating]) -> float:
-    """Intersection over union of two convex polygons (M, 2), (L, 2); 0 when disjoint."""
-    inter = polygon_area_m2(convex_intersection(a_xy_m, b_xy_m))
-    if inter <= 0.0:
-        return 0.0
-    union = polygon_area_m2(a_xy_m) + polygon_area_m2(b_xy_m) - inter
-    return inter / union if union > 0 else 0.0
 
 
 def _median(values: NDArray[np.float64]) -> float:

@@ -22,9 +22,9 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from semmap.geometry import convex_footprint
+from semmap.polygons import convex_footprint, inside_convex, min_perimeter_rectangle
 
-__all__ = ["CELL_M", "FootprintEvidence", "bounding_rectangle", "cell_centres", "cell_keys"]
+__all__ = ["CELL_M", "FootprintEvidence", "cell_centres", "cell_keys"]
 
 #: Cell size of the evidence, metres.
 CELL_M = 0.02
@@ -44,37 +44,6 @@ def cell_centres(keys: NDArray[np.int64]) -> NDArray[np.float64]:
     return (np.stack([i, j], axis=1).astype(np.float64) + 0.5) * CELL_M
 
 
-def _inside_convex(poly: NDArray[np.float64], xy: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """(N,) True where points (N, 2) lie inside a convex polygon (M, 2), either winding."""
-    e = np.roll(poly, -1, axis=0) - poly  # (M, 2)
-    cross = e[None, :, 0] * (xy[:, None, 1] - poly[None, :, 1]) - e[None, :, 1] * (xy[:, None, 0] - poly[None, :, 0])
-    return np.all(cross >= -1e-12, axis=1) | np.all(cross <= 1e-12, axis=1)
-
-
-def bounding_rectangle(xy_m: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Oriented rectangle (4, 2), counter-clockwise, of least perimeter around points (N, 2)
-    (see the module doc for why not least area); ties go to the smaller area.
-
-    The optimum has a side along an edge of the convex hull, so every hull edge direction is
-    tried at once (rotating calipers, vectorised).
-    """
-    hull = convex_footprint(xy_m)
-    edges = np.roll(hull, -1, axis=0) - hull
-    lengths = np.linalg.norm(edges, axis=1)
-    edges = edges[lengths > 1e-12] / lengths[lengths > 1e-12, None]  # (E, 2) unit directions
-    if len(edges) == 0:
-        return hull
-    perp = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
-    a = hull @ edges.T  # (M, E)
-    b = hull @ perp.T
-    ext_a, ext_b = a.max(0) - a.min(0), b.max(0) - b.min(0)
-    # Perimeter first; the area term (metres^2, scaled far below a millimetre) breaks ties.
-    k = int(np.argmin(ext_a + ext_b + 1e-6 * ext_a * ext_b))
-    a0, a1, b0, b1 = a[:, k].min(), a[:, k].max(), b[:, k].min(), b[:, k].max()
-    corners = np.array([[a0, b0], [a1, b0], [a1, b1], [a0, b1]])
-    return corners[:, :1] * edges[k] + corners[:, 1:] * perp[k]
-
-
 @dataclass
 class FootprintEvidence:
     """Weighted cells of one object (see the module doc): ``keys`` (C,) sorted, ``weights`` (C,)."""
@@ -91,7 +60,7 @@ class FootprintEvidence:
         lo, hi = polygon_xy_m.min(axis=0), polygon_xy_m.max(axis=0)
         gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + CELL_M, CELL_M), np.arange(lo[1], hi[1] + CELL_M, CELL_M))
         grid = np.column_stack([gx.ravel(), gy.ravel()])
-        inside = _inside_convex(polygon_xy_m, grid)
+        inside = inside_convex(polygon_xy_m, grid)
         ev = cls()
         ev.add_view(grid[inside] if inside.any() else polygon_xy_m, 1.0)
         return ev
@@ -128,4 +97,4 @@ class FootprintEvidence:
         hull = convex_footprint(c)  # of centres; each cell's half-width is added back
         corners = np.concatenate([hull + [-h, -h], hull + [h, -h], hull + [h, h], hull + [-h, h]])
         # The rectangle takes the hull of the corners itself: one hull, not two.
-        return bounding_rectangle(corners) if shape == "rectangle" else convex_footprint(corners)
+        return min_perimeter_rectangle(corners) if shape == "rectangle" else convex_footprint(corners)

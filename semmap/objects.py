@@ -39,15 +39,15 @@ from numpy.typing import NDArray
 from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
 from semmap.errors import MapError
-from semmap.geometry import (
-    CameraView,
-    ObjectObservation,
+from semmap.geometry import CameraView, ObjectObservation
+from semmap.object_evidence import FootprintEvidence
+from semmap.polygons import (
     convex_footprint,
     convex_intersection,
+    min_perimeter_rectangle,
     polygon_area_m2,
     simplify_polygon,
 )
-from semmap.object_evidence import FootprintEvidence, bounding_rectangle
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +141,7 @@ class MappedObject:
     @property
     def footprint_center_xy_m(self) -> NDArray[np.float64]:
         """Centre of the footprint's bounding box in its own orientation (a rectangle's centre)."""
-        return bounding_rectangle(self.footprint_xy_m).mean(axis=0)
+        return min_perimeter_rectangle(self.footprint_xy_m).mean(axis=0)
 
     def to_footprint(self, margin_m: float = 0.0) -> ObjectFootprint:
         """The costmap's view of this object."""
@@ -586,7 +586,7 @@ class ObjectMap:
         cfg = self.config
         fp = s.evidence.footprint(cfg.footprint_evidence_frac, cfg.footprint_shape)
         if fp is None:
-            fp = bounding_rectangle(s.hull_xy_m) if cfg.footprint_shape == "rectangle" else s.hull_xy_m
+            fp = min_perimeter_rectangle(s.hull_xy_m) if cfg.footprint_shape == "rectangle" else s.hull_xy_m
         s.footprint_cache = fp
         return fp
 

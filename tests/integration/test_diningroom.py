@@ -17,10 +17,11 @@ import pytest
 
 from semmap.config import GeometryConfig, default_classes
 from semmap.frames import make_transform, quaternion_to_rotation, transform_points
-from semmap.geometry import ObjectObservation, observe_object, polygon_area_m2
+from semmap.geometry import ObjectObservation, observe_object
 from semmap.grid import GridSpec, rasterize_polygon
 from semmap.objects import CameraView, ObjectMap
 from semmap.pointcloud import backproject
+from semmap.polygons import polygon_area_m2
 from semmap.ransac import estimate_floor, gravity_aligned_frame
 from semmap.types import CameraIntrinsics, Track
 

@@ -11,13 +11,8 @@ from hypothesis import strategies as st
 
 from semmap.config import ClassConfig, ExtrinsicsConfig, GeometryConfig
 from semmap.frames import invert, pose_from_xyz_rpy, transform_points
-from semmap.geometry import (
-    convex_footprint,
-    convex_iou,
-    min_area_rectangle,
-    observe_object,
-    polygon_area_m2,
-)
+from semmap.geometry import observe_object
+from semmap.polygons import convex_footprint, convex_iou, min_area_rectangle, polygon_area_m2
 from semmap.ransac import Plane
 from semmap.types import CameraIntrinsics, Track
 

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from semmap.config import MapConfig, default_classes
-from semmap.geometry import ObjectObservation, polygon_area_m2
-from semmap.object_evidence import CELL_M, FootprintEvidence, bounding_rectangle
+from semmap.geometry import ObjectObservation
+from semmap.object_evidence import CELL_M, FootprintEvidence
 from semmap.objects import ObjectMap
+from semmap.polygons import min_perimeter_rectangle, polygon_area_m2
 
 
 def _rotate(xy: np.ndarray, yaw_rad: float) -> np.ndarray:
@@ -32,7 +33,7 @@ def test_l_shaped_cells_give_the_rectangle_along_the_legs_not_the_diagonal(yaw_d
     back = np.column_stack([np.zeros(22), np.linspace(0.04, 0.46, 22)])
     side = np.column_stack([np.linspace(0.04, 0.44, 21), np.zeros(21)])
     pts = _rotate(np.vstack([back, side]), math.radians(yaw_deg))
-    rect = bounding_rectangle(pts)
+    rect = min_perimeter_rectangle(pts)
     assert _side_directions_deg(rect) == {round(yaw_deg) % 90}
     assert polygon_area_m2(rect) == pytest.approx(0.44 * 0.46, rel=0.02)
     centre = _rotate(np.array([[0.22, 0.23]]), math.radians(yaw_deg))[0]
@@ -42,7 +43,7 @@ def test_l_shaped_cells_give_the_rectangle_along_the_legs_not_the_diagonal(yaw_d
 def test_filled_rectangle_keeps_its_orientation() -> None:
     gx, gy = np.meshgrid(np.linspace(-0.7, 0.7, 40), np.linspace(-0.35, 0.35, 20))
     pts = _rotate(np.column_stack([gx.ravel(), gy.ravel()]), math.radians(30.0))
-    rect = bounding_rectangle(pts)
+    rect = min_perimeter_rectangle(pts)
     assert _side_directions_deg(rect) == {30}
     assert polygon_area_m2(rect) == pytest.approx(1.4 * 0.7, rel=0.01)
 

@@ -9,8 +9,9 @@ import pytest
 
 from semmap.config import MapConfig, default_classes
 from semmap.frames import make_transform
-from semmap.geometry import ObjectObservation, convex_iou
+from semmap.geometry import ObjectObservation
 from semmap.objects import CameraView, ObjectMap
+from semmap.polygons import convex_iou
 from semmap.types import CameraIntrinsics
 
 K = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
