@@ -27,6 +27,20 @@ def valid_depth_mask(depth_m: NDArray[np.floating], min_m: float, max_m: float) 
         return low & high
 
 
+def _clipped_window(
+    d: NDArray[np.floating], intrinsics: CameraIntrinsics, window_px: tuple[int, int, int, int] | None,
+) -> tuple[int, int, int, int]:
+    """``window_px`` = (u0, v0, u1, v1), half-open (None: the whole image), clipped to the
+    depth image, which must match ``intrinsics``; empty when u1 <= u0 or v1 <= v0."""
+    H, W = d.shape
+    if (W, H) != (intrinsics.width_px, intrinsics.height_px):
+        raise ValueError(
+            f"depth image is {W}x{H} but intrinsics are for {intrinsics.width_px}x{intrinsics.height_px}"
+        )
+    u0, v0, u1, v1 = window_px if window_px is not None else (0, 0, W, H)
+    return max(0, int(u0)), max(0, int(v0)), min(W, int(u1)), min(H, int(v1))
+
+
 def backproject(
     depth_m: NDArray[np.floating],
     intrinsics: CameraIntrinsics,
@@ -41,32 +55,10 @@ def backproject(
     ``stride_px`` subsamples rows and columns. Returns ``(points_camera_m (N, 3) float32,
     pixels_uv (N, 2) int64)``: each point with the pixel it came from.
     """
-    pts, uv = backproject_rows(depth_m, intrinsics, min_m, max_m, window_px, stride_px)
-    return np.ascontiguousarray(pts.T), np.ascontiguousarray(uv.T)
-
-
-def backproject_rows(
-    depth_m: NDArray[np.floating],
-    intrinsics: CameraIntrinsics,
-    min_m: float = 0.0,
-    max_m: float = np.inf,
-    window_px: tuple[int, int, int, int] | None = None,
-    stride_px: int = 1,
-) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
-    """:func:`backproject` with one row per coordinate: ``(points_camera_m (3, N) float32,
-    pixels_uv (2, N) int64)``, C-contiguous. Per-coordinate work (a transform into the map,
-    a height filter) then reads and writes contiguous rows, where on (N, 3) it strides."""
     d = np.asarray(depth_m)
-    H, W = d.shape
-    if (W, H) != (intrinsics.width_px, intrinsics.height_px):
-        raise ValueError(
-            f"depth image is {W}x{H} but intrinsics are for {intrinsics.width_px}x{intrinsics.height_px}"
-        )
-    u0, v0, u1, v1 = window_px if window_px is not None else (0, 0, W, H)
-    u0, v0 = max(0, int(u0)), max(0, int(v0))
-    u1, v1 = min(W, int(u1)), min(H, int(v1))
+    u0, v0, u1, v1 = _clipped_window(d, intrinsics, window_px)
     if u1 <= u0 or v1 <= v0:
-        return np.zeros((3, 0), np.float32), np.zeros((2, 0), np.int64)
+        return np.zeros((0, 3), np.float32), np.zeros((0, 2), np.int64)
     sub = d[v0:v1:stride_px, u0:u1:stride_px]
     ok = valid_depth_mask(sub, min_m, max_m)
     vv, uu = np.nonzero(ok)
@@ -74,15 +66,15 @@ def backproject_rows(
     # Normalised image coordinates per used column / row, then one product per axis.
     xn = ((np.arange(u0, u1, stride_px) - intrinsics.cx_px) / intrinsics.fx_px).astype(np.float32)
     yn = ((np.arange(v0, v1, stride_px) - intrinsics.cy_px) / intrinsics.fy_px).astype(np.float32)
-    pts = np.empty((3, len(z)), np.float32)
-    np.multiply(xn[uu], z, out=pts[0])
-    np.multiply(yn[vv], z, out=pts[1])
-    pts[2] = z
-    uv = np.empty((2, len(z)), np.int64)
-    np.multiply(uu, stride_px, out=uv[0])
-    uv[0] += u0
-    np.multiply(vv, stride_px, out=uv[1])
-    uv[1] += v0
+    pts = np.empty((len(z), 3), np.float32)
+    np.multiply(xn[uu], z, out=pts[:, 0])
+    np.multiply(yn[vv], z, out=pts[:, 1])
+    pts[:, 2] = z
+    uv = np.empty((len(z), 2), np.int64)
+    np.multiply(uu, stride_px, out=uv[:, 0])
+    uv[:, 0] += u0
+    np.multiply(vv, stride_px, out=uv[:, 1])
+    uv[:, 1] += v0
     return pts, uv
 
 
@@ -100,7 +92,7 @@ def window_points_map(
     clearance_per_m2: float,
     hole_px: tuple[int, int, int, int] | None = None,
 ) -> tuple[NDArray[np.float64], int]:
-    """The valid pixels of a window (as :func:`backproject_rows` samples them) in the map
+    """The valid pixels of a window (as :func:`backproject` samples them) in the map
     frame, keeping those higher above a plane than a range-dependent clearance.
     ``hole_px`` = (u0, v0, u1, v1), half-open: samples inside it are skipped (a ring
     around a box).
@@ -117,14 +109,7 @@ def window_points_map(
     few thousand points per detection box.
     """
     d = np.asarray(depth_m)
-    H, W = d.shape
-    if (W, H) != (intrinsics.width_px, intrinsics.height_px):
-        raise ValueError(
-            f"depth image is {W}x{H} but intrinsics are for {intrinsics.width_px}x{intrinsics.height_px}"
-        )
-    u0, v0, u1, v1 = window_px
-    u0, v0 = max(0, int(u0)), max(0, int(v0))
-    u1, v1 = min(W, int(u1)), min(H, int(v1))
+    u0, v0, u1, v1 = _clipped_window(d, intrinsics, window_px)
     if u1 <= u0 or v1 <= v0:
         return np.zeros((8, 0)), 0
     T = np.asarray(T_map_camera, dtype=np.float64)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from semmap.frames import make_transform, rot_x
-from semmap.pointcloud import backproject, backproject_rows, window_points_map
+from semmap.pointcloud import backproject, window_points_map
 from semmap.types import CameraIntrinsics
 
 K = CameraIntrinsics(200.0, 210.0, 160.0, 120.0, 320, 240)
@@ -31,7 +31,7 @@ def test_window_table_matches_backprojection_transform_and_floor_cut(dtype: type
     normal, offset = np.array([0.02, -0.01, 1.0]) / np.linalg.norm([0.02, -0.01, 1.0]), 0.03
     for window, stride in (((20, 10, 300, 230), 1), ((0, 0, 320, 240), 3), ((100, 50, 140, 90), 2)):
         tab, n_valid = window_points_map(d, K, *depth_range, window, stride, T, normal, offset, 0.04, 0.006)
-        pts, uv = backproject_rows(d, K, *depth_range, window, stride)
+        pts, uv = (a.T for a in backproject(d, K, *depth_range, window, stride))
         xyz = T[:3, :3] @ pts + T[:3, 3][:, None]
         h = normal @ xyz + offset
         rng_m = pts[2].astype(np.float64)
@@ -46,12 +46,9 @@ def test_window_table_matches_backprojection_transform_and_floor_cut(dtype: type
         np.testing.assert_array_equal(tab[6:], uv[:, keep])
 
 
-def test_backproject_rows_is_backproject_transposed() -> None:
+def test_an_empty_window_gives_no_points() -> None:
     d = _depth(np.random.default_rng(4), np.float32)
-    pts, uv = backproject(d, K, 0.3, 6.0, (5, 5, 200, 100), 2)
-    rows, uv_rows = backproject_rows(d, K, 0.3, 6.0, (5, 5, 200, 100), 2)
-    np.testing.assert_array_equal(pts, rows.T)
-    np.testing.assert_array_equal(uv, uv_rows.T)
+    assert backproject(d, K, 0.3, 6.0, (50, 50, 50, 90), 1)[0].shape == (0, 3)
     assert window_points_map(d, K, 0.3, 6.0, (50, 50, 50, 90), 1, np.eye(4), np.array([0, 0, 1.0]), 0.0, 0.0, 0.0)[1] == 0
 
 
