@@ -29,7 +29,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing as mp
-import threading
 import time
 from dataclasses import dataclass, replace
 
@@ -39,11 +38,11 @@ from numpy.typing import NDArray
 from companion.config import CompanionConfig
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.vision import VisionPose, VisionStream
+from companion.service.perception_worker import semantic_map_settings
 from companion.sources.base import FrameSource
 from semmap.costmap import VerticalBand
 from semmap.errors import ConfigError
 from semmap.frames import invert, pose_from_xyz_rpy, rpy_from_rotation
-from semmap.semantic_map import SemanticMapSettings
 from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth
 from semmap.types import CameraIntrinsics, Frame
 
@@ -157,10 +156,7 @@ def vision_pose(shared: SharedLocalization, max_age_s: float = VISION_MAX_AGE_S)
 def slam_band(cfg: CompanionConfig) -> VerticalBand:
     """The band the SLAM scans: the occupancy grid's scan band (``map.scan_band_m`` or the
     flight band)."""
-    p = cfg.planner
-    flight = VerticalBand.for_altitude(p.flight_altitude_m, p.vehicle_height_m, p.vertical_margin_m)
-    return SemanticMapSettings.from_config(cfg.map, cfg.classes, flight, cfg.camera.depth_min_m,
-                                           cfg.camera.depth_max_m).scan_band
+    return semantic_map_settings(cfg).scan_band
 
 
 class Localizer:
@@ -178,7 +174,6 @@ class Localizer:
         self.T_camera_body = invert(self.T_body_camera)
         self.band = slam_band(cfg)
         self.slam = Slam2D.from_config(cfg.slam)
-        self._lock = threading.Lock()
         self.last_status: SlamStatus | None = None
 
     def close(self) -> None:
@@ -200,9 +195,9 @@ class Localizer:
                                      min_depth_m=self.cfg.camera.depth_min_m,
                                      max_depth_m=self.cfg.camera.depth_max_m,
                                      stride_px=2 if depth.shape[1] > 200 else 1, stamp_s=frame.stamp_s)
-        with self._lock:
-            est = self.slam.add_scan(frame.stamp_s, scan, (x, y, yaw))
-            stats = self.slam.stats()
+        # Slam2D locks its own state against the loop-closure thread.
+        est = self.slam.add_scan(frame.stamp_s, scan, (x, y, yaw))
+        stats = self.slam.stats()
         self.last_status = est.status
         px, py, pyaw = (float(v) for v in est.pose_map)
         T_map_body = pose_from_xyz_rpy(px, py, z, roll, pitch, pyaw)

@@ -43,11 +43,15 @@ def flight_band(cfg: CompanionConfig) -> VerticalBand:
     return VerticalBand.for_altitude(p.flight_altitude_m, p.vehicle_height_m, p.vertical_margin_m)
 
 
+def semantic_map_settings(cfg: CompanionConfig) -> SemanticMapSettings:
+    """The semantic map's settings for ``cfg`` (its scan band, classes, flight band, depth range)."""
+    return SemanticMapSettings.from_config(cfg.map, cfg.classes, flight_band(cfg),
+                                           cfg.camera.depth_min_m, cfg.camera.depth_max_m)
+
+
 def new_semantic_map(cfg: CompanionConfig) -> SemanticMap:
     """An empty semantic map with an object map, configured from ``cfg``."""
-    settings = SemanticMapSettings.from_config(cfg.map, cfg.classes, flight_band(cfg),
-                                               cfg.camera.depth_min_m, cfg.camera.depth_max_m)
-    return SemanticMap(settings, ObjectMap(cfg.classes, cfg.map))
+    return SemanticMap(semantic_map_settings(cfg), ObjectMap(cfg.classes, cfg.map))
 
 
 @dataclass
