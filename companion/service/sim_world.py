@@ -106,14 +106,6 @@ class SharedSimState:
         with self._pose.get_lock():
             self._pose[:] = vals
 
-    def pose(self) -> tuple[float, NDArray[np.float64]] | None:
-        """``(stamp_s, T_map_body (4, 4))`` last published, or None before the first."""
-        with self._pose.get_lock():
-            vals = list(self._pose[:])
-        if vals[0] == 0.0:
-            return None
-        return vals[1], np.asarray(vals[2:18], dtype=np.float64).reshape(4, 4)
-
     def poses(self) -> tuple[float, NDArray[np.float64], NDArray[np.float64] | None] | None:
         """``(stamp_s, T_map_body, estimated T_map_body or None)`` published together, or None
         before the first."""
