@@ -71,6 +71,7 @@ def _val_list(data_dir: Path, n_val: int, out_dir: Path) -> Path:
 def train(args: argparse.Namespace) -> None:
     from ultralytics import YOLO
 
+    _use_all_cores(args.threads)
     data = _val_list(Path(args.data), args.val_images, Path(args.out))
     settings: dict[str, Any] = {
         "data": str(data),
@@ -122,6 +123,112 @@ def train(args: argparse.Namespace) -> None:
                "initial_weights": args.weights, "torch_threads": _torch_threads()}
     (Path(args.out) / args.name / "train_summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary))
+
+
+def _use_all_cores(threads: int) -> None:
+    """Ultralytics sets torch to ``os.cpu_count() - 1`` threads for CPU training (its
+    ``NUM_THREADS``, sized to leave a core for data-loader workers), and then runs the data
+    loading in the main process anyway (``workers = 0`` on CPU): on a 2-core machine that trains
+    on one core. Make its ``select_device`` use ``threads``."""
+    from ultralytics.utils import torch_utils
+
+    torch_utils.NUM_THREADS = threads
+
+
+def from_onnx(args: argparse.Namespace) -> None:
+    """Rebuild a trainable Ultralytics checkpoint from a shipped ONNX model.
+
+    The ONNX graph holds YOLOv8's convolutions with their batch norms fused in (weight ``W``,
+    bias ``b``), under the parameter names of the PyTorch model. The unfused model needs each
+    batch norm back: one forward pass over real images measures every convolution's raw output
+    ``y = W * x`` per channel (mean ``m``, variance ``v``), and the batch norm is set to
+    ``running_mean = m``, ``running_var = v``, ``weight = sqrt(v + eps)``, ``bias = m + b``, so
+    that it computes ``y + b``, the fused layer, exactly in eval mode and on batches like these
+    in train mode. A later run continues from the shipped weights with ``--weights``.
+    """
+    import cv2
+    import numpy as np
+    import onnx
+    import torch
+    from onnx import numpy_helper
+    from ultralytics import __version__
+    from ultralytics.nn.modules.conv import Conv
+    from ultralytics.nn.tasks import DetectionModel
+
+    proto = onnx.load(str(args.onnx))
+    fused = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in proto.graph.initializer}
+    model = DetectionModel("yolov8n.yaml", nc=len(CLASS_NAMES), verbose=False)
+    model.names = dict(enumerate(CLASS_NAMES))
+    params = dict(model.named_parameters())
+    used: set[str] = set()
+    pending: dict[torch.nn.BatchNorm2d, torch.Tensor] = {}
+    with torch.no_grad():
+        for name, module in model.named_modules():
+            if isinstance(module, Conv):
+                w, b = fused[f"{name}.conv.weight"], fused[f"{name}.conv.bias"]
+                module.conv.weight.copy_(w)
+                pending[module.bn] = b
+                used.update({f"{name}.conv.weight", f"{name}.conv.bias"})
+        for pname, p in params.items():
+            if pname in fused and pname not in used:  # the head's plain Conv2d layers, DFL
+                if tuple(p.shape) != tuple(fused[pname].shape):
+                    sys.exit(f"{args.onnx}: {pname} is {tuple(fused[pname].shape)}, model has {tuple(p.shape)}")
+                p.copy_(fused[pname])
+                used.add(pname)
+    missing = [n for n in params if n not in used and not n.endswith((".bn.weight", ".bn.bias"))]
+    if missing:
+        sys.exit(f"{args.onnx}: no weights for {missing[:5]} ...")
+
+    def calibrate(bn: torch.nn.BatchNorm2d, inputs: tuple[torch.Tensor, ...]) -> None:
+        y = inputs[0]
+        m, v = y.mean(dim=(0, 2, 3)), y.var(dim=(0, 2, 3), unbiased=False)
+        bn.running_mean.copy_(m)
+        bn.running_var.copy_(v)
+        bn.weight.copy_(torch.sqrt(v + bn.eps))
+        bn.bias.copy_(m + pending[bn])
+
+    images = sorted(Path(args.images).glob("*.jpg"))[: args.calib_images]
+    if not images:
+        sys.exit(f"{args.images}: no .jpg images to calibrate the batch norms on")
+    batch = np.stack([_letterbox(cv2.imread(str(p))[:, :, ::-1], args.imgsz) for p in images])
+    x = torch.from_numpy(batch).permute(0, 3, 1, 2).float() / 255.0
+    hooks = [bn.register_forward_pre_hook(calibrate) for bn in pending]
+    model.eval()
+    with torch.no_grad():
+        model(x)
+    for h in hooks:
+        h.remove()
+    # Check: the rebuilt model in eval mode reproduces the ONNX outputs.
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(args.onnx), providers=["CPUExecutionProvider"])
+    ref = np.concatenate([sess.run(None, {sess.get_inputs()[0].name: x[i:i + 1].numpy()})[0]
+                          for i in range(4)])
+    with torch.no_grad():
+        out = model(x[:4])[0].numpy()
+    err = float(np.abs(out - ref).max())
+    print(json.dumps({"onnx": str(args.onnx), "max_abs_output_difference": err,
+                      "calibration_images": len(images)}))
+    if err > 1e-2 * max(1.0, float(np.abs(ref).max())):
+        sys.exit(f"rebuilt model differs from {args.onnx} by {err}")
+    ckpt = {"model": model.half(), "ema": None, "updates": None, "optimizer": None, "epoch": -1,
+            "train_args": {"imgsz": args.imgsz, "task": "detect"}, "version": __version__,
+            "from_onnx": str(args.onnx)}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    torch.save(ckpt, args.out)
+
+
+def _letterbox(rgb: Any, size: int) -> Any:
+    import cv2
+    import numpy as np
+
+    h, w = rgb.shape[:2]
+    r = size / max(h, w)
+    nh, nw = round(h * r), round(w * r)
+    out = np.full((size, size, 3), 114, np.uint8)
+    top, left = (size - nh) // 2, (size - nw) // 2
+    out[top:top + nh, left:left + nw] = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_LINEAR)
+    return out
 
 
 def _torch_threads() -> int:
@@ -184,7 +291,16 @@ def main() -> None:
     t.add_argument("--warmup-epochs", type=float, default=0.0)
     t.add_argument("--val-images", type=int, default=100,
                    help="held-out images validated after each epoch")
+    t.add_argument("--threads", type=int, default=os.cpu_count() or 1,
+                   help="torch threads (default: all cores; Ultralytics alone leaves one idle)")
     t.set_defaults(func=train)
+    o = sub.add_parser("from-onnx", help="rebuild a trainable checkpoint from a shipped ONNX model")
+    o.add_argument("--onnx", default=str(MODELS_DIR / f"{MODEL_NAME}.onnx"))
+    o.add_argument("--images", required=True, help="folder of .jpg images for the batch-norm statistics")
+    o.add_argument("--calib-images", type=int, default=64)
+    o.add_argument("--imgsz", type=int, default=320)
+    o.add_argument("--out", default="/tmp/furn-runs/from_onnx.pt")
+    o.set_defaults(func=from_onnx)
     e = sub.add_parser("export", help="export a run's checkpoint to semmap/models/")
     e.add_argument("--run", required=True, help="the run folder (…/furniture)")
     e.add_argument("--imgsz", type=int, default=320)
