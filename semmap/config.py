@@ -39,6 +39,19 @@ class ClassConfig(StageConfig):
     color_rgb: tuple[int, int, int]
     #: Existence log-odds subtracted each frame the object should be visible but is not.
     miss_decay: float = Field(default=0.4, ge=0.0, le=5.0)
+    #: The least footprint (length, width) metres an object of this class has: the planner's
+    #: view of a partly seen one (a table top seen edge-on from a low flight, a chair from
+    #: behind) is grown to it on the side its views could not see (see
+    #: :func:`semmap.polygons.grow_to_least_size`). The exported map keeps what was measured.
+    #: ``null``: no such prior (thin or free-form objects).
+    min_footprint_m: tuple[float, float] | None = None
+
+    @field_validator("min_footprint_m")
+    @classmethod
+    def _footprint_sizes(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and not all(0.0 < x <= 20.0 for x in v):
+            raise ValueError(f"length and width must be in (0, 20] m (got {list(v)})")
+        return v
 
     @field_validator("color_rgb")
     @classmethod
@@ -49,14 +62,22 @@ class ClassConfig(StageConfig):
 
 
 def default_classes() -> list[ClassConfig]:
-    """The six classes of the reference design."""
+    """The six classes of the reference design. The least footprints are those of small
+    pieces of office and home furniture (a side chair, a small coffee table, a four-seat
+    meeting table, a two-seat sofa, a compact desk); whiteboards have none, as a wall-mounted
+    one is a thin panel."""
     return [
-        ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75)),
-        ClassConfig(name="coffee_table", hollow="full", margin_m=0.20, color_rgb=(60, 180, 75)),
-        ClassConfig(name="conference_table", hollow="partial", margin_m=0.25, color_rgb=(0, 130, 200)),
-        ClassConfig(name="sofa", hollow="none", margin_m=0.15, color_rgb=(245, 130, 48)),
+        ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75),
+                    min_footprint_m=(0.40, 0.40)),
+        ClassConfig(name="coffee_table", hollow="full", margin_m=0.20, color_rgb=(60, 180, 75),
+                    min_footprint_m=(0.75, 0.45)),
+        ClassConfig(name="conference_table", hollow="partial", margin_m=0.25, color_rgb=(0, 130, 200),
+                    min_footprint_m=(1.60, 0.80)),
+        ClassConfig(name="sofa", hollow="none", margin_m=0.15, color_rgb=(245, 130, 48),
+                    min_footprint_m=(1.40, 0.75)),
         ClassConfig(name="whiteboard", hollow="full", margin_m=0.25, color_rgb=(145, 30, 180)),
-        ClassConfig(name="desk", hollow="full", margin_m=0.25, color_rgb=(70, 240, 240)),
+        ClassConfig(name="desk", hollow="full", margin_m=0.25, color_rgb=(70, 240, 240),
+                    min_footprint_m=(1.00, 0.50)),
     ]
 
 

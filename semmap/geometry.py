@@ -96,6 +96,8 @@ class ObjectObservation:
     #: (K, 2) map-plane projection of the object's downsampled points (the footprint's
     #: evidence); empty when only the polygon is known.
     points_xy_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    #: The camera's map-plane position for this view (where the unseen side is); None unknown.
+    camera_xy_m: tuple[float, float] | None = None
 
     @property
     def centroid_xy_m(self) -> NDArray[np.float64]:
@@ -498,4 +500,5 @@ def observe_object(
         top_plane=top_plane,
         top_height_m=top_height,
         at_image_edge=bool(touches),
+        camera_xy_m=(float(cam_pos[0]), float(cam_pos[1])),
     )

@@ -44,6 +44,7 @@ from semmap.object_evidence import FootprintEvidence
 from semmap.polygons import (
     convex_footprint,
     convex_intersection,
+    grow_to_least_size,
     min_perimeter_rectangle,
     polygon_area_m2,
     simplify_polygon,
@@ -116,7 +117,8 @@ class MappedObject:
     likely. ``position_map_m``: fused centroid of the object's points, with isotropic standard
     deviation ``position_std_m``. ``footprint_xy_m``: (M, 2) counter-clockwise polygon.
     ``z_min_m``/``z_max_m``: height range above the floor; ``top_height_m``: the seat/top
-    plane's height where one was found.
+    plane's height where one was found. ``view_dir_xy``: the mean unit vector from the cameras
+    that saw the object to it (length 1: all views from one side, 0: from all round or unknown).
     """
 
     object_id: int
@@ -133,6 +135,7 @@ class MappedObject:
     last_seen_s: float
     n_observations: int
     confirmed: bool
+    view_dir_xy: tuple[float, float] = (0.0, 0.0)
 
     @property
     def height_m(self) -> float:
@@ -143,11 +146,16 @@ class MappedObject:
         """Centre of the footprint's bounding box in its own orientation (a rectangle's centre)."""
         return min_perimeter_rectangle(self.footprint_xy_m).mean(axis=0)
 
-    def to_footprint(self, margin_m: float = 0.0) -> ObjectFootprint:
-        """The costmap's view of this object."""
+    def to_footprint(self, margin_m: float = 0.0,
+                     min_footprint_m: tuple[float, float] | None = None) -> ObjectFootprint:
+        """The costmap's view of this object: its footprint, grown to ``min_footprint_m``
+        (the class's least size) on the side its views did not see, when smaller."""
+        polygon = self.footprint_xy_m
+        if min_footprint_m is not None:
+            polygon = grow_to_least_size(polygon, min_footprint_m, self.view_dir_xy)
         return ObjectFootprint(
             object_id=self.object_id, class_name=self.class_name,
-            polygon_xy_m=self.footprint_xy_m, z_min_m=self.z_min_m, z_max_m=self.z_max_m,
+            polygon_xy_m=polygon, z_min_m=self.z_min_m, z_max_m=self.z_max_m,
             existence=self.existence, margin_m=margin_m,
         )
 
@@ -168,6 +176,7 @@ class MappedObject:
             "last_seen_s": self.last_seen_s,
             "n_observations": self.n_observations,
             "confirmed": self.confirmed,
+            "view_dir_xy": [round(float(c), 4) for c in self.view_dir_xy],
         }
 
 
@@ -194,6 +203,9 @@ class _State:
     top_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
     #: Footprint evidence: weighted map-plane cells the views saw the object in.
     evidence: FootprintEvidence = field(default_factory=FootprintEvidence)
+    #: Sum of the unit map-plane vectors camera -> object over the views, and their count.
+    view_sum_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros(2))
+    n_views: int = 0
     footprint_cache: NDArray[np.float64] | None = None
     #: Last snapshot; dropped whenever the state changes (most objects do not, each frame).
     snapshot_cache: MappedObject | None = None
@@ -242,9 +254,11 @@ class ObjectMap:
         return [o for o in out if o.confirmed] if confirmed_only else out
 
     def footprints(self, confirmed_only: bool = True) -> list[ObjectFootprint]:
-        """Objects as costmap footprints, each with its class's margin."""
-        margins = {c.name: c.margin_m for c in self.classes}
-        return [o.to_footprint(margins.get(o.class_name, 0.0)) for o in self.objects(confirmed_only)]
+        """Objects as costmap footprints, each with its class's margin and grown to its class's
+        least footprint (:meth:`MappedObject.to_footprint`)."""
+        by_name = {c.name: c for c in self.classes}
+        return [o.to_footprint(by_name[o.class_name].margin_m, by_name[o.class_name].min_footprint_m)
+                for o in self.objects(confirmed_only)]
 
     def class_probabilities(self) -> dict[int, NDArray[np.float32]]:
         """Object id -> (K,) class probabilities in ``class_names`` order (for the class layer)."""
@@ -280,12 +294,14 @@ class ObjectMap:
                 )
                 z0, z1 = float(d["z_min_m"]), float(d["z_max_m"])
                 top = d.get("top_height_m")
+                view = np.asarray(d.get("view_dir_xy", (0.0, 0.0)), dtype=np.float64).reshape(2)
             except (KeyError, TypeError, ValueError) as exc:
                 raise MapError(f"saved object #{i}: missing or bad value ({exc!r})") from exc
             if len(fp) < 3 or probs.sum() <= 0:
                 raise MapError(f"saved object {oid}: footprint needs 3+ vertices and some class probability")
             s.z_max_hist.append(z1)
             s.z_min_hist.append(z0)
+            s.view_sum_xy, s.n_views = view, 1
             if top is not None:
                 s.top_hist.append(float(top))
             # The footprint becomes evidence: its cells, at full weight.
@@ -417,6 +433,8 @@ class ObjectMap:
             keep.z_min_hist.extend(drop.z_min_hist)
             keep.top_hist.extend(drop.top_hist)
         keep.evidence.merge(drop.evidence)
+        keep.view_sum_xy = keep.view_sum_xy + drop.view_sum_xy
+        keep.n_views += drop.n_views
         keep.footprint_cache = None
         keep.snapshot_cache = None
         keep.n_observations += drop.n_observations
@@ -576,6 +594,12 @@ class ObjectMap:
         pts = o.points_xy_m if len(o.points_xy_m) else fp
         near = o.range_m <= cfg.footprint_max_range_m
         s.evidence.add_view(pts, 1.0 if near else _FAR_WEIGHT)
+        if o.camera_xy_m is not None:
+            d = o.centroid_xy_m - np.asarray(o.camera_xy_m, dtype=np.float64)
+            n = float(np.hypot(d[0], d[1]))
+            if n > 1e-6:
+                s.view_sum_xy = s.view_sum_xy + d / n
+                s.n_views += 1
         s.footprint_cache = None
 
     def _evidence_footprint(self, s: _State) -> NDArray[np.float64]:
@@ -642,5 +666,6 @@ class ObjectMap:
             last_seen_s=s.last_seen_s,
             n_observations=s.n_observations,
             confirmed=p >= cfg.existence_confirm,
+            view_dir_xy=(float(s.view_sum_xy[0]) / max(s.n_views, 1), float(s.view_sum_xy[1]) / max(s.n_views, 1)),
         )
         return s.snapshot_cache

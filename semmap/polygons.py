@@ -1,5 +1,6 @@
 """Polygon helpers in the map plane (metres, (N, 2) arrays): convex hull, simplification,
-oriented bounding rectangles, area, point-in-convex test, convex intersection and IoU.
+oriented bounding rectangles (and growing one to a least size), area, point-in-convex test,
+convex intersection and IoU.
 
 Shared by the object geometry (:mod:`semmap.geometry`), the object map
 (:mod:`semmap.objects`) and its footprint evidence (:mod:`semmap.object_evidence`).
@@ -16,8 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
-    "convex_footprint", "convex_intersection", "convex_iou", "inside_convex", "min_area_rectangle",
-    "min_perimeter_rectangle", "polygon_area_m2", "simplify_polygon",
+    "convex_footprint", "convex_intersection", "convex_iou", "grow_to_least_size", "inside_convex",
+    "min_area_rectangle", "min_perimeter_rectangle", "polygon_area_m2", "simplify_polygon",
 ]
 
 
@@ -119,6 +120,44 @@ def min_perimeter_rectangle(xy_m: NDArray[np.floating]) -> NDArray[np.float64]:
     triangle of points (why the object map's footprints use it: see
     :mod:`semmap.object_evidence`)."""
     return _caliper_rectangle(xy_m, "perimeter")
+
+
+def grow_to_least_size(
+    polygon_xy_m: NDArray[np.floating], least_size_m: tuple[float, float],
+    away_from_xy: NDArray[np.floating] | tuple[float, float] = (0.0, 0.0),
+) -> NDArray[np.float64]:
+    """The polygon's least-perimeter rectangle grown until its long side is at least
+    ``least_size_m[0]`` and its short side at least ``least_size_m[1]`` (4, 2), or the polygon
+    itself (as float64) when it is that large already.
+
+    ``away_from_xy`` says where the growth goes: the mean unit vector from the viewpoints to
+    the object (length 0..1). Along each side's axis the missing length is split in proportion
+    to how much that axis points away from the viewers, so a part seen from one side grows on
+    its unseen side, and one seen from all round (or with no direction) grows evenly.
+    """
+    poly = np.asarray(polygon_xy_m, dtype=np.float64).reshape(-1, 2)
+    least_long, least_short = max(least_size_m), min(least_size_m)
+    rect = min_perimeter_rectangle(poly)
+    e0, e1 = rect[1] - rect[0], rect[3] - rect[0]
+    n0, n1 = float(np.hypot(*e0)), float(np.hypot(*e1))
+    if n0 < 1e-9 or n1 < 1e-9:
+        return poly
+    if n0 < n1:  # axis 0 is the long side
+        e0, e1, n0, n1 = e1, e0, n1, n0
+    grow = (max(0.0, least_long - n0), max(0.0, least_short - n1))
+    if grow == (0.0, 0.0):
+        return poly
+    away = np.asarray(away_from_xy, dtype=np.float64).reshape(2)
+    origin = rect[0]
+    lo, hi = [], []
+    for axis, length, g in ((e0 / n0, n0, grow[0]), (e1 / n1, n1, grow[1])):
+        c = float(np.clip(away @ axis, -1.0, 1.0))  # +1: the viewers look along +axis
+        lo.append(-g * (1.0 - c) / 2.0)
+        hi.append(length + g * (1.0 + c) / 2.0)
+    u, v = e0 / n0, e1 / n1
+    corners = [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]
+    out = np.array([origin + a * u + b * v for a, b in corners])
+    return out if _signed_area(out.tolist()) > 0 else out[::-1].copy()
 
 
 def inside_convex(poly: NDArray[np.float64], xy: NDArray[np.float64]) -> NDArray[np.bool_]:

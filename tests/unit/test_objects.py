@@ -11,7 +11,7 @@ from semmap.config import MapConfig, default_classes
 from semmap.frames import make_transform
 from semmap.geometry import ObjectObservation
 from semmap.objects import CameraView, ObjectMap
-from semmap.polygons import convex_iou
+from semmap.polygons import convex_iou, grow_to_least_size, polygon_area_m2
 from semmap.types import CameraIntrinsics
 
 K = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
@@ -198,3 +198,45 @@ def test_a_box_showing_another_objects_surface_is_not_a_new_object() -> None:
         m.update([_rect_obs(1, "desk", 3.0, 0.0, 4.4, 0.7, (0.0, 0.73), 0.72, float(t)),
                   _rect_obs(5, "chair", 3.4, 0.1, 3.9, 0.6, (0.0, 0.88), 0.45, float(t))], float(t))
     assert sorted(o.class_name for o in m.objects()) == ["chair", "desk"]
+
+
+def test_grow_to_least_size_grows_on_the_unseen_side() -> None:
+    # A 0.8 x 0.1 m sliver (a table top's near edge) seen by cameras to its north (+y).
+    sliver = np.array([[0.0, 0.0], [0.8, 0.0], [0.8, 0.1], [0.0, 0.1]])
+    grown = grow_to_least_size(sliver, (0.75, 0.45), away_from_xy=(0.0, -1.0))
+    lo, hi = grown.min(axis=0), grown.max(axis=0)
+    assert lo[0] == pytest.approx(0.0) and hi[0] == pytest.approx(0.8)  # long enough already
+    assert hi[1] == pytest.approx(0.1) and lo[1] == pytest.approx(-0.35)  # all growth to the south
+    assert polygon_area_m2(grown) == pytest.approx(0.8 * 0.45)
+    # Seen from all round (no direction): even growth on both sides.
+    even = grow_to_least_size(sliver, (0.75, 0.45))
+    assert even[:, 1].min() == pytest.approx(-0.175) and even[:, 1].max() == pytest.approx(0.275)
+    # Large enough: the polygon itself.
+    big = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 0.6], [0.0, 0.6]])
+    assert np.array_equal(grow_to_least_size(big, (0.75, 0.45), (0.0, -1.0)), big)
+
+
+def test_planning_footprint_of_a_partly_seen_table_grows_away_from_the_camera() -> None:
+    # A coffee table whose views (from a camera at y = +2 m) only showed a 0.1 m strip.
+    m = ObjectMap(default_classes())
+    fp = np.array([[2.6, 0.0], [3.4, 0.0], [3.4, 0.1], [2.6, 0.1]])
+    for t in range(3):
+        o = ObjectObservation(1, "coffee_table", 0.9, float(t), (3.0, 0.05, 0.4), fp, 0.0, 0.44, 500, 100, 2.0,
+                              camera_xy_m=(3.0, 2.0))
+        m.update([o], float(t))
+    (mapped,) = m.objects()
+    assert mapped.view_dir_xy[1] == pytest.approx(-1.0, abs=1e-6)
+    measured = mapped.footprint_xy_m
+    assert np.ptp(measured[:, 1]) < 0.2  # the map keeps what it measured (evidence cells)
+    (planning,) = m.footprints()
+    # Grown to the coffee table's least width, 0.45 m, all of it south (away from the camera).
+    assert planning.polygon_xy_m[:, 1].max() == pytest.approx(measured[:, 1].max(), abs=1e-6)
+    assert np.ptp(planning.polygon_xy_m[:, 1]) == pytest.approx(0.45, abs=1e-6)
+    # A class without a least footprint keeps its measured one.
+    classes = [c.model_copy(update={"min_footprint_m": None}) for c in default_classes()]
+    m2 = ObjectMap(classes)
+    for t in range(3):
+        m2.update([ObjectObservation(1, "coffee_table", 0.9, float(t), (3.0, 0.05, 0.4), fp, 0.0, 0.44, 500, 100,
+                                     2.0, camera_xy_m=(3.0, 2.0))], float(t))
+    (p2,) = m2.footprints()
+    assert np.ptp(p2.polygon_xy_m[:, 1]) < 0.2
