@@ -52,6 +52,9 @@ class PlannerConfig(StageConfig):
     max_speed_m_s: float = Field(default=1.0, gt=0.0, le=20.0)
     max_accel_m_s2: float = Field(default=1.0, gt=0.0, le=20.0)
     max_yaw_rate_deg_s: float = Field(default=60.0, gt=0.0, le=720.0)
+    #: Starting a path from rest, the vehicle turns on the spot until it heads within this of
+    #: the path, so the camera (D455: 87 deg wide) sees where it goes; 180 = set off at once.
+    max_heading_error_deg: float = Field(default=30.0, ge=0.0, le=180.0)
     #: Geofence in the map frame: [x_min, y_min, x_max, y_max]; None = the map's extent.
     geofence_xy_m: tuple[float, float, float, float] | None = None
     max_altitude_m: float = Field(default=3.0, gt=0.0)

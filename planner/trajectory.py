@@ -10,7 +10,10 @@ is capped so that the change of the velocity vector, ``2 v sin(theta / 2)``, sta
 Yaw follows the direction of travel at no more than ``max_yaw_rate``: each heading change
 is a constant-rate turn centred on the corner (pushed later if the previous turn has not
 finished), so yaw may briefly lead or lag the direction of travel, which a multicopter does
-not mind. Angles are in the map frame (ENU: 0 = +x east, counter-clockwise positive).
+not mind. Starting from rest, the vehicle first turns on the spot until its heading is within
+``max_heading_error`` of the first segment: the camera is the only sensor, and a vehicle that
+set off sideways or backwards would fly into space it has not looked at (at 60 deg/s a
+reversal takes 3 s, over a metre of blind flight at cruise speed). Angles are in the map frame (ENU: 0 = +x east, counter-clockwise positive).
 """
 
 from __future__ import annotations
@@ -33,18 +36,23 @@ class TrajectoryLimits:
     max_accel_m_s2: float
     max_yaw_rate_rad_s: float
     corner_speed_jump_m_s: float = 0.3
+    #: Starting from rest, motion waits until the heading is within this of the first segment
+    #: (``math.pi``: never waits).
+    max_heading_error_rad: float = math.pi
 
     @classmethod
     def from_config(cls, config: PlannerConfig) -> "TrajectoryLimits":
-        """The limits in a planner config (whose yaw rate is in degrees per second)."""
+        """The limits in a planner config (whose angles are in degrees)."""
         return cls(config.max_speed_m_s, config.max_accel_m_s2, math.radians(config.max_yaw_rate_deg_s),
-                   config.corner_speed_jump_m_s)
+                   config.corner_speed_jump_m_s, math.radians(config.max_heading_error_deg))
 
     def __post_init__(self) -> None:
         for name in ("max_speed_m_s", "max_accel_m_s2", "max_yaw_rate_rad_s", "corner_speed_jump_m_s"):
             v = getattr(self, name)
             if not (v > 0.0 and math.isfinite(v)):
                 raise PlanningError(f"trajectory limit {name} must be a positive number (got {v})")
+        if not 0.0 <= self.max_heading_error_rad <= math.pi:
+            raise PlanningError(f"max_heading_error_rad must be in [0, pi] (got {self.max_heading_error_rad})")
 
 
 @dataclass(frozen=True)
@@ -101,7 +109,7 @@ class Trajectory:
         t = max(t_s, 0.0)
         i = int(np.searchsorted(self.seg_t0_s, t, side="right") - 1)
         i = min(max(i, 0), n - 1)
-        tau = t - float(self.seg_t0_s[i])
+        tau = max(t - float(self.seg_t0_s[i]), 0.0)  # before seg 0 starts: turning on the spot
         a = self.limits.max_accel_m_s2
         v0, vp = float(self.vertex_speed_m_s[i]), float(self.seg_peak_m_s[i])
         ta, tc, tb = (float(x) for x in self.seg_phase_s[i])
@@ -196,10 +204,16 @@ def time_parametrize(
     for k in range(n - 1, -1, -1):
         v[k] = min(v[k], math.sqrt(v[k + 1] ** 2 + 2.0 * a * L[k]))
 
+    # Yaw at the start; from rest, wait for the first turn to face (nearly) along the path.
+    omega = limits.max_yaw_rate_rad_s
+    yaw0 = float(heading[0]) if initial_yaw_rad is None and n else float(initial_yaw_rad or 0.0)
+    t = 0.0
+    if n and v[0] <= 1e-6:
+        error0 = abs(_wrap(float(heading[0]) - yaw0))
+        t = max(0.0, error0 - limits.max_heading_error_rad) / omega
     peak = np.zeros(n)
     phase = np.zeros((n, 3))
     t0 = np.zeros(n)
-    t = 0.0
     for k in range(n):
         vp, ta, tc, tb = _segment_profile(float(L[k]), float(v[k]), float(v[k + 1]), vmax, a)
         peak[k] = vp
@@ -209,8 +223,6 @@ def time_parametrize(
     motion_end = t
 
     # Yaw turns, each centred on its corner, never overlapping the previous one.
-    omega = limits.max_yaw_rate_rad_s
-    yaw0 = float(heading[0]) if initial_yaw_rad is None and n else float(initial_yaw_rad or 0.0)
     turns: list[tuple[float, float, float, float]] = []
     current = yaw0
     free_at = 0.0

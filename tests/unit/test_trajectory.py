@@ -120,3 +120,32 @@ def test_initial_speed_starts_moving_and_still_ends_at_rest() -> None:
     # On a path too short to brake from that speed, it starts only as fast as it can stop.
     short = time_parametrize(np.array([[0.0, 0.0], [0.1, 0.0]]), 1.0, limits, initial_speed_m_s=1.0)
     assert float(np.linalg.norm(short.sample(0.0).velocity_m_s)) <= math.sqrt(2 * 1.0 * 0.1) + 1e-9
+
+
+def test_from_rest_it_turns_to_face_the_path_before_moving() -> None:
+    # The path runs east; the vehicle faces west. With a 30 deg heading limit it turns 150 deg
+    # on the spot (2.5 s at 60 deg/s) before setting off, and never moves heading more than
+    # 30 deg off its direction of travel.
+    limits = TrajectoryLimits(1.0, 0.8, math.radians(60), 0.3, max_heading_error_rad=math.radians(30))
+    path = np.array([[0.0, 0.0], [3.0, 0.0]])
+    traj = time_parametrize(path, 1.0, limits, initial_yaw_rad=math.pi)
+    blind = time_parametrize(path, 1.0, LIMITS, initial_yaw_rad=math.pi)
+    assert traj.duration_s == pytest.approx(blind.motion_end_s + 2.5, abs=1e-6)
+    for t, s in zip(*_samples(traj), strict=True):
+        moving = np.linalg.norm(s.velocity_m_s) > 1e-9
+        if t < 2.5 - 1e-6:
+            assert np.allclose(s.position_m[:2], path[0]) and not moving
+        if moving:
+            assert abs(math.remainder(s.yaw_rad - 0.0, 2 * math.pi)) <= math.radians(30) + 1e-6
+    # The blind one sets off at once, facing backwards.
+    s = blind.sample(0.5)
+    assert np.linalg.norm(s.velocity_m_s) > 0.1 and abs(math.remainder(s.yaw_rad, 2 * math.pi)) > math.radians(100)
+    # Already moving (a re-plan spliced into flight): no waiting.
+    spliced = time_parametrize(path, 1.0, limits, initial_yaw_rad=math.pi, initial_speed_m_s=0.5)
+    assert np.linalg.norm(spliced.sample(0.0).velocity_m_s) == pytest.approx(0.5)
+
+
+def test_heading_limit_comes_from_the_planner_config() -> None:
+    assert TrajectoryLimits.from_config(PlannerConfig()).max_heading_error_rad == pytest.approx(math.radians(30))
+    with pytest.raises(PlanningError, match="max_heading_error_rad"):
+        TrajectoryLimits(1.0, 1.0, 1.0, 0.3, max_heading_error_rad=4.0)
