@@ -109,12 +109,13 @@ def time_limit_s(scenario: Scenario, cfg: CompanionConfig) -> float:
 
 def fly_room(cfg: CompanionConfig, scenario: Scenario, detector_name: str, det_cache: dict[str, Any],
              args: argparse.Namespace) -> list[tuple[str, FlightLog, LockstepFlight]]:
-    """Both flights of one room (metric-only first, then semantic), sharing the renderer."""
+    """The flights of one room (``args.maps``: metric-only first, then semantic), sharing the
+    renderer."""
     renderer = renderer_from_config(scenario.room, cfg.model_copy(
         update={"sim": cfg.sim.model_copy(update={"seed": scenario.room.seed})}))
     out = []
     try:
-        for mode in MAPS:
+        for mode in args.maps:
             if detector_name == "oracle":
                 det, _ = make_detector(cfg, "oracle", scenario)
             else:
@@ -262,6 +263,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="check the remaining path this often (0 = on every new map; the service's runner: 0.5)")
     ap.add_argument("--metric-slice-m", type=float, default=0.1,
                     help="thickness of the depth slice the metric-only map is built from (default 0.1 m)")
+    ap.add_argument("--maps", type=_maps_arg, default=list(MAPS),
+                    help="map types to fly, comma-separated (default metric,semantic; one alone for diagnosis)")
+    ap.add_argument("--only", type=lambda v: {int(x) for x in v.split(",")}, default=None,
+                    help="fly only these room seeds (comma-separated) of the --rooms/--seed set, e.g. the failures")
     ap.add_argument("--config", default=None, help="config file (default: the embedded default)")
     ap.add_argument("--out", default=str(REPO / "bench" / "out" / "safety"), help="output folder")
     ap.add_argument("--readme", action="store_true", help="also write the pictures for the README into docs/images/")
@@ -278,11 +283,16 @@ def main(argv: list[str] | None = None) -> int:
     scenarios = make_scenarios(cfg, rooms, args.seed, altitudes)
     if len(scenarios) < rooms:
         print(f"only {len(scenarios)} of {rooms} rooms had a fitting start and goal", file=sys.stderr)
+    if args.only is not None:
+        unknown = args.only - {sc.room.seed for sc in scenarios}
+        if unknown:
+            ap.error(f"--only: room seeds {sorted(unknown)} are not among the {len(scenarios)} rooms from seed {args.seed}")
+        scenarios = [sc for sc in scenarios if sc.room.seed in args.only]
     records: list[dict[str, Any]] = []
     logs: list[FlightLog] = []
     kept: dict[int, dict[str, Any]] = {}
     det_cache: dict[str, Any] = {}
-    total = 2 * len(scenarios)
+    total = len(args.maps) * len(scenarios)
     progress(0, total, t0, "")
     for sc in scenarios:
         for mode, lg, flight in fly_room(cfg, sc, args.detector, det_cache, args):
@@ -322,13 +332,22 @@ def main(argv: list[str] | None = None) -> int:
     fig["latency_ms"] = latency_table(logs)
     fig["reference_jetson_xavier_agx_ms"] = REFERENCE_MS
     fig["semantic_failures"] = [r for r in records if r["map"] == "semantic" and not r["safe_success"]]
-    fig["pictures"] = write_pictures(out, cfg, fig, records, kept, args.readme)
+    # The pictures compare the two maps: only drawn when both were flown.
+    fig["pictures"] = write_pictures(out, cfg, fig, records, kept, args.readme) if len(args.maps) == 2 else {}
     (out / "results.json").write_text(json.dumps({**fig, "flights_detail": records}, indent=1) + "\n",
                                       encoding="utf-8")
     print_report(fig)
     print(f"\nresults: {out / 'results.json'}; pictures: {', '.join(fig['pictures'].values())}")
     print(json.dumps(fig, sort_keys=True, default=float))
     return 0
+
+
+def _maps_arg(value: str) -> list[str]:
+    maps = [m.strip() for m in value.split(",") if m.strip()]
+    bad = [m for m in maps if m not in MAPS]
+    if bad or not maps:
+        raise argparse.ArgumentTypeError(f"--maps: {bad or value!r} not among {', '.join(MAPS)}")
+    return [m for m in MAPS if m in maps]
 
 
 def write_pictures(out: Path, cfg: CompanionConfig, fig: dict[str, Any], records: list[dict[str, Any]],
