@@ -62,22 +62,19 @@ class ClassConfig(StageConfig):
 
 
 def default_classes() -> list[ClassConfig]:
-    """The six classes of the reference design. The least footprints are those of small
-    pieces of office and home furniture (a side chair, a small coffee table, a four-seat
-    meeting table, a two-seat sofa, a compact desk); whiteboards have none, as a wall-mounted
-    one is a thin panel."""
+    """The six classes of the reference design. Coffee tables have a least footprint (that of
+    a small one): their top, a few centimetres into a 0.6 m flight's band, is seen edge-on and
+    maps as a sliver until the vehicle is close. The taller classes show enough of themselves
+    in the band; on the safety bench growing them too (chair 0.4 x 0.4, desk 1.0 x 0.5 m)
+    closed passages (two of 50 rooms boxed in, 94 % success) and avoided no collision."""
     return [
-        ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75),
-                    min_footprint_m=(0.40, 0.40)),
+        ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75)),
         ClassConfig(name="coffee_table", hollow="full", margin_m=0.20, color_rgb=(60, 180, 75),
                     min_footprint_m=(0.75, 0.45)),
-        ClassConfig(name="conference_table", hollow="partial", margin_m=0.25, color_rgb=(0, 130, 200),
-                    min_footprint_m=(1.60, 0.80)),
-        ClassConfig(name="sofa", hollow="none", margin_m=0.15, color_rgb=(245, 130, 48),
-                    min_footprint_m=(1.40, 0.75)),
+        ClassConfig(name="conference_table", hollow="partial", margin_m=0.25, color_rgb=(0, 130, 200)),
+        ClassConfig(name="sofa", hollow="none", margin_m=0.15, color_rgb=(245, 130, 48)),
         ClassConfig(name="whiteboard", hollow="full", margin_m=0.25, color_rgb=(145, 30, 180)),
-        ClassConfig(name="desk", hollow="full", margin_m=0.25, color_rgb=(70, 240, 240),
-                    min_footprint_m=(1.00, 0.50)),
+        ClassConfig(name="desk", hollow="full", margin_m=0.25, color_rgb=(70, 240, 240)),
     ]
 
 
