@@ -152,6 +152,7 @@ def from_onnx(args: argparse.Namespace) -> None:
     import torch
     from onnx import numpy_helper
     from ultralytics import __version__
+    from ultralytics.data.augment import LetterBox
     from ultralytics.nn.modules.conv import Conv
     from ultralytics.nn.tasks import DetectionModel
 
@@ -190,7 +191,9 @@ def from_onnx(args: argparse.Namespace) -> None:
     images = sorted(Path(args.images).glob("*.jpg"))[: args.calib_images]
     if not images:
         sys.exit(f"{args.images}: no .jpg images to calibrate the batch norms on")
-    batch = np.stack([_letterbox(cv2.imread(str(p))[:, :, ::-1], args.imgsz) for p in images])
+    # Ultralytics' own letterbox (centred, grey 114), as its validator feeds the model.
+    letterbox = LetterBox((args.imgsz, args.imgsz), auto=False)
+    batch = np.stack([letterbox(image=cv2.imread(str(p)))[:, :, ::-1] for p in images])
     x = torch.from_numpy(batch).permute(0, 3, 1, 2).float() / 255.0
     hooks = [bn.register_forward_pre_hook(calibrate) for bn in pending]
     model.eval()
@@ -216,19 +219,6 @@ def from_onnx(args: argparse.Namespace) -> None:
             "from_onnx": str(args.onnx)}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     torch.save(ckpt, args.out)
-
-
-def _letterbox(rgb: Any, size: int) -> Any:
-    import cv2
-    import numpy as np
-
-    h, w = rgb.shape[:2]
-    r = size / max(h, w)
-    nh, nw = round(h * r), round(w * r)
-    out = np.full((size, size, 3), 114, np.uint8)
-    top, left = (size - nh) // 2, (size - nw) // 2
-    out[top:top + nh, left:left + nw] = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_LINEAR)
-    return out
 
 
 def _torch_threads() -> int:
