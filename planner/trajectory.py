@@ -13,7 +13,8 @@ finished), so yaw may briefly lead or lag the direction of travel, which a multi
 not mind. Starting from rest, the vehicle first turns on the spot until its heading is within
 ``max_heading_error`` of the first segment: the camera is the only sensor, and a vehicle that
 set off sideways or backwards would fly into space it has not looked at (at 60 deg/s a
-reversal takes 3 s, over a metre of blind flight at cruise speed). Angles are in the map frame (ENU: 0 = +x east, counter-clockwise positive).
+reversal takes 3 s, over a metre of blind flight at cruise speed). Angles are in the map
+frame (ENU: 0 = +x east, counter-clockwise positive).
 """
 
 from __future__ import annotations

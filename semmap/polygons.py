@@ -148,15 +148,14 @@ def grow_to_least_size(
     if grow == (0.0, 0.0):
         return poly
     away = np.asarray(away_from_xy, dtype=np.float64).reshape(2)
-    origin = rect[0]
+    u, v = e0 / n0, e1 / n1
     lo, hi = [], []
-    for axis, length, g in ((e0 / n0, n0, grow[0]), (e1 / n1, n1, grow[1])):
+    for axis, length, g in ((u, n0, grow[0]), (v, n1, grow[1])):
         c = float(np.clip(away @ axis, -1.0, 1.0))  # +1: the viewers look along +axis
         lo.append(-g * (1.0 - c) / 2.0)
         hi.append(length + g * (1.0 + c) / 2.0)
-    u, v = e0 / n0, e1 / n1
     corners = [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]
-    out = np.array([origin + a * u + b * v for a, b in corners])
+    out = np.array([rect[0] + a * u + b * v for a, b in corners])
     return out if _signed_area(out.tolist()) > 0 else out[::-1].copy()
 
 
