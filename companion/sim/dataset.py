@@ -8,7 +8,8 @@ photometric conditions vary:
 
 * camera poses a multicopter has indoors: height 0.5-2.5 m (below the ceiling), anywhere in
   the room at least :attr:`DatasetSpec.min_clearance_m` from walls and furniture, yaw either
-  towards a piece of furniture (with an offset, so objects are not always centred) or random,
+  towards a piece of furniture (with an offset, so objects are not always centred; optionally
+  class-balanced, :attr:`DatasetSpec.aim_class_balanced`) or random,
   a look-down tilt of -10..50 degrees plus the vehicle's own pitch and roll of +-10 degrees;
 * gain, gamma, white balance, sensor noise, and optional linear motion blur.
 
@@ -70,6 +71,15 @@ class DatasetSpec:
     max_roll_pitch_deg: float = 10.0
     #: Fraction of images aimed at a random piece of furniture (the rest look anywhere).
     aim_fraction: float = 0.75
+    #: Aim at a class drawn uniformly from the room's classes, then at one of its objects,
+    #: instead of at a uniformly drawn object: rare classes (a room has one conference table
+    #: and eight chairs) get as many aimed views as common ones. Training data only; the
+    #: held-out split keeps the plain draw so its class mix is what a flight sees.
+    aim_class_balanced: bool = False
+    #: Relative class frequencies of the generated rooms, ``((name, weight), ...)``; empty
+    #: keeps :data:`companion.sim.world.CLASS_WEIGHTS`. Training data only, to give rare
+    #: classes (conference tables) more instances.
+    class_weights: tuple[tuple[str, float], ...] = ()
     min_clearance_m: float = 0.3
     min_visible_px: int = 120
     motion_blur_fraction: float = 0.3
@@ -121,7 +131,8 @@ def _random_color(rng: np.random.Generator) -> tuple[int, int, int]:
     return int(rgb[0]), int(rgb[1]), int(rgb[2])
 
 
-def varied_room(room_seed: int, rng: np.random.Generator, class_names: Sequence[str]) -> Room:
+def varied_room(room_seed: int, rng: np.random.Generator, class_names: Sequence[str],
+                class_weights: Sequence[tuple[str, float]] = ()) -> Room:
     """A room of ``room_seed`` with a random size, wall height, furniture count, doorways and
     colours (from ``rng``). The geometry depends on both; the seed range keeps splits apart."""
     geo = np.random.default_rng([room_seed, int(rng.integers(1 << 31))])
@@ -133,6 +144,7 @@ def varied_room(room_seed: int, rng: np.random.Generator, class_names: Sequence[
         n_objects=int(geo.integers(4, 13)),
         n_doorways=int(geo.integers(1, 4)),
         class_names=list(class_names),
+        class_weights=dict(class_weights) or None,
     )
     objects: list[FurnitureObject] = []
     for obj in room.objects:
@@ -165,7 +177,13 @@ def sample_camera_pose(
         if clearance_m(room, xyz[None, :], vehicle_height_m=0.2)[0] < spec.min_clearance_m:
             continue
         if room.objects and rng.random() < spec.aim_fraction:
-            target = room.objects[int(rng.integers(len(room.objects)))].centroid_m()
+            if spec.aim_class_balanced:
+                names = sorted({o.class_name for o in room.objects})
+                name = names[int(rng.integers(len(names)))]
+                pool = [o for o in room.objects if o.class_name == name]
+            else:
+                pool = list(room.objects)
+            target = pool[int(rng.integers(len(pool)))].centroid_m()
             d = target - xyz
             yaw = math.atan2(d[1], d[0]) + rng.normal(0.0, math.radians(15.0))
             tilt = math.degrees(math.atan2(-d[2], math.hypot(d[0], d[1]))) + rng.normal(0.0, 8.0)
@@ -244,7 +262,7 @@ def generate(spec: DatasetSpec, room_start: int = 0) -> Iterator[LabeledImage]:
     intr = spec.intrinsics
     for i, room_seed in enumerate(room_seeds(spec.split, room_start + spec.n_rooms)[room_start:]):
         rng = np.random.default_rng([spec.seed, room_seed])
-        room = varied_room(room_seed, rng, spec.class_names)
+        room = varied_room(room_seed, rng, spec.class_names, spec.class_weights)
         renderer = RoomRenderer(
             room, spec.class_names, intr, noise=DepthNoise(), seed=int(rng.integers(1 << 31)),
             light_dir_map=(float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), float(rng.uniform(0.5, 1.5))),

@@ -10,7 +10,7 @@ whole point: a depth slice below the top sees only legs.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -336,8 +336,12 @@ def generate_room(
     class_names: Sequence[str] | None = None,
     min_gap_m: float = 0.25,
     free_path_radius_m: float = 0.3,
+    class_weights: Mapping[str, float] | None = None,
 ) -> Room:
     """A furnished room, the same for the same arguments.
+
+    Classes are drawn with ``class_weights`` (relative; default :data:`CLASS_WEIGHTS`, where
+    chairs are common); a class the mapping leaves out keeps its default weight.
 
     Objects are placed at random positions and yaws without overlapping each other (``min_gap_m``
     apart) or the walls. An object whose placement would block the last free path between the
@@ -353,7 +357,13 @@ def generate_room(
     rng = np.random.default_rng(seed)
     doorways = _sample_doorways(rng, width_m, depth_m, n_doorways)
     walls = _walls_with_doorways(width_m, depth_m, wall_height_m, doorways)
-    weights = np.array([CLASS_WEIGHTS[n] for n in names])
+    chosen = {**CLASS_WEIGHTS, **(class_weights or {})}
+    bad = {n: w for n, w in chosen.items() if not (math.isfinite(w) and w >= 0.0)}
+    if bad:
+        raise SimulationError(f"class_weights must be finite and >= 0 (got {bad})")
+    weights = np.array([chosen[n] for n in names])
+    if weights.sum() <= 0.0:
+        raise SimulationError(f"class_weights give every class of {names} weight 0")
     weights /= weights.sum()
 
     # Imported here: groundtruth depends on this module's types.

@@ -116,3 +116,45 @@ def test_generated_images_are_labelled_from_the_rendered_masks(tmp_path) -> None
     lines = [ln for p in (tmp_path / "labels" / "heldout").glob("*.txt") for ln in p.read_text().splitlines()]
     assert len(lines) == n_labels
     assert "names" in (tmp_path / "data.yaml").read_text()
+
+
+def test_class_weights_shift_the_rooms_class_mix_and_bad_weights_are_named() -> None:
+    """Weighting a class up gives more of it; a weight of 0 leaves it out entirely."""
+    def count(weights: tuple[tuple[str, float], ...]) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for seed in range(100_000, 100_040):
+            room = varied_room(seed, np.random.default_rng(seed), DatasetSpec().class_names, weights)
+            for o in room.objects:
+                out[o.class_name] = out.get(o.class_name, 0) + 1
+        return out
+
+    plain = count(())
+    rare = count((("conference_table", 6.0), ("chair", 0.0)))
+    assert "chair" not in rare and plain.get("chair", 0) > 0
+    assert rare.get("conference_table", 0) > 2 * plain.get("conference_table", 0)
+    with pytest.raises(SimulationError, match="class_weights"):
+        varied_room(100_000, np.random.default_rng(0), DatasetSpec().class_names, (("sofa", -1.0),))
+
+
+def test_class_balanced_aiming_looks_at_rare_classes_as_often_as_chairs() -> None:
+    """A room of many chairs and one sofa: plain aiming points mostly at chairs, class-balanced
+    aiming at the sofa about half the time."""
+    base = DatasetSpec(aim_fraction=1.0)
+    only = (("chair", 8.0), ("sofa", 1.0), ("desk", 0.0), ("coffee_table", 0.0),
+            ("conference_table", 0.0), ("whiteboard", 0.0))
+    rooms = (varied_room(s, np.random.default_rng(s), base.class_names, only) for s in range(100_000, 100_200))
+    room = next(r for r in rooms if [o.class_name for o in r.objects].count("sofa") == 1
+                and [o.class_name for o in r.objects].count("chair") >= 4)
+    sofa = next(o for o in room.objects if o.class_name == "sofa").centroid_m()
+
+    def sofa_share(spec: DatasetSpec) -> float:
+        r = np.random.default_rng(11)
+        hits = 0
+        for _ in range(200):
+            T = sample_camera_pose(room, spec, r)
+            d = sofa - T[:3, 3]
+            hits += float(np.dot(T[:3, 2], d / np.linalg.norm(d))) > math.cos(math.radians(35.0))
+        return hits / 200
+
+    plain, balanced = sofa_share(base), sofa_share(DatasetSpec(aim_fraction=1.0, aim_class_balanced=True))
+    assert balanced > 0.35 and balanced > plain + 0.15, (plain, balanced)
