@@ -72,6 +72,8 @@ def train(args: argparse.Namespace) -> None:
     from ultralytics import YOLO
 
     _use_all_cores(args.threads)
+    if args.bf16:
+        _bf16_training()
     data = _val_list(Path(args.data), args.val_images, Path(args.out))
     settings: dict[str, Any] = {
         "data": str(data),
@@ -120,9 +122,48 @@ def train(args: argparse.Namespace) -> None:
     model.train(**settings)
     summary = {"settings": settings, "train_seconds": round(time.time() - t0, 1),
                "ultralytics_architecture": "yolov8n.yaml",
-               "initial_weights": args.weights, "torch_threads": _torch_threads()}
+               "initial_weights": args.weights, "torch_threads": _torch_threads(),
+               "bf16_autocast": bool(args.bf16)}
     (Path(args.out) / args.name / "train_summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary))
+
+
+def _bf16_training() -> None:
+    """Train the network's forward pass in bfloat16 autocast, channels-last, on the CPU.
+
+    Ultralytics only offers mixed precision on CUDA (``amp`` is forced off on the CPU). On a
+    CPU with AMX or AVX-512 BF16 (this machine's Xeon has both), bf16 autocast plus
+    channels-last memory runs YOLOv8n's forward and backward at batch 16, 320 px, in 0.52 s
+    instead of 0.91 s. Weights, optimizer state and the loss stay float32: the patch casts the
+    network's outputs back to float32 before Ultralytics' loss sees them, and validation
+    (``model.training`` false) runs in float32 as before.
+    """
+    import torch
+    from ultralytics.nn import tasks
+
+    original = tasks.BaseModel._predict_once
+
+    def to_float(out: Any) -> Any:
+        if torch.is_tensor(out):
+            return out.float()
+        if isinstance(out, dict):
+            return {k: to_float(v) for k, v in out.items()}
+        if isinstance(out, (list, tuple)):
+            return type(out)(to_float(v) for v in out)
+        return out
+
+    def predict_once(self: Any, x: Any, *a: Any, **kw: Any) -> Any:
+        if not self.training:
+            return original(self, x, *a, **kw)
+        if not getattr(self, "_channels_last", False):
+            self.to(memory_format=torch.channels_last)
+            self._channels_last = True
+        x = x.contiguous(memory_format=torch.channels_last)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            out = original(self, x, *a, **kw)
+        return to_float(out)
+
+    tasks.BaseModel._predict_once = predict_once
 
 
 def _use_all_cores(threads: int) -> None:
@@ -277,6 +318,9 @@ def main() -> None:
                    help="start from this checkpoint (e.g. an earlier run's last.pt), not from scratch")
     t.add_argument("--name", default="furniture", help="run folder name under --out")
     t.add_argument("--lr0", type=float, default=0.002)
+    t.add_argument("--bf16", action="store_true",
+                   help="bfloat16 autocast and channels-last for the training forward pass (a CPU "
+                   "with AMX or AVX-512 BF16: about 1.7x faster); weights and loss stay float32")
     t.add_argument("--close-mosaic", type=int, default=1)
     t.add_argument("--warmup-epochs", type=float, default=0.0)
     t.add_argument("--val-images", type=int, default=100,
