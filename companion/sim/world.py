@@ -357,6 +357,9 @@ def generate_room(
     rng = np.random.default_rng(seed)
     doorways = _sample_doorways(rng, width_m, depth_m, n_doorways)
     walls = _walls_with_doorways(width_m, depth_m, wall_height_m, doorways)
+    unknown_w = set(class_weights or {}) - set(BUILDERS)
+    if unknown_w:
+        raise SimulationError(f"class_weights name classes with no furniture builder: {sorted(unknown_w)}")
     chosen = {**CLASS_WEIGHTS, **(class_weights or {})}
     bad = {n: w for n, w in chosen.items() if not (math.isfinite(w) and w >= 0.0)}
     if bad:

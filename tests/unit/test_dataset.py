@@ -134,6 +134,8 @@ def test_class_weights_shift_the_rooms_class_mix_and_bad_weights_are_named() -> 
     assert rare.get("conference_table", 0) > 2 * plain.get("conference_table", 0)
     with pytest.raises(SimulationError, match="class_weights"):
         varied_room(100_000, np.random.default_rng(0), DatasetSpec().class_names, (("sofa", -1.0),))
+    with pytest.raises(SimulationError, match="class_weights.*'armchair'"):
+        varied_room(100_000, np.random.default_rng(0), DatasetSpec().class_names, (("armchair", 1.0),))
 
 
 def test_class_balanced_aiming_looks_at_rare_classes_as_often_as_chairs() -> None:
