@@ -18,8 +18,8 @@ a frame's map update becomes visible to the planner ``detect + track + geometry 
 costmap`` wall seconds after the frame was taken (the next frame is taken when perception is
 free again, at most at ``perception_hz``), and while a plan is computed the vehicle holds at
 its last setpoint for the plan's wall time. Rendering and the simulation itself cost nothing.
-The leg logic mirrors :class:`companion.service.mission_runner.MissionRunner`: plan from the
-setpoint being flown, follow the trajectory, re-plan when the remaining path crosses a newly
+The leg logic mirrors :class:`companion.service.mission_runner.MissionRunner`: the take-off
+survey (a turn on the spot; the leg's time limit starts after it), plan from the setpoint being flown, follow the trajectory, re-plan when the remaining path crosses a newly
 mapped obstacle (checked on every new map, or every ``check_period_s``), back off when too
 close, hold and retry when no path exists, snap a blocked goal.
 """
@@ -46,6 +46,9 @@ from companion.px4 import FlightMode
 from companion.service.mission_runner import (
     DEFAULT_ACCEPTANCE_M,
     RETRY_HOLD_S,
+    SURVEY_CARROT_DEG,
+    SURVEY_DONE_DEG,
+    SURVEY_SETTLE_S,
     PathChecker,
     _remaining,
 )
@@ -310,7 +313,34 @@ class LockstepFlight:
         self._wait(self.cfg.link.offboard_warmup_s)
         if self._command(mavlink.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(FlightMode.OFFBOARD)) != ok:
             raise SimulationError("offboard refused")
+        self._survey()
         self.log.leg_start_s = self.ap.now_s()
+
+    def _survey(self) -> None:
+        """The mission runner's take-off survey: turn on the spot by
+        ``planner.takeoff_survey_deg``, holding position, the yaw setpoint a carrot ahead of
+        the heading (:meth:`MissionRunner.survey`)."""
+        cfg = self.cfg.planner
+        total = math.radians(cfg.takeoff_survey_deg)
+        if total <= 0.0:
+            return
+        xy = self._pos()[:2]
+        target = enu_to_ned(float(xy[0]), float(xy[1]), self.alt)
+        yaw0 = prev = self.ap.vehicle.yaw_rad
+        turned = 0.0
+        deadline = self.ap.now_s() + 2.0 * total / math.radians(cfg.max_yaw_rate_deg_s) + SURVEY_SETTLE_S
+        while self.ap.now_s() < deadline:
+            now_yaw = self.ap.vehicle.yaw_rad
+            turned += math.remainder(now_yaw - prev, 2.0 * math.pi)
+            prev = now_yaw
+            left = total - turned
+            if left <= math.radians(SURVEY_DONE_DEG):
+                break
+            self._setpoint = PositionSetpoint(target, yaw_rad=math.remainder(
+                prev + min(left, math.radians(SURVEY_CARROT_DEG)), 2.0 * math.pi))
+            for _ in range(int(round(FEED_PERIOD_S / PHYSICS_DT_S))):
+                self._step()
+        self._setpoint = PositionSetpoint(target, yaw_rad=math.remainder(yaw0 + total, 2.0 * math.pi))
 
     def _plan(self, start: NDArray[np.float64], snap: bool, replan: bool = False) -> PlanResult:
         """Plan on the released costmap; the vehicle holds its setpoint for the plan's wall time.
@@ -325,8 +355,10 @@ class LockstepFlight:
         if self.planner.map_version != self.map_version:
             self.planner.set_map(self.costmap, self.map_version)
         t1 = time.perf_counter()
-        limit = self.planner.config.replan_time_limit_s if replan else None
-        result = self.planner.plan(start, self.goal, limit, snap or None)
+        cfg = self.planner.config
+        # As the service's planning worker: the budget covers the map preparation too.
+        limit = cfg.replan_time_limit_s if replan else cfg.time_limit_s
+        result = self.planner.plan(start, self.goal, max(0.0, limit - (t1 - t0)), snap or None)
         wall = time.perf_counter() - t0
         self.log.plans += 1
         self.log.plan_ms.append(1e3 * wall)

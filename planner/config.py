@@ -17,15 +17,16 @@ class PlannerConfig(StageConfig):
     algorithm: Literal["rrtstar", "informed_rrtstar", "bitstar", "rrtconnect"] = (
         "informed_rrtstar"
     )
-    #: Planning time budget; the best path found by then is used.
+    #: Planning time budget of a request, the map's preparation included; the best path
+    #: found by then is used.
     time_limit_s: float = Field(default=0.5, gt=0.0, le=60.0)
     #: Budget of a re-plan in flight (the path ahead became blocked by a newly mapped
-    #: object): the vehicle is moving towards the obstacle, so a near-optimal path now beats
-    #: a slightly shorter one half a second later. The first path (grid search + any-angle
-    #: smoothing, within a few percent of the shortest) takes about 10-20 ms; OMPL refines
-    #: for what is left of this budget. The first plan of a leg, made while holding, keeps
-    #: ``time_limit_s``.
-    replan_time_limit_s: float = Field(default=0.05, gt=0.0, le=60.0)
+    #: object), the new map's preparation included: the vehicle is moving towards the
+    #: obstacle, so a near-optimal path now beats a slightly shorter one later. The first
+    #: path (grid search + any-angle smoothing, within a few percent of the shortest) takes
+    #: about 10-20 ms and is always computed; OMPL refines for what is left of this budget.
+    #: The first plan of a leg, made while holding, keeps ``time_limit_s``.
+    replan_time_limit_s: float = Field(default=0.02, gt=0.0, le=60.0)
     flight_altitude_m: float = Field(default=0.6, gt=0.0, le=20.0)
     vehicle_radius_m: float = Field(default=0.25, gt=0.0, le=5.0)
     vehicle_height_m: float = Field(default=0.15, gt=0.0, le=5.0)
@@ -55,6 +56,15 @@ class PlannerConfig(StageConfig):
     #: Starting a path from rest, the vehicle turns on the spot until it heads within this of
     #: the path, so the camera (D455: 87 deg wide) sees where it goes; 180 = set off at once.
     max_heading_error_deg: float = Field(default=30.0, ge=0.0, le=180.0)
+    #: Yaw turns are centred this far (metres of path) before their corner, so the camera
+    #: looks into a turn before the vehicle takes it (see :mod:`planner.trajectory`).
+    yaw_lead_m: float = Field(default=0.6, ge=0.0, le=5.0)
+    #: After take-off, before the first leg, the vehicle turns on the spot by this much (at
+    #: ``max_yaw_rate_deg_s``) so the camera has seen its surroundings: otherwise the map
+    #: around the start holds only the view towards the first goal, and a path that sets
+    #: off sideways passes furniture beside or behind the vehicle that no frame has shown.
+    #: 0 = no survey.
+    takeoff_survey_deg: float = Field(default=360.0, ge=0.0, le=720.0)
     #: Geofence in the map frame: [x_min, y_min, x_max, y_max]; None = the map's extent.
     geofence_xy_m: tuple[float, float, float, float] | None = None
     max_altitude_m: float = Field(default=3.0, gt=0.0)

@@ -8,9 +8,11 @@ is capped so that the change of the velocity vector, ``2 v sin(theta / 2)``, sta
 ``corner_speed_jump_m_s``: sharp corners are taken slowly, gentle bends at full speed.
 
 Yaw follows the direction of travel at no more than ``max_yaw_rate``: each heading change
-is a constant-rate turn centred on the corner (pushed later if the previous turn has not
-finished), so yaw may briefly lead or lag the direction of travel, which a multicopter does
-not mind. Starting from rest, the vehicle first turns on the spot until its heading is within
+is a constant-rate turn centred ``yaw_lead_m`` of path before its corner (pushed later if the
+previous turn has not finished), so the camera looks into a turn before the vehicle takes it:
+what lies on the inside of a corner, where a path rounding an obstacle passes closest to it,
+is otherwise seen only once the vehicle is beside it, at the edge of the field of view or not
+at all. Yaw may so lead or lag the direction of travel, which a multicopter does not mind. Starting from rest, the vehicle first turns on the spot until its heading is within
 ``max_heading_error`` of the first segment: the camera is the only sensor, and a vehicle that
 set off sideways or backwards would fly into space it has not looked at (at 60 deg/s a
 reversal takes 3 s, over a metre of blind flight at cruise speed). Angles are in the map
@@ -40,12 +42,14 @@ class TrajectoryLimits:
     #: Starting from rest, motion waits until the heading is within this of the first segment
     #: (``math.pi``: never waits).
     max_heading_error_rad: float = math.pi
+    #: Each yaw turn is centred this far (metres of path) before its corner (0: on it).
+    yaw_lead_m: float = 0.0
 
     @classmethod
     def from_config(cls, config: PlannerConfig) -> "TrajectoryLimits":
         """The limits in a planner config (whose angles are in degrees)."""
         return cls(config.max_speed_m_s, config.max_accel_m_s2, math.radians(config.max_yaw_rate_deg_s),
-                   config.corner_speed_jump_m_s, math.radians(config.max_heading_error_deg))
+                   config.corner_speed_jump_m_s, math.radians(config.max_heading_error_deg), config.yaw_lead_m)
 
     def __post_init__(self) -> None:
         for name in ("max_speed_m_s", "max_accel_m_s2", "max_yaw_rate_rad_s", "corner_speed_jump_m_s"):
@@ -54,6 +58,8 @@ class TrajectoryLimits:
                 raise PlanningError(f"trajectory limit {name} must be a positive number (got {v})")
         if not 0.0 <= self.max_heading_error_rad <= math.pi:
             raise PlanningError(f"max_heading_error_rad must be in [0, pi] (got {self.max_heading_error_rad})")
+        if not (self.yaw_lead_m >= 0.0 and math.isfinite(self.yaw_lead_m)):
+            raise PlanningError(f"yaw_lead_m must be a finite number >= 0 (got {self.yaw_lead_m})")
 
 
 @dataclass(frozen=True)
@@ -154,6 +160,20 @@ class Trajectory:
         )
 
 
+def _time_into_segment(x: float, v0: float, vp: float, phase: NDArray[np.float64], a: float) -> float:
+    """Seconds from a segment's start until ``x`` metres of it are flown (the inverse of the
+    trapezoid :meth:`Trajectory._along` reads)."""
+    ta, tc, tb = (float(v) for v in phase)
+    sa = v0 * ta + 0.5 * a * ta * ta
+    if x <= sa:
+        return (math.sqrt(max(v0 * v0 + 2.0 * a * max(x, 0.0), 0.0)) - v0) / a
+    sc = sa + vp * tc
+    if x <= sc:
+        return ta + (x - sa) / vp
+    u = (vp - math.sqrt(max(vp * vp - 2.0 * a * (x - sc), 0.0))) / a
+    return ta + tc + min(u, tb)
+
+
 def _segment_profile(L: float, v0: float, v1: float, vmax: float, a: float) -> tuple[float, float, float, float]:
     """(peak speed, accelerate, cruise, brake durations) of a trapezoid over length L."""
     vp = min(vmax, math.sqrt(max((2.0 * a * L + v0 * v0 + v1 * v1) / 2.0, 0.0)))
@@ -223,7 +243,13 @@ def time_parametrize(
         t += ta + tc + tb
     motion_end = t
 
-    # Yaw turns, each centred on its corner, never overlapping the previous one.
+    # Yaw turns, each centred yaw_lead_m before its corner, never overlapping the previous one.
+    s_start = np.concatenate([[0.0], np.cumsum(L)])  # (n + 1,) arc length at each vertex
+
+    def time_at(arc_m: float) -> float:
+        j = int(np.clip(np.searchsorted(s_start, arc_m, side="right") - 1, 0, max(n - 1, 0)))
+        return float(t0[j]) + _time_into_segment(arc_m - float(s_start[j]), float(v[j]), float(peak[j]), phase[j], a)
+
     turns: list[tuple[float, float, float, float]] = []
     current = yaw0
     free_at = 0.0
@@ -239,7 +265,8 @@ def time_parametrize(
         if abs(delta) <= 1e-9:
             continue
         d = abs(delta) / omega
-        start = max(float(t0[k]) - d / 2.0, free_at)
+        centre = time_at(max(float(s_start[k]) - limits.yaw_lead_m, 0.0)) if limits.yaw_lead_m > 0.0 else float(t0[k])
+        start = max(centre - d / 2.0, free_at)
         turns.append((start, start + d, current, current + delta))
         current += delta
         free_at = start + d

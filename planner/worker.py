@@ -184,8 +184,10 @@ class PlanningService:
     ) -> PlanResult:
         """Plan on ``costmap`` (identified by ``map_version``) in the worker process.
 
-        The costmap is transferred only if the worker does not hold this version yet.
-        ``timeout_s`` (default: the time budget plus ``timeout_slack_s``) bounds the whole
+        The costmap is transferred only if the worker does not hold this version yet;
+        ``time_limit_s`` (default: config) bounds the whole request, that transfer and the
+        map's preparation included: the planner gets what is left (at least its first path
+        is always computed). ``timeout_s`` (default: the time budget plus ``timeout_slack_s``) bounds the whole
         call; past it the worker is killed and a ``TIMEOUT`` result returned. Raises
         :class:`PlanningError` for invalid requests (the worker keeps running) or if the
         worker cannot be started.
@@ -211,7 +213,10 @@ class PlanningService:
                     self._worker_version = int(map_version)
                 self._next_id += 1
                 req_id = self._next_id
-                conn.send(("plan", req_id, start, goal, limit, snap_goal))
+                # The budget is the whole request's: a new map's preparation spends part of
+                # it (the planner still always returns its first path).
+                budget = max(0.0, limit - (time.monotonic() - t0))
+                conn.send(("plan", req_id, start, goal, budget, snap_goal))
                 while True:
                     reply = self._recv(deadline)
                     if reply[1] == req_id or reply[0] == "error":

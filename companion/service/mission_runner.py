@@ -50,6 +50,12 @@ FEED_PERIOD_S = 0.05
 CHECK_PERIOD_S = 0.5
 #: Hold this long after a failed plan before trying again.
 RETRY_HOLD_S = 1.0
+#: The take-off survey's yaw setpoint leads the measured heading by this much (degrees) ...
+SURVEY_CARROT_DEG = 30.0
+#: ... and the survey ends this close to its full turn (degrees) or after twice its time at
+#: the planner's yaw rate plus this margin (seconds).
+SURVEY_DONE_DEG = 5.0
+SURVEY_SETTLE_S = 2.0
 #: A re-plan in flight starts this far ahead on the current trajectory (seconds of flight),
 #: about 1.5 planning times, so the plan is back before the vehicle gets there.
 MIN_REPLAN_LOOKAHEAD_S = 0.6
@@ -193,6 +199,47 @@ class MissionRunner:
                 timeout_s, f"the vehicle to climb to {altitude_m:.2f} m",
             )
         await self.engage_here(altitude_m)
+        await self.survey(altitude_m)
+
+    async def survey(self, altitude_m: float, turn_deg: float | None = None) -> None:
+        """Turn on the spot by ``turn_deg`` (default ``planner.takeoff_survey_deg``), holding
+        position at ``altitude_m``, so the map has seen all round.
+
+        The yaw setpoint is a carrot :data:`SURVEY_CARROT_DEG` ahead of the measured heading
+        (never more than what is left to turn), so the vehicle turns one way at whatever rate
+        its autopilot allows (PX4's yaw-rate limit may be below the planner's) and a
+        setpoint racing more than half a turn ahead can never send it back the short way.
+        """
+        total = math.radians(self.cfg.takeoff_survey_deg if turn_deg is None else turn_deg)
+        snap = self.vehicle.snapshot()
+        pos = position_enu(snap)
+        if total <= 0.0 or pos is None:
+            return
+        yaw0 = snap.yaw_ned_rad
+        if yaw0 is None:
+            log.warning("survey skipped: no heading from the autopilot yet")
+            return
+        target = enu_to_ned(float(pos[0]), float(pos[1]), altitude_m)
+        carrot = math.radians(SURVEY_CARROT_DEG)
+        deadline = time.monotonic() + 2.0 * total / math.radians(self.cfg.max_yaw_rate_deg_s) + SURVEY_SETTLE_S
+        log.info("survey: turning %.0f deg on the spot", math.degrees(total))
+        turned, prev = 0.0, yaw0
+        while time.monotonic() < deadline:
+            self._check_offboard()
+            now_yaw = self.vehicle.snapshot().yaw_ned_rad
+            if now_yaw is not None:
+                turned += math.remainder(now_yaw - prev, 2.0 * math.pi)
+                prev = now_yaw
+            left = total - turned
+            if left <= math.radians(SURVEY_DONE_DEG):
+                break
+            self.vehicle.offboard.set_setpoint(PositionSetpoint(
+                target, yaw_rad=math.remainder(prev + min(left, carrot), 2.0 * math.pi)))
+            await asyncio.sleep(FEED_PERIOD_S)
+        else:
+            log.warning("survey: turned %.0f of %.0f deg before its time ran out",
+                        math.degrees(turned), math.degrees(total))
+        self.vehicle.offboard.set_setpoint(PositionSetpoint(target, yaw_rad=math.remainder(yaw0 + total, 2.0 * math.pi)))
 
     async def engage_here(self, altitude_m: float) -> None:
         """Hold the current horizontal position at ``altitude_m`` and engage OFFBOARD."""

@@ -149,3 +149,43 @@ def test_heading_limit_comes_from_the_planner_config() -> None:
     assert TrajectoryLimits.from_config(PlannerConfig()).max_heading_error_rad == pytest.approx(math.radians(30))
     with pytest.raises(PlanningError, match="max_heading_error_rad"):
         TrajectoryLimits(1.0, 1.0, 1.0, 0.3, max_heading_error_rad=4.0)
+
+
+def _time_at_x(traj, x: float) -> float:
+    """First sample time at which the vehicle has flown to ``x`` along a path starting +x."""
+    ts, ss = _samples(traj, 0.005)
+    return float(next(t for t, s in zip(ts, ss, strict=True) if s.position_m[0] >= x - 1e-9))
+
+
+def test_yaw_lead_centres_each_turn_before_its_corner() -> None:
+    """With ``yaw_lead_m`` the camera is half way through a turn that far before the corner
+    (it looks into the turn before the vehicle takes it); without, on the corner."""
+    path = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 4.0]])
+    on_corner = time_parametrize(path, 1.0, LIMITS)
+    lead = time_parametrize(path, 1.0, TrajectoryLimits(1.0, 0.8, math.radians(60), 0.3, yaw_lead_m=1.0))
+    assert on_corner.sample(_time_at_x(on_corner, 4.0)).yaw_rad == pytest.approx(math.pi / 4, abs=0.03)
+    assert lead.sample(_time_at_x(lead, 3.0)).yaw_rad == pytest.approx(math.pi / 4, abs=0.03)
+    # Arriving at the corner, the leading camera already faces the next segment.
+    assert lead.sample(_time_at_x(lead, 4.0)).yaw_rad == pytest.approx(math.pi / 2, abs=1e-6)
+    # Position and speed are those of the same path without a lead.
+    for t in (0.5, 2.0, 5.0, 7.0):
+        np.testing.assert_allclose(lead.sample(t).position_m, on_corner.sample(t).position_m)
+
+
+def test_yaw_lead_keeps_turns_in_order_and_within_the_rate_limit() -> None:
+    """Corners closer together than the lead: turns still follow one another at the limit."""
+    path = np.array([[0.0, 0.0], [2.0, 0.0], [2.2, 0.3], [2.4, 0.0], [4.0, 0.0]])
+    lim = TrajectoryLimits(1.0, 0.8, math.radians(60), 0.3, yaw_lead_m=0.8)
+    traj = time_parametrize(path, 1.0, lim)
+    turns = traj.yaw_turns
+    assert np.all(turns[1:, 0] >= turns[:-1, 1] - 1e-9)
+    ts, ss = _samples(traj)
+    yaw = np.unwrap([s.yaw_rad for s in ss])
+    assert np.max(np.abs(np.diff(yaw))) / 0.01 <= lim.max_yaw_rate_rad_s * (1 + 1e-6)
+    assert ss[-1].yaw_rad == pytest.approx(0.0, abs=1e-9)
+
+
+def test_yaw_lead_comes_from_the_planner_config_and_is_checked() -> None:
+    assert TrajectoryLimits.from_config(PlannerConfig(yaw_lead_m=0.4)).yaw_lead_m == pytest.approx(0.4)
+    with pytest.raises(PlanningError, match="yaw_lead_m"):
+        TrajectoryLimits(1.0, 1.0, 1.0, yaw_lead_m=-0.1)
