@@ -1,7 +1,8 @@
 """Fly a mission leg by leg in OFFBOARD with the semantic planner between waypoints.
 
 The mission uploaded to the autopilot (by MAVSDK or a ground station) is downloaded through our
-link and turned into :class:`Leg` s (map-frame goals). Each leg is planned by the planning
+link and turned into :class:`Leg` s (map-frame goals). After take-off the vehicle turns once on
+the spot (:meth:`MissionRunner.survey`) so the map has seen all round it. Each leg is planned by the planning
 worker process on the semantic map's costmap at the flight band, time-parametrised, and flown
 by feeding the offboard controller's setpoint slot. While flying, the remaining path is
 re-checked against every new costmap; when it has become invalid (an object appeared on it)
