@@ -19,8 +19,9 @@ costmap`` wall seconds after the frame was taken (the next frame is taken when p
 free again, at most at ``perception_hz``), and while a plan is computed the vehicle holds at
 its last setpoint for the plan's wall time. Rendering and the simulation itself cost nothing.
 The leg logic mirrors :class:`companion.service.mission_runner.MissionRunner`: the take-off
-survey (a turn on the spot; the leg's time limit starts after it), plan from the setpoint being flown, follow the trajectory, re-plan when the remaining path crosses a newly
-mapped obstacle (checked on every new map, or every ``check_period_s``), back off when too
+survey (a turn on the spot; the leg's time limit starts after it), plan from the setpoint
+being flown, follow the trajectory, re-plan when the remaining path crosses a newly mapped
+obstacle (checked on every new map, or every ``check_period_s``), back off when too
 close, hold and retry when no path exists, snap a blocked goal.
 """
 
@@ -46,10 +47,8 @@ from companion.px4 import FlightMode
 from companion.service.mission_runner import (
     DEFAULT_ACCEPTANCE_M,
     RETRY_HOLD_S,
-    SURVEY_CARROT_DEG,
-    SURVEY_DONE_DEG,
-    SURVEY_SETTLE_S,
     PathChecker,
+    SurveyTurn,
     _remaining,
 )
 from companion.service.perception_worker import PerceptionPipeline, flight_band, new_semantic_map
@@ -317,30 +316,24 @@ class LockstepFlight:
         self.log.leg_start_s = self.ap.now_s()
 
     def _survey(self) -> None:
-        """The mission runner's take-off survey: turn on the spot by
-        ``planner.takeoff_survey_deg``, holding position, the yaw setpoint a carrot ahead of
-        the heading (:meth:`MissionRunner.survey`)."""
+        """The mission runner's take-off survey (:class:`SurveyTurn`): turn on the spot by
+        ``planner.takeoff_survey_deg``, holding position."""
         cfg = self.cfg.planner
         total = math.radians(cfg.takeoff_survey_deg)
         if total <= 0.0:
             return
         xy = self._pos()[:2]
         target = enu_to_ned(float(xy[0]), float(xy[1]), self.alt)
-        yaw0 = prev = self.ap.vehicle.yaw_rad
-        turned = 0.0
-        deadline = self.ap.now_s() + 2.0 * total / math.radians(cfg.max_yaw_rate_deg_s) + SURVEY_SETTLE_S
+        turn = SurveyTurn(self.ap.vehicle.yaw_rad, total, math.radians(cfg.max_yaw_rate_deg_s))
+        deadline = self.ap.now_s() + turn.max_duration_s
         while self.ap.now_s() < deadline:
-            now_yaw = self.ap.vehicle.yaw_rad
-            turned += math.remainder(now_yaw - prev, 2.0 * math.pi)
-            prev = now_yaw
-            left = total - turned
-            if left <= math.radians(SURVEY_DONE_DEG):
+            yaw = turn.next_yaw(self.ap.vehicle.yaw_rad)
+            if yaw is None:
                 break
-            self._setpoint = PositionSetpoint(target, yaw_rad=math.remainder(
-                prev + min(left, math.radians(SURVEY_CARROT_DEG)), 2.0 * math.pi))
+            self._setpoint = PositionSetpoint(target, yaw_rad=yaw)
             for _ in range(int(round(FEED_PERIOD_S / PHYSICS_DT_S))):
                 self._step()
-        self._setpoint = PositionSetpoint(target, yaw_rad=math.remainder(yaw0 + total, 2.0 * math.pi))
+        self._setpoint = PositionSetpoint(target, yaw_rad=turn.final_yaw_rad)
 
     def _plan(self, start: NDArray[np.float64], snap: bool, replan: bool = False) -> PlanResult:
         """Plan on the released costmap; the vehicle holds its setpoint for the plan's wall time.

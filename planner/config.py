@@ -59,8 +59,8 @@ class PlannerConfig(StageConfig):
     #: Yaw turns are centred this far (metres of path) before their corner, so the camera
     #: looks into a turn before the vehicle takes it (see :mod:`planner.trajectory`).
     yaw_lead_m: float = Field(default=0.6, ge=0.0, le=5.0)
-    #: After take-off, before the first leg, the vehicle turns on the spot by this much (at
-    #: ``max_yaw_rate_deg_s``) so the camera has seen its surroundings: otherwise the map
+    #: After take-off, before the first leg, the vehicle turns on the spot by this much (as
+    #: fast as its autopilot turns) so the camera has seen its surroundings: otherwise the map
     #: around the start holds only the view towards the first goal, and a path that sets
     #: off sideways passes furniture beside or behind the vehicle that no frame has shown.
     #: 0 = no survey.

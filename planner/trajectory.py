@@ -12,7 +12,8 @@ is a constant-rate turn centred ``yaw_lead_m`` of path before its corner (pushed
 previous turn has not finished), so the camera looks into a turn before the vehicle takes it:
 what lies on the inside of a corner, where a path rounding an obstacle passes closest to it,
 is otherwise seen only once the vehicle is beside it, at the edge of the field of view or not
-at all. Yaw may so lead or lag the direction of travel, which a multicopter does not mind. Starting from rest, the vehicle first turns on the spot until its heading is within
+at all. Yaw may so lead or lag the direction of travel, which a multicopter does not mind.
+Starting from rest, the vehicle first turns on the spot until its heading is within
 ``max_heading_error`` of the first segment: the camera is the only sensor, and a vehicle that
 set off sideways or backwards would fly into space it has not looked at (at 60 deg/s a
 reversal takes 3 s, over a metre of blind flight at cruise speed). Angles are in the map
@@ -265,7 +266,7 @@ def time_parametrize(
         if abs(delta) <= 1e-9:
             continue
         d = abs(delta) / omega
-        centre = time_at(max(float(s_start[k]) - limits.yaw_lead_m, 0.0)) if limits.yaw_lead_m > 0.0 else float(t0[k])
+        centre = time_at(max(float(s_start[k]) - limits.yaw_lead_m, 0.0))
         start = max(centre - d / 2.0, free_at)
         turns.append((start, start + d, current, current + delta))
         current += delta

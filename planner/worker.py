@@ -187,8 +187,9 @@ class PlanningService:
         The costmap is transferred only if the worker does not hold this version yet;
         ``time_limit_s`` (default: config) bounds the whole request, that transfer and the
         map's preparation included: the planner gets what is left (at least its first path
-        is always computed). ``timeout_s`` (default: the time budget plus ``timeout_slack_s``) bounds the whole
-        call; past it the worker is killed and a ``TIMEOUT`` result returned. Raises
+        is always computed). ``timeout_s`` (default: the time budget plus
+        ``timeout_slack_s``) bounds the whole call; past it the worker is killed and a
+        ``TIMEOUT`` result returned. Raises
         :class:`PlanningError` for invalid requests (the worker keeps running) or if the
         worker cannot be started.
         """

@@ -2,8 +2,8 @@
 
 The mission uploaded to the autopilot (by MAVSDK or a ground station) is downloaded through our
 link and turned into :class:`Leg` s (map-frame goals). After take-off the vehicle turns once on
-the spot (:meth:`MissionRunner.survey`) so the map has seen all round it. Each leg is planned by the planning
-worker process on the semantic map's costmap at the flight band, time-parametrised, and flown
+the spot (:meth:`MissionRunner.survey`) so the map has seen all round it. Each leg is planned
+by the planning worker process on the semantic map's costmap at the flight band, time-parametrised, and flown
 by feeding the offboard controller's setpoint slot. While flying, the remaining path is
 re-checked against every new costmap; when it has become invalid (an object appeared on it)
 the leg is re-planned without stopping: from a point a little ahead on the current
@@ -98,6 +98,40 @@ def position_enu(state: VehicleState) -> NDArray[np.float64] | None:
     if state.position_ned_m is None:
         return None
     return np.array(ned_to_enu(*state.position_ned_m))
+
+
+class SurveyTurn:
+    """The take-off survey's yaw setpoints: a turn on the spot by ``total_rad``, one way.
+
+    Fed the measured heading (NED, radians) each step, :meth:`next_yaw` gives the yaw setpoint:
+    a carrot :data:`SURVEY_CARROT_DEG` ahead of the heading, never past the end of the turn,
+    so the vehicle turns at whatever rate its autopilot allows (PX4's yaw-rate limit may be
+    below the planner's) and a setpoint racing more than half a turn ahead can never send it
+    back the short way; None once the turn is within :data:`SURVEY_DONE_DEG` of complete.
+    Shared by :meth:`MissionRunner.survey` and the lock-step safety bench.
+    """
+
+    def __init__(self, yaw0_rad: float, total_rad: float, yaw_rate_rad_s: float) -> None:
+        self.yaw0_rad = yaw0_rad
+        self.total_rad = total_rad
+        self.turned_rad = 0.0
+        self._prev = yaw0_rad
+        #: Seconds the turn may take: twice its time at ``yaw_rate_rad_s`` plus a margin.
+        self.max_duration_s = 2.0 * total_rad / yaw_rate_rad_s + SURVEY_SETTLE_S
+
+    def next_yaw(self, heading_rad: float | None) -> float | None:
+        if heading_rad is not None:
+            self.turned_rad += math.remainder(heading_rad - self._prev, 2.0 * math.pi)
+            self._prev = heading_rad
+        left = self.total_rad - self.turned_rad
+        if left <= math.radians(SURVEY_DONE_DEG):
+            return None
+        return math.remainder(self._prev + min(left, math.radians(SURVEY_CARROT_DEG)), 2.0 * math.pi)
+
+    @property
+    def final_yaw_rad(self) -> float:
+        """The heading the turn ends at (the setpoint to hold afterwards)."""
+        return math.remainder(self.yaw0_rad + self.total_rad, 2.0 * math.pi)
 
 
 class PathChecker:
@@ -204,43 +238,30 @@ class MissionRunner:
 
     async def survey(self, altitude_m: float, turn_deg: float | None = None) -> None:
         """Turn on the spot by ``turn_deg`` (default ``planner.takeoff_survey_deg``), holding
-        position at ``altitude_m``, so the map has seen all round.
-
-        The yaw setpoint is a carrot :data:`SURVEY_CARROT_DEG` ahead of the measured heading
-        (never more than what is left to turn), so the vehicle turns one way at whatever rate
-        its autopilot allows (PX4's yaw-rate limit may be below the planner's) and a
-        setpoint racing more than half a turn ahead can never send it back the short way.
-        """
+        position at ``altitude_m``, so the map has seen all round (:class:`SurveyTurn`)."""
         total = math.radians(self.cfg.takeoff_survey_deg if turn_deg is None else turn_deg)
         snap = self.vehicle.snapshot()
         pos = position_enu(snap)
         if total <= 0.0 or pos is None:
             return
-        yaw0 = snap.yaw_ned_rad
-        if yaw0 is None:
+        if snap.yaw_ned_rad is None:
             log.warning("survey skipped: no heading from the autopilot yet")
             return
+        turn = SurveyTurn(snap.yaw_ned_rad, total, math.radians(self.cfg.max_yaw_rate_deg_s))
         target = enu_to_ned(float(pos[0]), float(pos[1]), altitude_m)
-        carrot = math.radians(SURVEY_CARROT_DEG)
-        deadline = time.monotonic() + 2.0 * total / math.radians(self.cfg.max_yaw_rate_deg_s) + SURVEY_SETTLE_S
+        deadline = time.monotonic() + turn.max_duration_s
         log.info("survey: turning %.0f deg on the spot", math.degrees(total))
-        turned, prev = 0.0, yaw0
         while time.monotonic() < deadline:
             self._check_offboard()
-            now_yaw = self.vehicle.snapshot().yaw_ned_rad
-            if now_yaw is not None:
-                turned += math.remainder(now_yaw - prev, 2.0 * math.pi)
-                prev = now_yaw
-            left = total - turned
-            if left <= math.radians(SURVEY_DONE_DEG):
+            yaw = turn.next_yaw(self.vehicle.snapshot().yaw_ned_rad)
+            if yaw is None:
                 break
-            self.vehicle.offboard.set_setpoint(PositionSetpoint(
-                target, yaw_rad=math.remainder(prev + min(left, carrot), 2.0 * math.pi)))
+            self.vehicle.offboard.set_setpoint(PositionSetpoint(target, yaw_rad=yaw))
             await asyncio.sleep(FEED_PERIOD_S)
         else:
             log.warning("survey: turned %.0f of %.0f deg before its time ran out",
-                        math.degrees(turned), math.degrees(total))
-        self.vehicle.offboard.set_setpoint(PositionSetpoint(target, yaw_rad=math.remainder(yaw0 + total, 2.0 * math.pi)))
+                        math.degrees(turn.turned_rad), math.degrees(total))
+        self.vehicle.offboard.set_setpoint(PositionSetpoint(target, yaw_rad=turn.final_yaw_rad))
 
     async def engage_here(self, altitude_m: float) -> None:
         """Hold the current horizontal position at ``altitude_m`` and engage OFFBOARD."""

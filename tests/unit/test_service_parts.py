@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ from companion.config import CompanionConfig
 from companion.mavlink.mission_download import MissionItem
 from companion.mavlink.state import HomePosition
 from companion.service.checkpoint import checkpoint_path, restore_map
-from companion.service.mission_runner import mission_legs
+from companion.service.mission_runner import SURVEY_CARROT_DEG, SurveyTurn, mission_legs
 from companion.service.perception_worker import check_frame, new_semantic_map
 from semmap.errors import FrameError, MissionError
 from semmap.types import CameraIntrinsics, Frame
@@ -76,3 +77,19 @@ def test_checkpoint_round_trip_and_a_damaged_one_is_set_aside(tmp_path: Path) ->
     path.write_bytes(b"not a map")
     assert restore_map(cfg, path) is None
     assert not path.exists() and path.with_suffix(".npz.bad").is_file()
+
+
+def test_survey_turn_leads_the_heading_one_way_and_ends_at_the_full_turn() -> None:
+    """A slow autopilot (30 deg per step, the carrot's size): the setpoint stays one carrot
+    ahead, never wraps back past the vehicle, and the turn ends within 5 deg of 360."""
+    turn = SurveyTurn(yaw0_rad=3.0, total_rad=2 * math.pi, yaw_rate_rad_s=math.radians(60))
+    heading, steps = 3.0, 0
+    while (sp := turn.next_yaw(heading)) is not None:
+        ahead = math.remainder(sp - heading, 2 * math.pi)
+        assert 0.0 < ahead <= math.radians(SURVEY_CARROT_DEG) + 1e-9
+        heading = math.remainder(heading + 0.8 * ahead, 2 * math.pi)  # the vehicle lags
+        steps += 1
+        assert steps < 200
+    assert math.degrees(turn.turned_rad) >= 355.0
+    assert turn.final_yaw_rad == math.remainder(3.0 + 2 * math.pi, 2 * math.pi)
+    assert turn.next_yaw(None) is None  # no new heading: still done
