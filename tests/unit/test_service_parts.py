@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import math
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.config import CompanionConfig
 from companion.mavlink.mission_download import MissionItem
 from companion.mavlink.state import HomePosition
+from companion.service.app import frozen_heap
 from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.mission_runner import SURVEY_CARROT_DEG, SurveyTurn, mission_legs
 from companion.service.perception_worker import check_frame, new_semantic_map
@@ -93,3 +95,22 @@ def test_survey_turn_leads_the_heading_one_way_and_ends_at_the_full_turn() -> No
     assert math.degrees(turn.turned_rad) >= 355.0
     assert turn.final_yaw_rad == math.remainder(3.0 + 2 * math.pi, 2 * math.pi)
     assert turn.next_yaw(None) is None  # no new heading: still done
+
+
+def test_frozen_heap_keeps_the_collector_off_live_objects_and_restores_an_outer_freeze() -> None:
+    assert gc.get_freeze_count() == 0
+    with frozen_heap():
+        assert gc.get_freeze_count() > 1000  # the imported modules' objects at least
+        cycle: list[object] = []
+        cycle.append(cycle)  # garbage made after the freeze is still collected
+        del cycle
+        assert gc.collect() >= 1
+    assert gc.get_freeze_count() == 0
+    gc.freeze()
+    try:
+        outer = gc.get_freeze_count()
+        with frozen_heap():
+            pass
+        assert gc.get_freeze_count() >= outer  # the caller's freeze is not undone
+    finally:
+        gc.unfreeze()
