@@ -343,7 +343,8 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
     result.summary["detector"] = cfg.detector.kind
     result.summary["autopilot_failsafes"] = [str(f) for f in world.autopilot.failsafes]
     result.summary["autopilot_final"] = {"mode": world.autopilot.mode.name, "in_air": world.autopilot.in_air,
-                                         "armed": world.autopilot.armed}
+                                         "armed": world.autopilot.armed,
+                                         "modes": [m.name for _, m in world.autopilot.mode_changes]}
     result.summary["map_restored"] = service.restored
     path = out / "summary.json"
     result.files["summary"] = path

@@ -140,7 +140,9 @@ def test_stop_mid_flight_holds_saves_and_restart_restores(tmp_path: Path) -> Non
     result = asyncio.run(run_e2e(cfg, out, use_broker=False, timeout_s=120.0, inject=stop_mid_flight))
     s = result.summary
     # Held in the air (on_sigterm: hold), streaming stopped, nothing crashed.
-    assert s["autopilot_final"] == {"mode": "HOLD", "in_air": True, "armed": True}
+    final = s["autopilot_final"]
+    assert (final["mode"], final["in_air"], final["armed"]) == ("HOLD", True, True), final
+    assert final["modes"][-2:] == ["OFFBOARD", "HOLD"], final  # handed from offboard straight to HOLD
     assert s["waypoints_reached"] < s["waypoints_total"]
     eff = load_config(out / "effective-config.yaml")
     restored = restore_map(eff, checkpoint_path(eff))

@@ -140,6 +140,8 @@ class MockAutopilot:
         self.setpoints: deque[offboard.ReceivedSetpoint] = deque(maxlen=2000)
         self.vision: deque[VisionSample] = deque(maxlen=2000)
         self.failsafes: list[FailsafeEvent] = []
+        #: Every mode change as ``(mock clock s, new mode)``, for judging a flight afterwards.
+        self.mode_changes: deque[tuple[float, FlightMode]] = deque(maxlen=1000)
         self.messages_received: Counter[str] = Counter()
         self.last_received: dict[str, Any] = {}
         self.peer_heartbeats: dict[tuple[int, int], float] = {}
@@ -276,6 +278,7 @@ class MockAutopilot:
         """Switch mode unconditionally (checks live in the command handler)."""
         if mode is not self._mode:
             log.info("mode %s -> %s", self._mode.name, mode.name)
+            self.mode_changes.append((self.now_s(), mode))
         self._mode = mode
         self.navigator.enter(mode, takeoff_alt_m=takeoff_alt_m, hold_at_ned_m=hold_at_ned_m)
         if mode is FlightMode.OFFBOARD:
