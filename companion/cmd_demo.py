@@ -29,11 +29,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--config", default=None, help="config file (default: embedded default)")
     p.add_argument("--seed", type=int, default=None, help="room seed (overrides sim.seed)")
-    # The oracle is the default until the shipped furniture model reaches its accuracy bar
-    # (issue 9: mAP@0.5 >= 0.95 on held-out rooms); a weak model would map almost nothing.
-    p.add_argument("--detector", choices=("auto", "onnx", "oracle"), default="oracle",
-                   help="oracle (default): the simulator's noisy oracle detector; onnx: the "
-                   "shipped builtin:furniture model; auto: that model if it loads, else the oracle")
+    # The shipped model is the default so the demo runs the real neural-network path (issue 9);
+    # a model that is missing or does not load is an error naming it, not a silent oracle.
+    p.add_argument("--detector", choices=("auto", "onnx", "oracle"), default="onnx",
+                   help="onnx (default): the shipped builtin:furniture model (or detector.model_path); "
+                   "oracle: the simulator's noisy oracle detector; auto: the model if it loads, else the oracle")
     p.add_argument("--no-broker", action="store_true", help="do not start Mosquitto (no ground link)")
     p.add_argument("--timeout", type=float, default=170.0, help="give up the mission after this many seconds")
     p.add_argument("--scripted", action="store_true",
@@ -44,11 +44,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def choose_detector(cfg: CompanionConfig, which: str) -> CompanionConfig:
-    """``cfg`` with the demo's detector: the shipped ONNX model (``auto`` falls back to the
-    oracle, with a warning, when it is missing or does not load)."""
-    if which == "oracle" or (which == "auto" and cfg.detector.kind == "onnx"):
-        return cfg if which == "auto" else cfg.model_copy(
-            update={"detector": cfg.detector.model_copy(update={"kind": "oracle"})})
+    """``cfg`` with the demo's detector: ``onnx``, the configured model (``builtin:furniture``
+    unless the config names another), an error if it does not load; ``oracle``, the
+    simulator's; ``auto``, the model when it loads, else the oracle with a warning."""
+    oracle = cfg.model_copy(update={"detector": cfg.detector.model_copy(update={"kind": "oracle"})})
+    if which == "oracle":
+        return oracle
     onnx = cfg.model_copy(update={"detector": cfg.detector.model_copy(
         update={"kind": "onnx", "model_path": cfg.detector.model_path or "builtin:furniture"})})
     from semmap.detection import detector_from_config
@@ -58,8 +59,8 @@ def choose_detector(cfg: CompanionConfig, which: str) -> CompanionConfig:
     except PerceptionError as exc:
         if which == "onnx":
             raise
-        log.warning("the shipped detector is not usable (%s): the demo uses the simulator's oracle", exc)
-        return cfg
+        log.warning("the configured detector is not usable (%s): the demo uses the simulator's oracle", exc)
+        return oracle
     return onnx
 
 

@@ -141,9 +141,12 @@ class CameraConfig(StageConfig):
 class DetectorConfig(StageConfig):
     """Object detector: an ONNX model (YOLOv8 or YOLOX head) or the simulator's oracle."""
 
-    kind: Literal["onnx", "oracle"] = "oracle"
-    #: Path of the .onnx file; ``builtin:furniture`` names the model shipped in the package.
-    model_path: str | None = None
+    #: ``onnx`` (default): the model at ``model_path``. ``oracle``: boxes from the simulated
+    #: world's ground truth (the simulator only; unit tests and reference runs).
+    kind: Literal["onnx", "oracle"] = "onnx"
+    #: Path of the .onnx file; ``builtin:furniture`` (default) names the model shipped in the
+    #: package (six furniture classes; see its model card). Bring your own for your drone.
+    model_path: str | None = "builtin:furniture"
     head: Literal["auto", "yolov8", "yolox"] = "auto"
     input_size_px: int = Field(default=320, ge=32, le=2048)
     #: Model class names in output order; None reads them from the model's metadata.

@@ -48,8 +48,9 @@ def test_cli_builds_and_exports_the_dining_room(dining: Path, tmp_path: Path, ca
 
 def test_bad_inputs_are_reported(dining: Path, tmp_path: Path) -> None:
     cfg = load_config(None)
+    oracle = cfg.model_copy(update={"detector": cfg.detector.model_copy(update={"kind": "oracle"})})
     with pytest.raises(ConfigError, match="oracle"):
-        build_offline_map(dining, tmp_path / "a", cfg, OfflineMapOptions())
+        build_offline_map(dining, tmp_path / "a", oracle, OfflineMapOptions())
     with pytest.raises(DataError, match="not found"):
         build_offline_map(tmp_path / "missing", tmp_path / "b", cfg, OfflineMapOptions(detections_path=dining / "x.json"))
     bad = tmp_path / "dets.json"

@@ -67,3 +67,20 @@ def test_demo_with_a_bad_config_exits_2(tmp_path: Path, capsys: pytest.CaptureFi
     bad.write_text("sim: {room_width_m: 1.0}\n")
     assert main(["demo", "--scripted", "--out", str(tmp_path / "o"), "--config", str(bad)]) == 2
     assert "sim.room_width_m" in capsys.readouterr().err
+
+
+def test_demo_detector_choice_defaults_to_the_shipped_model_and_names_a_bad_one(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from companion.cmd_demo import choose_detector
+    from semmap.errors import PerceptionError
+
+    cfg = load_config(None)
+    chosen = choose_detector(cfg, "onnx")
+    assert (chosen.detector.kind, chosen.detector.model_path) == ("onnx", "builtin:furniture")
+    assert choose_detector(cfg, "oracle").detector.kind == "oracle"
+    missing = cfg.model_copy(update={"detector": cfg.detector.model_copy(
+        update={"model_path": str(tmp_path / "mine.onnx")})})
+    with pytest.raises(PerceptionError, match=r"mine\.onnx: file not found"):
+        choose_detector(missing, "onnx")
+    assert choose_detector(missing, "auto").detector.kind == "oracle"
+    assert "mine.onnx" in caplog.text and "oracle" in caplog.text

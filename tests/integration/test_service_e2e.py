@@ -31,14 +31,13 @@ def small_config(tmp_path: Path) -> CompanionConfig:
 def test_mission_flown_without_collisions_and_outputs_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg = small_config(tmp_path)
     out = tmp_path / "out"
-    # ``companion demo`` on the small room, with the simulator's oracle detector.
-    rc = main(["demo", "--out", str(out), "--config", str(tmp_path / "small.yaml"), "--detector", "oracle",
-               "--timeout", "120"])
+    # ``companion demo`` on the small room as a user runs it: the shipped ONNX furniture model.
+    rc = main(["demo", "--out", str(out), "--config", str(tmp_path / "small.yaml"), "--timeout", "120"])
     printed = capsys.readouterr().out
     assert rc == 0, printed
     assert f"outputs in {out}" in printed and "4/4 waypoints reached" in printed
     s = json.loads((out / "summary.json").read_text())
-    assert s["detector"] == "oracle"
+    assert s["detector"] == "onnx"
 
     assert s["mission_error"] is None
     assert s["waypoints_total"] == 4

@@ -281,7 +281,7 @@ def test_detector_from_config_builds_either_kind(tmp_path: Path) -> None:
     assert [d.class_name for d in onnx_det.detect_frame(f)] == ["chair"]
     assert isinstance(detector_from_config(DetectorConfig(kind="oracle"), OURS), OracleDetector)
     with pytest.raises(PerceptionError, match="model_path is not set"):
-        detector_from_config(DetectorConfig(kind="onnx"), OURS)
+        detector_from_config(DetectorConfig(kind="onnx", model_path=None), OURS)
 
 
 def test_fp16_model_gets_a_half_precision_input(tmp_path: Path) -> None:
