@@ -194,7 +194,8 @@ class CompanionService:
         async with contextlib.AsyncExitStack() as stack:
             planning = PlanningService(cfg.planner)
             await asyncio.to_thread(planning.start)
-            stack.callback(planning.close)
+            # Joining the worker waits up to seconds: off the loop (MQTT and the link stay served).
+            stack.push_async_callback(asyncio.to_thread, planning.close)
             await stack.enter_async_context(perception)
             self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh))
             await stack.enter_async_context(loc.vision_stream(self.vehicle.link))

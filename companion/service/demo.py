@@ -293,7 +293,8 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
             result.files["config"] = write_effective_config(cfg, out)
         async with world:
             placement = world.placement
-            wps_room = crossing_waypoints_room(placement, cfg)
+            # Planning on the true map takes a few hundred ms: off the loop the mock flies on.
+            wps_room = await asyncio.to_thread(crossing_waypoints_room, placement, cfg)
             wps_map = [placement.room_to_map_xy(w) for w in wps_room]
             acceptance = 0.3
             await upload_mission_mavsdk(mavsdk_port, wps_map, cfg.planner.flight_altitude_m, acceptance)
