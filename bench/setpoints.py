@@ -28,6 +28,14 @@ Period = difference of consecutive timestamps; jitter = ``|period - 1/rate|``. C
 * ``loaded_relative_sleep`` (reference): the task written the naive way,
   ``await asyncio.sleep(period)`` after each send, to show the drift that absolute
   ``time.monotonic()`` deadlines avoid (its mean rate falls below the target).
+* ``service_heap``: no extra load, but the streamer's process holds a heap the size of the
+  service's (``--heap-objects`` long-lived containers, 400k by default: the service process
+  holds 160-180k after its imports, a pytest session several times that) and allocates
+  containers that live a quarter of a second, so Python's cyclic collector runs its full
+  (generation-2) collections (each case runs at least 10 s); the heap is frozen as the service does (:func:`companion.service.app.frozen_heap`);
+* ``service_heap_unfrozen`` (reference): the same without the freeze: each full collection
+  walks the whole heap on the event-loop thread and delays the setpoint task by its duration.
+  For both, the duration of the full collections is measured too (``gc_full_ms_max``).
 
 The machine's own load (other programs) is printed with the results: on a shared machine it
 dominates the tail, so compare cases of one run, not runs of different moments.
@@ -39,12 +47,15 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
+import gc
 import json
 import multiprocessing as mp
 import os
 import socket
 import sys
 import time
+from collections import deque
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -58,6 +69,7 @@ from companion.mavlink.failsafe import PositionSetpoint  # noqa: E402
 from companion.mavlink.link import MavlinkLink  # noqa: E402
 from companion.mavlink.offboard import SetpointStreamer, encode_setpoint  # noqa: E402
 from companion.mavlink.sched import request_short_slice  # noqa: E402
+from companion.service.app import frozen_heap  # noqa: E402
 
 SET_POSITION_TARGET_LOCAL_NED_ID = 84
 TARGET_P99_JITTER_MS = 5.0
@@ -131,10 +143,27 @@ async def _relative_sleep_streamer(link: MavlinkLink, rate_hz: float, seconds: f
         await asyncio.sleep(period_s)
 
 
-async def _stream(port: int, rate_hz: float, seconds: float, relative: bool) -> list[float]:
+#: The ``service_heap`` cases' allocation churn: containers per 5 ms tick, and how many live.
+CHURN_PER_TICK = 2000
+CHURN_LIVE = 100_000
+
+
+async def _churn() -> None:
+    """Allocate like a busy service: short-lived containers (messages, records) that survive
+    the young collections and die a quarter of a second later (400k a second: several times
+    a flying service's rate, so that a 10 s case sees full collections at all)."""
+    live: deque[list[int]] = deque(maxlen=CHURN_LIVE)
+    while True:
+        for i in range(CHURN_PER_TICK):
+            live.append([i])
+        await asyncio.sleep(0.005)
+
+
+async def _stream(port: int, rate_hz: float, seconds: float, relative: bool, churn: bool) -> list[float]:
     sp = PositionSetpoint((1.0, 2.0, -1.5), yaw_rad=0.3, velocity_ned_m_s=(0.2, 0.0, 0.0))
     send_stamps: list[float] = []
     async with MavlinkLink(f"udpout://127.0.0.1:{port}", heartbeat_rate_hz=1.0) as link:
+        churner = asyncio.create_task(_churn()) if churn else None
         if relative:
             await _relative_sleep_streamer(link, rate_hz, seconds, sp, send_stamps)
         else:
@@ -142,19 +171,40 @@ async def _stream(port: int, rate_hz: float, seconds: float, relative: bool) -> 
             streamer.on_sent = send_stamps.append
             async with streamer:
                 await asyncio.sleep(seconds)
+        if churner is not None:
+            churner.cancel()
     return send_stamps
 
 
 def _streamer_proc(port: int, rate_hz: float, seconds: float, relative: bool,
-                   slice_s: float, out: Connection) -> None:
-    """The process under test: our setpoint task (optionally with the service's slice request)."""
+                   slice_s: float, heap_objects: int, freeze: bool, out: Connection) -> None:
+    """The process under test: our setpoint task (optionally with the service's slice
+    request, a service-sized heap and its freeze)."""
     if slice_s > 0:
         request_short_slice(slice_s)
-    out.send(asyncio.run(_stream(port, rate_hz, seconds, relative)))
+    heap = [{"k": [i]} for i in range(heap_objects // 3)]  # 3 tracked containers each
+    full_ms: list[float] = []
+    t0 = [0.0]
+
+    def on_gc(phase: str, info: dict[str, int]) -> None:
+        if info["generation"] == 2:
+            if phase == "start":
+                t0[0] = time.perf_counter()
+            else:
+                full_ms.append(1e3 * (time.perf_counter() - t0[0]))
+
+    with frozen_heap() if freeze else contextlib.nullcontext():
+        gc.callbacks.append(on_gc)
+        try:
+            stamps = asyncio.run(_stream(port, rate_hz, seconds, relative, churn=heap_objects > 0))
+        finally:
+            gc.callbacks.remove(on_gc)
+    del heap
+    out.send((stamps, full_ms))
 
 
 def run_case(rate_hz: float, seconds: float, load_procs: int, relative: bool, slice_s: float,
-             same_session: bool = False) -> dict[str, Any]:
+             same_session: bool = False, heap_objects: int = 0, freeze: bool = False) -> dict[str, Any]:
     """One case: receiver, optional busy processes and the streamer, each its own process."""
     ctx = mp.get_context("fork")
     port_rx, port_tx = ctx.Pipe(duplex=False)
@@ -170,9 +220,9 @@ def run_case(rate_hz: float, seconds: float, load_procs: int, relative: bool, sl
             p.start()
         time.sleep(0.5 if busy else 0.0)  # let the load settle onto the cores
         streamer = ctx.Process(target=_streamer_proc,
-                               args=(port, rate_hz, seconds, relative, slice_s, send_tx))
+                               args=(port, rate_hz, seconds, relative, slice_s, heap_objects, freeze, send_tx))
         streamer.start()
-        send_stamps = send_rx.recv() if send_rx.poll(seconds + 30.0) else []
+        send_stamps, full_ms = send_rx.recv() if send_rx.poll(seconds + 60.0) else ([], [])
         streamer.join(timeout=5.0)
     finally:
         for p in busy:
@@ -181,7 +231,12 @@ def run_case(rate_hz: float, seconds: float, load_procs: int, relative: bool, sl
             p.join()
     recv_stamps = res_rx.recv() if res_rx.poll(5.0) else []
     receiver.join(timeout=5.0)
-    return {"send": _stats(send_stamps, rate_hz), "recv": _stats(recv_stamps, rate_hz)}
+    out: dict[str, Any] = {"send": _stats(send_stamps, rate_hz), "recv": _stats(recv_stamps, rate_hz)}
+    if heap_objects:
+        out["heap_objects"] = heap_objects
+        out["gc_full_collections"] = len(full_ms)
+        out["gc_full_ms_max"] = round(max(full_ms), 2) if full_ms else 0.0
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -192,21 +247,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--load-procs", type=int, default=2, help="busy-loop processes for loaded cases")
     ap.add_argument("--slice-ms", type=float, default=LinkConfig().scheduler_slice_ms,
                     help="scheduler slice the streamer requests (the service default)")
+    ap.add_argument("--heap-objects", type=int, default=400_000,
+                    help="long-lived tracked objects in the service_heap cases")
     args = ap.parse_args(argv)
     seconds = args.seconds or (4.0 if args.quick else 15.0)
     slice_s = args.slice_ms / 1000.0
     n = args.load_procs
-    # name -> (busy processes, in our session?, relative-sleep reference?, slice requested)
+    h = args.heap_objects
+    # name -> (busy processes, in our session?, relative-sleep reference?, slice requested,
+    #          long-lived heap objects, heap frozen?)
     cases = {
-        "idle": (0, False, False, slice_s),
-        "loaded": (n, False, False, slice_s),
-        "loaded_same_group": (n, True, False, slice_s),
-        "loaded_same_group_no_slice": (n, True, False, 0.0),
-        "loaded_relative_sleep": (n, False, True, slice_s),
+        "idle": (0, False, False, slice_s, 0, False),
+        "loaded": (n, False, False, slice_s, 0, False),
+        "loaded_same_group": (n, True, False, slice_s, 0, False),
+        "loaded_same_group_no_slice": (n, True, False, 0.0, 0, False),
+        "loaded_relative_sleep": (n, False, True, slice_s, 0, False),
+        "service_heap": (0, False, False, slice_s, h, True),
+        "service_heap_unfrozen": (0, False, False, slice_s, h, False),
     }
     results: dict[str, Any] = {}
-    for name, (procs, same_session, relative, case_slice_s) in cases.items():
-        results[name] = run_case(args.rate_hz, seconds, procs, relative, case_slice_s, same_session)
+    for name, (procs, same_session, relative, case_slice_s, heap, freeze) in cases.items():
+        results[name] = run_case(args.rate_hz, max(seconds, 10.0) if heap else seconds, procs, relative,
+                                 case_slice_s, same_session, heap, freeze)
 
     cols = ["n", "rate_hz", "period_ms_p50", "period_ms_p99", "period_ms_max",
             "jitter_ms_p50", "jitter_ms_p99", "jitter_ms_max"]
@@ -220,6 +282,11 @@ def main(argv: list[str] | None = None) -> int:
             row = res[clock]
             print(f"{name:<28}{clock:<6}" + "".join(
                 f"{row.get(c, float('nan')):>15.2f}" for c in cols))
+    for name in ("service_heap", "service_heap_unfrozen"):
+        r = results[name]
+        print(f"{name}: {r['heap_objects']:,} long-lived objects, {r['gc_full_collections']} full collections, "
+              f"longest {r['gc_full_ms_max']:.1f} ms; longest setpoint period at the receiver "
+              f"{r['recv'].get('period_ms_max', float('nan')):.1f} ms")
     loaded_p99 = results["loaded"]["recv"].get("jitter_ms_p99", float("nan"))
     ok = loaded_p99 <= TARGET_P99_JITTER_MS
     print(f"target: loaded p99 jitter at the receiver <= {TARGET_P99_JITTER_MS:.0f} ms: "
