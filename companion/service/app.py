@@ -88,8 +88,9 @@ def frozen_heap() -> Iterator[None]:
     Only this once: a second freeze once start-up was done (links, MAVSDK, MQTT clients;
     without a collection, which would stall the running stream) also froze start-up garbage
     that the collector never got to, and the SLAM end-to-end test's pose error went over its
-    bound in 4 of 14 runs (0 of 11 without it): something made then still relies on the
-    collector to be released. What start-up allocated stays with the collector instead."""
+    bound in 4 of 14 runs (0 of 11 without it). The cause is not known (something made then
+    that relies on the collector to be released, or chance at these counts); what start-up
+    allocated stays with the collector."""
     already_frozen = gc.get_freeze_count() > 0
     t0 = time.perf_counter()
     gc.collect()
