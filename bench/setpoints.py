@@ -32,7 +32,8 @@ Period = difference of consecutive timestamps; jitter = ``|period - 1/rate|``. C
   service's (``--heap-objects`` long-lived containers, 400k by default: the service process
   holds 160-180k after its imports, a pytest session several times that) and allocates
   containers that live a quarter of a second, so Python's cyclic collector runs its full
-  (generation-2) collections (each case runs at least 10 s); the heap is frozen as the service does (:func:`companion.service.app.frozen_heap`);
+  (generation-2) collections (each case runs at least 10 s); the heap is frozen as the
+  service does (:func:`companion.service.app.frozen_heap`);
 * ``service_heap_unfrozen`` (reference): the same without the freeze: each full collection
   walks the whole heap on the event-loop thread and delays the setpoint task by its duration.
   For both, the duration of the full collections is measured too (``gc_full_ms_max``).
