@@ -193,6 +193,12 @@ class SimConfig(StageConfig):
     #: Fraction of each external-vision innovation the mock's estimator applies (EKF2 fusing
     #: VISION_POSITION_ESTIMATE / ODOMETRY); 0 = vision is recorded, not fused.
     vision_fusion_gain: float = Field(default=0.5, ge=0.0, le=1.0)
+    #: How the simulated camera's frames get their pose: ``autopilot``, each frame carries the
+    #: autopilot's estimate at its capture (stamped on the mock's clock); ``telemetry``, frames
+    #: come without one, stamped with ``time.monotonic`` at capture, as a RealSense delivers
+    #: them, and the service poses them from the autopilot's MAVLink telemetry
+    #: (:mod:`companion.sources.poses`).
+    camera_pose: Literal["autopilot", "telemetry"] = "autopilot"
     #: Mock autopilot home (the local NED / map origin); default = PX4 SITL's home.
     home_lat_deg: float = Field(default=47.397742, ge=-90.0, le=90.0)
     home_lon_deg: float = Field(default=8.545594, ge=-180.0, le=180.0)

@@ -56,6 +56,7 @@ from companion.service.perception_worker import (
     new_semantic_map,
 )
 from companion.sources.base import FrameSource
+from companion.sources.poses import SharedPoseHistory, TelemetryPosedSource, TelemetryPoseRecorder
 from companion.systemd_notify import SystemdNotifier, Watchdog
 from planner.worker import PlanningService
 from semmap.costmap import ObjectFootprint
@@ -113,6 +114,8 @@ class ServiceReport:
     frames_processed: int = 0
     frames_dropped: int = 0
     frames_failed: int = 0
+    #: Frames skipped because no pose was known at their time (no telemetry yet, or lost).
+    frames_unposed: int = 0
     stage_timings: dict[str, dict[str, float]] = field(default_factory=dict)
     plan_ms: list[float] = field(default_factory=list)
     checkpoints: int = 0
@@ -152,6 +155,9 @@ class CompanionService:
         self.vehicle: Vehicle | None = None
         self.perception: PerceptionProcess | None = None
         self.localization = ServiceLocalization(cfg)
+        #: The autopilot's recent poses from telemetry: a camera that delivers no pose (the
+        #: RealSense) gets its frames posed from them (:mod:`companion.sources.poses`).
+        self.pose_history = SharedPoseHistory()
         self.runner: MissionRunner | None = None
         self.ground: MqttBridge | None = None
         self.restored = False
@@ -197,7 +203,9 @@ class CompanionService:
         # Localization (SLAM on the camera's frames, in the perception process) re-poses the
         # frames before perception when enabled; it streams its pose to PX4 from here.
         loc = self.localization
-        perception = self.perception = PerceptionProcess(cfg, loc.source(self.frame_source), self.object_classes)
+        # A frame that comes without a pose gets the autopilot's at its stamp (telemetry).
+        posed = TelemetryPosedSource(self.frame_source, self.pose_history, cfg.camera.extrinsics.T_body_camera())
+        perception = self.perception = PerceptionProcess(cfg, loc.source(posed), self.object_classes)
         async with contextlib.AsyncExitStack() as stack:
             planning = PlanningService(cfg.planner)
             await asyncio.to_thread(planning.start)
@@ -205,6 +213,8 @@ class CompanionService:
             stack.push_async_callback(asyncio.to_thread, planning.close)
             await stack.enter_async_context(perception)
             self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh))
+            recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component)
+            stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
             await stack.enter_async_context(loc.vision_stream(self.vehicle.link))
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
             self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
@@ -245,6 +255,7 @@ class CompanionService:
         counts = perception.counters()
         self.report.frames_processed = counts["processed"]
         self.report.frames_failed = counts["failed"]
+        self.report.frames_unposed = counts["unposed"]
         self.report.frames_dropped = counts["dropped"]
         self.report.checkpoints = counts["checkpoints"]
         if perception.latest is not None:

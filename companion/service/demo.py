@@ -397,7 +397,7 @@ def _summary(cfg: CompanionConfig, placement: SimPlacement, report: ServiceRepor
                     "max": round(float(np.max(report.plan_ms)), 1) if report.plan_ms else None,
                     "count": len(report.plan_ms)},
         "frames": {"processed": report.frames_processed, "dropped": report.frames_dropped,
-                   "failed": report.frames_failed},
+                   "failed": report.frames_failed, "unposed": report.frames_unposed},
         "checkpoints": report.checkpoints,
         "elapsed_s": round(elapsed_s, 1),
     }

@@ -92,6 +92,8 @@ class PerceptionUpdate:
     timings_ms: dict[str, float]
     timings_summary: dict[str, dict[str, float]]
     checkpoints: int
+    #: Frames skipped for want of a pose (see :mod:`companion.sources.poses`).
+    frames_unposed: int = 0
     costmap: Costmap | None = None
     costmap_capture_mono_s: float | None = None
     objects: tuple[ObjectFootprint, ...] | None = None
@@ -202,7 +204,7 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
         return PerceptionUpdate(
             kind, restored is not None, pipeline.frames_done, pipeline.frames_failed, worker.dropped_frames,
             pipeline.last_frame_s, pipeline.capture_mono_s, dict(pipeline.timings.latest_ms),
-            pipeline.timings.summary(), ckpt.saves, cm, cm_t, objs, smap.spec)
+            pipeline.timings.summary(), ckpt.saves, pipeline.frames_unposed, cm, cm_t, objs, smap.spec)
 
     async def send(u: PerceptionUpdate) -> None:
         await asyncio.to_thread(conn.send, u)
@@ -358,8 +360,10 @@ class PerceptionProcess:
             self._objects = u.objects
         if u.kind == "ready":
             self._ready.set()
-        handled = u.frames_done + u.frames_failed
-        if self.on_frame is not None and (prev is None or handled != prev.frames_done + prev.frames_failed):
+        # A frame skipped for want of a pose still shows the camera and perception alive.
+        handled = u.frames_done + u.frames_failed + u.frames_unposed
+        if self.on_frame is not None and (
+                prev is None or handled != prev.frames_done + prev.frames_failed + prev.frames_unposed):
             self.on_frame()
 
     # --- the latest state ---------------------------------------------------------------
@@ -405,12 +409,12 @@ class PerceptionProcess:
         return time.monotonic() - u.last_frame_mono_s <= self.cfg.map.stale_after_s
 
     def counters(self) -> dict[str, int]:
-        """``{"processed", "failed", "dropped", "checkpoints"}`` as last reported."""
+        """``{"processed", "failed", "dropped", "unposed", "checkpoints"}`` as last reported."""
         u = self.latest
         if u is None:
-            return {"processed": 0, "failed": 0, "dropped": 0, "checkpoints": 0}
+            return {"processed": 0, "failed": 0, "dropped": 0, "unposed": 0, "checkpoints": 0}
         return {"processed": u.frames_done, "failed": u.frames_failed, "dropped": u.frames_dropped,
-                "checkpoints": u.checkpoints}
+                "unposed": u.frames_unposed, "checkpoints": u.checkpoints}
 
 
 @dataclass

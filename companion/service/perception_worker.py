@@ -113,6 +113,8 @@ class PerceptionPipeline:
         self.lock = threading.Lock()
         self.frames_done = 0
         self.frames_failed = 0
+        #: Frames skipped because they came without a pose (no telemetry at their time).
+        self.frames_unposed = 0
         self.last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._rng = np.random.default_rng(0)
 
@@ -128,6 +130,7 @@ class PerceptionPipeline:
         """Detect, track, measure objects and update the map with one frame; returns the
         stage durations in ms. A frame without a pose is skipped (empty dict)."""
         if frame.T_map_camera is None:
+            self.frames_unposed += 1
             return {}
         check_frame(frame, *self.depth_range)
         T = np.asarray(frame.T_map_camera, dtype=np.float64)

@@ -32,9 +32,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation, Slerp
 
 from companion.sources.base import FrameSource
+from companion.sources.poses import PoseTrack
 from semmap.errors import DataError, FrameError
 from semmap.frames import make_transform, quaternion_to_rotation
 from semmap.types import CameraIntrinsics, Frame
@@ -168,34 +168,6 @@ def associate(
     return sorted(pairs)
 
 
-class _PoseTrack:
-    """Camera-to-world poses at stamps, interpolated (linear + slerp) in between."""
-
-    def __init__(self, stamps_s: NDArray[np.float64], poses: list[NDArray[np.float64]],
-                 max_gap_s: float) -> None:
-        order = np.argsort(stamps_s)
-        self.t = np.asarray(stamps_s, dtype=np.float64)[order]
-        self.xyz = np.array([poses[i][:3, 3] for i in order])
-        self.rot = Rotation.from_matrix(np.array([poses[i][:3, :3] for i in order]))
-        self.max_gap_s = max_gap_s
-        self._slerp = Slerp(self.t, self.rot) if len(self.t) >= 2 else None
-
-    def at(self, t: float) -> NDArray[np.float64] | None:
-        if len(self.t) == 0:
-            return None
-        k = int(np.searchsorted(self.t, t))
-        if k < len(self.t) and abs(self.t[k] - t) < 1e-9:
-            return make_transform(self.rot[k].as_matrix(), self.xyz[k])
-        if k == 0 or k == len(self.t) or self._slerp is None:
-            return None  # outside the ground truth's time span
-        t0, t1 = self.t[k - 1], self.t[k]
-        if t1 - t0 > self.max_gap_s:
-            return None
-        w = (t - t0) / (t1 - t0)
-        xyz = (1 - w) * self.xyz[k - 1] + w * self.xyz[k]
-        return make_transform(self._slerp([t]).as_matrix()[0], xyz)
-
-
 def _numeric_key(p: Path) -> tuple[int, float, str]:
     m = re.fullmatch(r"\d+(\.\d+)?", p.stem)
     return (0, float(p.stem), "") if m else (1, 0.0, p.stem)
@@ -320,7 +292,7 @@ class RecordedFrameSource(FrameSource):
         gt_path = p / "groundtruth.txt"
         if gt_path.is_file():
             rows = read_pose_lines(gt_path, 8)
-            track = _PoseTrack(np.array([r[0] for r in rows]), [_pose_from_tum(r[1:]) for r in rows],
+            track = PoseTrack(np.array([r[0] for r in rows]), [_pose_from_tum(r[1:]) for r in rows],
                                max_gap_s=0.25)
         out = []
         for i, j in pairs:

@@ -117,6 +117,7 @@ class MockAutopilot:
                                  self._on_message, seed)
         self._task: asyncio.Task[None] | None = None
         self._t0 = time.monotonic()
+        self._tick_monotonic_s = self._t0
         self.vehicle = KinematicMulticopter(self._limits_from_params(), yaw_rad=start_yaw_rad)
         #: What the mock reports and flies by: the truth through ``odometry_drift``, corrected
         #: by external vision (see :mod:`.estimator`).
@@ -169,6 +170,7 @@ class MockAutopilot:
         """Bind the socket and start the physics/telemetry loop."""
         await self._link.open()
         self._t0 = time.monotonic()
+        self._tick_monotonic_s = self._t0
         self._task = asyncio.create_task(self._run(), name="mock-autopilot")
         log.info("mock autopilot (system %d) on udp %s:%d -> %s", self.system_id, self.host,
                  self.local_port, ", ".join(f"{h}:{p}" for h, p in self._link.remotes))
@@ -204,6 +206,12 @@ class MockAutopilot:
     def now_s(self) -> float:
         """Seconds since the mock started (its clock for every recorded stamp)."""
         return time.monotonic() - self._t0
+
+    @property
+    def tick_monotonic_s(self) -> float:
+        """When the latest physics tick ran, on ``time.monotonic`` (the instant of
+        :meth:`poses_map_body`; the simulation clock ``stamp_s`` can lag it after a stall)."""
+        return self._tick_monotonic_s
 
     @property
     def mode(self) -> FlightMode:
@@ -340,6 +348,7 @@ class MockAutopilot:
 
     def _tick(self, dt_s: float) -> None:
         now = self.now_s()
+        self._tick_monotonic_s = now + self._t0
         self.vehicle.step(dt_s)
         self.estimator.update(self.vehicle.state(), armed=self._armed)
         self.navigator.tick(self.vehicle.stamp_s)

@@ -1,0 +1,302 @@
+"""Poses for camera frames that arrive without one: the autopilot's pose at the frame's time.
+
+A real depth camera (the RealSense) delivers images, not poses. The map needs each frame's
+``T_map_camera``, so the service looks the vehicle's pose up in the autopilot's telemetry at
+the frame's capture time, as a ROS node would look a transform up in tf at the image stamp:
+
+* :class:`TelemetryPoseRecorder` (service process) turns each ATTITUDE from the autopilot,
+  with the latest LOCAL_POSITION_NED moved on by its velocity to the attitude's time, into
+  one map-frame body pose stamped with the message's ``time_boot_ms`` on this machine's clock
+  (``time.monotonic``, the clock the camera stamps frames with; :class:`BootClock`), and
+  appends it to
+* :class:`SharedPoseHistory`, a ring buffer in shared memory (picklable into the ``spawn``ed
+  perception process, where the camera is read);
+* :class:`TelemetryPosedSource` wraps the camera: a frame without a pose gets the pose
+  interpolated (position linearly, attitude by slerp, :class:`PoseTrack`) between the two
+  telemetry samples around its stamp. When the newest sample is still older than the frame
+  it waits up to ``wait_s`` for the next (telemetry streams at 30-50 Hz, so about one
+  period); a frame no sample brackets within ``max_gap_s`` keeps no pose and is counted in
+  :attr:`TelemetryPosedSource.unposed_frames` (perception skips and counts it too).
+  Frames that already carry a pose (a recording with ground truth, the simulated camera in
+  ``sim.camera_pose: autopilot``) pass unchanged.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+import time
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+from pymavlink.dialects.v20 import common as mavlink
+from scipy.spatial.transform import Rotation, Slerp
+
+from companion.mavlink.vision import R_FLU_FRD, R_NED_ENU
+from companion.sources.base import FrameSource
+from semmap.frames import Transform, make_transform, rotation_from_rpy
+from semmap.types import CameraIntrinsics, Frame
+
+log = logging.getLogger(__name__)
+
+#: Telemetry samples kept (about 5 s at 50 Hz: longer than any camera latency).
+HISTORY_SAMPLES = 256
+#: Values per sample: stamp, x, y, z, quaternion x, y, z, w.
+_ROW = 8
+
+
+class PoseTrack:
+    """Poses at stamps, interpolated between them: position linearly, rotation by slerp.
+
+    ``stamps_s`` (N,) in any order; ``poses`` N (4, 4) transforms. :meth:`at` gives None
+    outside the track's time span or across a gap longer than ``max_gap_s``."""
+
+    def __init__(self, stamps_s: NDArray[np.float64], poses: list[NDArray[np.float64]] | NDArray[np.float64],
+                 max_gap_s: float) -> None:
+        order = np.argsort(stamps_s, kind="stable")
+        self.t = np.asarray(stamps_s, dtype=np.float64)[order]
+        self.xyz = np.array([poses[i][:3, 3] for i in order]).reshape(-1, 3)
+        self.rot = Rotation.from_matrix(np.array([poses[i][:3, :3] for i in order]).reshape(-1, 3, 3)) \
+            if len(order) else None
+        self.max_gap_s = max_gap_s
+        self._slerp = Slerp(self.t, self.rot) if len(self.t) >= 2 and np.all(np.diff(self.t) > 0) else None
+
+    @classmethod
+    def from_quaternions(cls, stamps_s: NDArray[np.float64], xyz_m: NDArray[np.float64],
+                         quat_xyzw: NDArray[np.float64], max_gap_s: float) -> PoseTrack:
+        """A track from positions (N, 3) and unit quaternions (N, 4, scipy's x, y, z, w order)."""
+        R = Rotation.from_quat(quat_xyzw).as_matrix() if len(quat_xyzw) else np.zeros((0, 3, 3))
+        poses = np.zeros((len(stamps_s), 4, 4))
+        poses[:, :3, :3] = R
+        poses[:, :3, 3] = xyz_m
+        poses[:, 3, 3] = 1.0
+        return cls(np.asarray(stamps_s, dtype=np.float64), poses, max_gap_s)
+
+    @property
+    def last_stamp_s(self) -> float | None:
+        return float(self.t[-1]) if len(self.t) else None
+
+    def at(self, t: float) -> NDArray[np.float64] | None:
+        """The (4, 4) pose at ``t``, or None (outside the span, or across a long gap)."""
+        if self.rot is None:
+            return None
+        k = int(np.searchsorted(self.t, t))
+        if k < len(self.t) and abs(self.t[k] - t) < 1e-9:
+            return make_transform(self.rot[k].as_matrix(), self.xyz[k])
+        if k == 0 or k == len(self.t) or self._slerp is None:
+            return None
+        t0, t1 = self.t[k - 1], self.t[k]
+        if t1 - t0 > self.max_gap_s:
+            return None
+        w = (t - t0) / (t1 - t0)
+        xyz = (1 - w) * self.xyz[k - 1] + w * self.xyz[k]
+        return make_transform(self._slerp([t]).as_matrix()[0], xyz)
+
+
+class SharedPoseHistory:
+    """The vehicle's recent map-frame body poses in shared memory: appended by the service
+    (:class:`TelemetryPoseRecorder`), read where the camera is (:class:`TelemetryPosedSource`).
+    Stamps must increase; a sample not newer than the last one is dropped."""
+
+    def __init__(self, capacity: int = HISTORY_SAMPLES) -> None:
+        if capacity < 2:
+            raise ValueError(f"capacity must be at least 2 (got {capacity})")
+        self.capacity = capacity
+        ctx = mp.get_context("spawn")
+        self._rows = ctx.Array("d", capacity * _ROW, lock=True)
+        self._count = ctx.Value("q", 0, lock=False)  # samples ever written; guarded by _rows' lock
+
+    def __len__(self) -> int:
+        with self._rows.get_lock():
+            return min(int(self._count.value), self.capacity)
+
+    def push(self, stamp_s: float, T_map_body: Transform) -> bool:  # noqa: N803 - frame names
+        """Append one pose (4, 4) at ``stamp_s``; False when it is not newer than the last
+        or not finite."""
+        T = np.asarray(T_map_body, dtype=np.float64)
+        if T.shape != (4, 4) or not (math.isfinite(stamp_s) and np.all(np.isfinite(T))):
+            return False
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        row = [float(stamp_s), *(float(v) for v in T[:3, 3]), *(float(v) for v in q)]
+        with self._rows.get_lock():
+            n = int(self._count.value)
+            if n and self._rows[((n - 1) % self.capacity) * _ROW] >= stamp_s:
+                return False
+            i = (n % self.capacity) * _ROW
+            self._rows[i:i + _ROW] = row
+            self._count.value = n + 1
+        return True
+
+    def latest_stamp_s(self) -> float | None:
+        """The newest sample's stamp (None when empty)."""
+        with self._rows.get_lock():
+            n = int(self._count.value)
+            return None if n == 0 else float(self._rows[((n - 1) % self.capacity) * _ROW])
+
+    def track(self, max_gap_s: float) -> PoseTrack:
+        """The samples held now, oldest first, as a :class:`PoseTrack`."""
+        with self._rows.get_lock():
+            n = int(self._count.value)
+            flat = np.array(self._rows[:], dtype=np.float64)
+        m = min(n, self.capacity)
+        rows = flat.reshape(self.capacity, _ROW)
+        if n > self.capacity:  # oldest first
+            start = n % self.capacity
+            rows = np.concatenate([rows[start:], rows[:start]])
+        rows = rows[:m]
+        return PoseTrack.from_quaternions(rows[:, 0], rows[:, 1:4], rows[:, 4:8], max_gap_s)
+
+
+def map_pose_from_ned(position_ned_m: tuple[float, float, float],
+                      rpy_frd_rad: tuple[float, float, float]) -> Transform:
+    """(4, 4) pose of the FLU body in the map frame (ENU) from PX4's local NED position and
+    FRD attitude (roll, pitch, yaw from north): the inverse of
+    :func:`companion.mavlink.vision.ned_pose_from_map`."""
+    R_ned_frd = rotation_from_rpy(*rpy_frd_rad)
+    return make_transform(R_NED_ENU.T @ R_ned_frd @ R_FLU_FRD.T, R_NED_ENU.T @ np.asarray(position_ned_m, dtype=np.float64))
+
+
+class BootClock:
+    """Maps the autopilot's ``time_boot_ms`` onto this machine's clock.
+
+    A message's arrival time is its send time plus a latency that varies (serial buffering,
+    the event loop busy for a few tens of milliseconds): stamped on arrival, a pose taken
+    while turning lands a tick late. The offset ``arrival - boot`` is smallest for the
+    messages that waited least, so the estimate is its running minimum, allowed to rise by
+    ``drift_s_per_s`` (the two crystals' drift, 100 ppm) so it follows a slow clock. A boot
+    time that goes back by more than ``reboot_s`` (the autopilot rebooted) starts afresh."""
+
+    def __init__(self, drift_s_per_s: float = 1e-4, reboot_s: float = 1.0) -> None:
+        self.drift_s_per_s = drift_s_per_s
+        self.reboot_s = reboot_s
+        self._offset_s: float | None = None
+        self._at_s = 0.0
+        self._last_boot_s = -math.inf
+
+    def to_local(self, boot_s: float, arrival_s: float) -> float:
+        """The local time of ``boot_s`` (autopilot seconds), given the message arrived at
+        ``arrival_s`` (local seconds); updates the offset estimate."""
+        if boot_s < self._last_boot_s - self.reboot_s:
+            self._offset_s = None
+        self._last_boot_s = boot_s
+        off = arrival_s - boot_s
+        if self._offset_s is None or off <= self._offset_s:
+            self._offset_s = off
+        else:
+            self._offset_s = min(off, self._offset_s + self.drift_s_per_s * max(0.0, arrival_s - self._at_s))
+        self._at_s = arrival_s
+        return boot_s + self._offset_s
+
+
+class TelemetryPoseRecorder:
+    """Feeds a :class:`SharedPoseHistory` from the autopilot's telemetry (a link listener:
+    ``link.add_listener(recorder.handle, TelemetryPoseRecorder.MESSAGES)``).
+
+    Each ATTITUDE makes one sample: that attitude with the latest LOCAL_POSITION_NED moved on
+    by its velocity to the attitude's time, when that position is no more than
+    ``max_position_age_s`` older. Stamps are the messages' ``time_boot_ms`` mapped onto
+    ``clock`` (``time.monotonic``, the clock the camera stamps frames with) by a
+    :class:`BootClock`. Only the autopilot's messages count (``target_system``/``target_component``)."""
+
+    MESSAGES = ("ATTITUDE", "LOCAL_POSITION_NED")
+
+    def __init__(self, history: SharedPoseHistory, target_system: int = 1,
+                 target_component: int = mavlink.MAV_COMP_ID_AUTOPILOT1, max_position_age_s: float = 0.2,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.history = history
+        self.target_system = target_system
+        self.target_component = target_component
+        self.max_position_age_s = max_position_age_s
+        self.clock = clock
+        self.boot_clock = BootClock()
+        self._pos: tuple[float, float, float, float, float, float, float] | None = None  # t, xyz, vxyz
+        self.samples = 0
+
+    def handle(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.get_srcSystem() != self.target_system or msg.get_srcComponent() != self.target_component:
+            return
+        mtype = msg.get_type()
+        if mtype not in self.MESSAGES:
+            return
+        t_msg = self.boot_clock.to_local(msg.time_boot_ms * 1e-3, self.clock())
+        if mtype == "LOCAL_POSITION_NED":
+            vals = (float(msg.x), float(msg.y), float(msg.z), float(msg.vx), float(msg.vy), float(msg.vz))
+            if all(math.isfinite(v) for v in vals):
+                self._pos = (t_msg, *vals)
+            return
+        if self._pos is None:
+            return
+        rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
+        t, x, y, z, vx, vy, vz = self._pos
+        dt = t_msg - t
+        if not all(math.isfinite(v) for v in rpy) or abs(dt) > self.max_position_age_s:
+            return
+        T = map_pose_from_ned((x + vx * dt, y + vy * dt, z + vz * dt), rpy)
+        if self.history.push(t_msg, T):
+            self.samples += 1
+
+
+class TelemetryPosedSource(FrameSource):
+    """``inner``'s frames, those without a pose posed from ``history`` at their stamp (see
+    the module docstring). ``T_body_camera``: the camera's mounting (4, 4). ``wait_s``: how
+    long a frame newer than the newest sample waits for the next one; ``max_gap_s``: the
+    longest interval between two samples that is interpolated across."""
+
+    def __init__(self, inner: FrameSource, history: SharedPoseHistory, T_body_camera: Transform,  # noqa: N803
+                 *, wait_s: float = 0.1, max_gap_s: float = 0.25, poll_s: float = 0.002) -> None:
+        self.inner = inner
+        self.history = history
+        self.T_body_camera = np.asarray(T_body_camera, dtype=np.float64)
+        self.wait_s = wait_s
+        self.max_gap_s = max_gap_s
+        self.poll_s = poll_s
+        #: Frames left without a pose (no telemetry around their stamp).
+        self.unposed_frames = 0
+        self.posed_frames = 0
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        return self.inner.intrinsics
+
+    @property
+    def dropped_frames(self) -> int:  # type: ignore[override]
+        return self.inner.dropped_frames
+
+    @property
+    def frames_read(self) -> int:  # type: ignore[override]
+        return self.inner.frames_read
+
+    def open(self) -> None:
+        self.inner.open()
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def pose_at(self, stamp_s: float) -> Transform | None:
+        """The body pose at ``stamp_s`` (waits up to ``wait_s`` for a sample after it)."""
+        deadline = time.monotonic() + self.wait_s
+        while True:
+            last = self.history.latest_stamp_s()
+            if (last is not None and last >= stamp_s) or time.monotonic() >= deadline:
+                break
+            time.sleep(self.poll_s)
+        return self.history.track(self.max_gap_s).at(stamp_s)
+
+    def read(self) -> Frame | None:
+        frame = self.inner.read()
+        if frame is None or frame.T_map_camera is not None:
+            return frame
+        T_map_body = self.pose_at(frame.stamp_s)
+        if T_map_body is None:
+            self.unposed_frames += 1
+            if self.unposed_frames == 1 or self.unposed_frames % 100 == 0:
+                last = self.history.latest_stamp_s()
+                log.warning("frame %d at %.3f s has no telemetry pose (newest sample %s; %d frames so far)",
+                            frame.index, frame.stamp_s, "none" if last is None else f"at {last:.3f} s",
+                            self.unposed_frames)
+            return frame
+        self.posed_frames += 1
+        return replace(frame, T_map_camera=T_map_body @ self.T_body_camera)

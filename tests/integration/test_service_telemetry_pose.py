@@ -1,0 +1,55 @@
+"""The service with a camera that delivers no pose (as a RealSense does): every frame is
+posed from the mock autopilot's MAVLink telemetry at its capture time, and the demo mission
+is mapped and flown as with posed frames."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from companion.config import load_config
+from companion.service.demo import run_e2e
+from companion.sources.sim import room_from_config
+from semmap.polygons import inside_convex
+
+pytest.importorskip("open3d")
+
+SMALL: dict[str, Any] = {
+    "camera": {"width_px": 160, "height_px": 120, "fx_px": 96.0, "fy_px": 96.0, "cx_px": 80.0, "cy_px": 60.0},
+    "sim": {"seed": 3, "room_width_m": 6.0, "room_depth_m": 5.0, "n_objects": 4, "camera_pose": "telemetry"},
+}
+
+
+def test_frames_without_a_pose_are_posed_from_telemetry_and_the_mission_is_mapped(tmp_path: Path) -> None:
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(SMALL))
+    cfg = load_config(path)
+    result = asyncio.run(run_e2e(cfg, tmp_path / "out", use_broker=False, timeout_s=120.0))
+    s = result.summary
+    assert s["waypoints_reached"] == s["waypoints_total"] == 4, s["legs"]
+    assert s["collisions"] == 0, s["collision_points_room_xy_m"]
+    frames = s["frames"]
+    # Only the frames read before the link brought the first telemetry go unposed.
+    assert frames["processed"] > 100, frames
+    assert 0 < frames["unposed"] < 0.05 * frames["processed"], frames
+    # Each mapped object lies on a piece of the room's furniture: the poses are right.
+    room = room_from_config(cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": s["seed"]})}))
+    dx, dy = s["room_offset_xy_m"]
+    footprints = [o.footprint_xy_m() - np.array([dx, dy]) for o in room.objects]
+    assert len(s["objects_found"]) >= 3, s["objects_found"]
+    for obj in s["objects_found"]:
+        gap = min(_distance_to_convex_m(np.asarray(obj["center_xy_m"]), fp) for fp in footprints)
+        assert gap < 0.15, (obj, gap)
+
+
+def _distance_to_convex_m(xy: np.ndarray, poly: np.ndarray) -> float:
+    if inside_convex(poly, xy[None])[0]:
+        return 0.0
+    a, b = poly, np.roll(poly, -1, axis=0)
+    t = np.clip(np.einsum("ij,ij->i", xy - a, b - a) / np.einsum("ij,ij->i", b - a, b - a), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(a + t[:, None] * (b - a) - xy, axis=1)))
