@@ -38,6 +38,7 @@ from companion.mavlink.obstacle_distance import ObstacleDistanceFeed, ObstacleDi
 from companion.mavlink.offboard import OffboardController
 from companion.mavlink.sched import request_short_slice
 from companion.mavlink.state import VehicleState, VehicleStateTracker
+from companion.mavlink.timesync import TimesyncResponder
 
 if TYPE_CHECKING:
     from companion.config import LinkConfig
@@ -84,6 +85,8 @@ class Vehicle:
             is_pose_fresh=is_pose_fresh,
             is_map_fresh=is_map_fresh,
         )
+        #: Answers PX4's TIMESYNC requests (PX4 then fuses our vision at its capture time).
+        self.timesync = TimesyncResponder(self.link, cfg.target_system)
         self.obstacle_feed: ObstacleDistanceFeed | None = None
         if obstacle_source is not None and cfg.obstacle_distance_rate_hz > 0:
             self.obstacle_feed = ObstacleDistanceFeed(
@@ -102,6 +105,8 @@ class Vehicle:
         async with contextlib.AsyncExitStack() as stack:
             await stack.enter_async_context(self.link)
             stack.callback(self.state.attach(self.link))
+            # PX4 maps our vision timestamps onto its clock from our TIMESYNC answers.
+            stack.callback(self.timesync.attach())
             await stack.enter_async_context(self.offboard)
             if self.obstacle_feed is not None:
                 await stack.enter_async_context(self.obstacle_feed)

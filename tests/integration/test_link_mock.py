@@ -11,6 +11,7 @@ import asyncio
 import logging
 import math
 import os
+import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -386,6 +387,11 @@ async def test_vehicle_stack_from_config(caplog: pytest.LogCaptureFixture, tmp_p
             assert await vehicle.download_mission() == ()
             await ap.wait_until(lambda: ap.messages_received["OBSTACLE_DISTANCE"] >= 3, 5.0, "feed")
             assert list(ap.last_received["OBSTACLE_DISTANCE"].distances) == [801] * 72  # free room
+            # The vehicle answers PX4's TIMESYNC requests on time.monotonic: the autopilot
+            # learns the offset between its boot clock and ours (to stamp our vision poses).
+            await ap.wait_until(lambda: ap.timesync_offset_s is not None, 5.0, "timesync answer")
+            assert vehicle.timesync.answered >= 1
+            assert ap.timesync_offset_s == pytest.approx(ap.now_s() - time.monotonic(), abs=0.005)
             await vehicle.commands.arm()
             await vehicle.offboard.engage()  # nothing planned: holds where it stands
             assert ap.mode is FlightMode.OFFBOARD

@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import SimulationError
@@ -52,6 +53,10 @@ log = logging.getLogger(__name__)
 _LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
 #: MISSION_ITEM_REACHED is sent again this long after the first time.
 REACHED_RESEND_S = 0.5
+#: PX4 asks the other end for its time this often (TIMESYNC with tc1 = 0) ...
+TIMESYNC_PERIOD_S = 1.0
+#: ... and keeps only answers that came back this quickly (``MAX_RTT_SAMPLE``).
+TIMESYNC_MAX_RTT_S = 0.01
 
 
 @dataclass(frozen=True)
@@ -140,6 +145,8 @@ class MockAutopilot:
         self._offboard_target: Target | None = None
         self.setpoints: deque[offboard.ReceivedSetpoint] = deque(maxlen=2000)
         self.vision: deque[VisionSample] = deque(maxlen=2000)
+        self._timesync_offsets: deque[float] = deque(maxlen=15)
+        self._next_timesync_s = 0.0
         self.failsafes: list[FailsafeEvent] = []
         #: Every mode change as ``(mock clock s, new mode)``, for judging a flight afterwards.
         self.mode_changes: deque[tuple[float, FlightMode]] = deque(maxlen=1000)
@@ -361,6 +368,9 @@ class MockAutopilot:
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
         self._stream(now)
+        if now >= self._next_timesync_s:
+            self._next_timesync_s = now + TIMESYNC_PERIOD_S
+            self.send(self._mav.timesync_encode(0, int(now * 1e9)))
 
     def _check_offboard(self, now: float) -> None:
         if self._mode is not FlightMode.OFFBOARD:
@@ -529,8 +539,27 @@ class MockAutopilot:
         elif mtype == "PARAM_SET":
             self._on_param_set(msg)
         elif mtype == "TIMESYNC":
-            if msg.tc1 == 0:
-                self.send(self._mav.timesync_encode(time.monotonic_ns(), msg.ts1))
+            self._on_timesync(msg, now)
+
+    def _on_timesync(self, msg: Any, now: float) -> None:
+        """PX4's ``MavlinkTimesync``: answer a request on our clock; from an answer to ours,
+        a sample of the offset (our clock minus the companion's), kept when the round trip
+        was short."""
+        if msg.tc1 == 0:
+            self.send(self._mav.timesync_encode(int(now * 1e9), msg.ts1))
+            return
+        sent_s, remote_s = msg.ts1 * 1e-9, msg.tc1 * 1e-9
+        if 0.0 <= now - sent_s < TIMESYNC_MAX_RTT_S:
+            self._timesync_offsets.append(0.5 * (sent_s + now) - remote_s)
+
+    @property
+    def timesync_offset_s(self) -> float | None:
+        """Our clock minus the companion's, from its answers to our TIMESYNC requests (the
+        median of the recent samples; None before any answer). PX4 converts the companion's
+        timestamps with it (``MavlinkTimesync::sync_stamp``)."""
+        if not self._timesync_offsets:
+            return None
+        return float(np.median(self._timesync_offsets))
 
     def _send_param(self, name: str) -> None:
         spec = self.params.spec(name)
