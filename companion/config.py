@@ -193,9 +193,9 @@ class SimConfig(StageConfig):
     #: Fraction of each external-vision innovation the mock's estimator applies (EKF2 fusing
     #: VISION_POSITION_ESTIMATE / ODOMETRY); 0 = vision is recorded, not fused.
     vision_fusion_gain: float = Field(default=0.5, ge=0.0, le=1.0)
-    #: How the simulated camera's frames get their pose: ``autopilot``, each frame carries the
-    #: autopilot's estimate at its capture (stamped on the mock's clock); ``telemetry``, frames
-    #: come without one, stamped with ``time.monotonic`` at capture, as a RealSense delivers
+    #: How the simulated camera's frames (stamped with ``time.monotonic`` at capture, as a
+    #: RealSense stamps them) get their pose: ``autopilot``, each carries the autopilot's
+    #: estimate at its capture; ``telemetry``, they come without one, as a RealSense delivers
     #: them, and the service poses them from the autopilot's MAVLink telemetry
     #: (:mod:`companion.sources.poses`).
     camera_pose: Literal["autopilot", "telemetry"] = "autopilot"

@@ -204,9 +204,11 @@ class SimCameraSource(FrameSource):
         self.frames_read = src.frames_read
         if frame is None or frame.T_map_camera is None:
             return frame
+        # Stamped on this machine's clock at capture, as a RealSense stamps its frames.
+        frame = replace(frame, stamp_s=self._capture_monotonic_s)
         if self.cfg.sim.camera_pose == "telemetry":
-            # As a RealSense delivers it: no pose, stamped on this machine's clock at capture.
-            frame = replace(frame, T_map_camera=None, stamp_s=self._capture_monotonic_s)
+            # As a RealSense delivers it: no pose (the service looks it up in the telemetry).
+            frame = replace(frame, T_map_camera=None)
         elif self._estimated is not None:
             # Rendered where the vehicle is, posed where the autopilot thinks it is.
             frame = replace(frame, T_map_camera=self._estimated @ src.T_body_camera)

@@ -60,8 +60,10 @@ def test_slam_keeps_the_pose_while_the_odometry_drifts(tmp_path: Path) -> None:
             stamps.append(float(stamp))
             truth.append(np.asarray(T)[:2, 3].copy())
             st = svc.localization.latest()
-            if st is not None and ap.armed and stamps[0] < st.stamp_s:
-                k = min(bisect.bisect_left(stamps, st.stamp_s), len(stamps) - 1)
+            # The camera stamps on time.monotonic; the truth is on the mock's clock.
+            st_stamp = ap.stamp_of_monotonic(st.stamp_s) if st is not None else 0.0
+            if st is not None and ap.armed and stamps[0] < st_stamp:
+                k = min(bisect.bisect_left(stamps, st_stamp), len(stamps) - 1)
                 n, e, _ = ap.estimator.raw_pose_ned
                 odo_err = math.dist((e, n), truth[-1])
                 samples.append((st.stamp_s, float(np.linalg.norm(st.T_map_body[:2, 3] - truth[k])), odo_err))

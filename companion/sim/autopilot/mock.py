@@ -54,9 +54,11 @@ _LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
 #: MISSION_ITEM_REACHED is sent again this long after the first time.
 REACHED_RESEND_S = 0.5
 #: PX4 asks the other end for its time this often (TIMESYNC with tc1 = 0) ...
-TIMESYNC_PERIOD_S = 1.0
+TIMESYNC_PERIOD_S = 0.5
 #: ... and keeps only answers that came back this quickly (``MAX_RTT_SAMPLE``).
 TIMESYNC_MAX_RTT_S = 0.01
+#: Samples before the offset is used (PX4: CONVERGENCE_WINDOW, here short for quick tests).
+TIMESYNC_CONVERGED_SAMPLES = 3
 
 
 @dataclass(frozen=True)
@@ -146,6 +148,7 @@ class MockAutopilot:
         self.setpoints: deque[offboard.ReceivedSetpoint] = deque(maxlen=2000)
         self.vision: deque[VisionSample] = deque(maxlen=2000)
         self._timesync_offsets: deque[float] = deque(maxlen=15)
+        self._last_vision_stamp_s = -math.inf
         self._next_timesync_s = 0.0
         self.failsafes: list[FailsafeEvent] = []
         #: Every mode change as ``(mock clock s, new mode)``, for judging a flight afterwards.
@@ -213,6 +216,10 @@ class MockAutopilot:
     def now_s(self) -> float:
         """Seconds since the mock started (its clock for every recorded stamp)."""
         return time.monotonic() - self._t0
+
+    def stamp_of_monotonic(self, monotonic_s: float) -> float:
+        """A ``time.monotonic`` instant on the mock's clock (what TIMESYNC estimates)."""
+        return monotonic_s - self._t0
 
     @property
     def tick_monotonic_s(self) -> float:
@@ -356,7 +363,9 @@ class MockAutopilot:
     def _tick(self, dt_s: float) -> None:
         now = self.now_s()
         self._tick_monotonic_s = now + self._t0
-        self.vehicle.step(dt_s)
+        # Physics steps at most 0.1 s after a stall; the state's stamp stays on our clock
+        # (what TIMESYNC and the telemetry's time_boot_ms report).
+        self.vehicle.step(dt_s, clock_s=now)
         self.estimator.update(self.vehicle.state(), armed=self._armed)
         self.navigator.tick(self.vehicle.stamp_s)
         self._check_offboard(now)
@@ -634,9 +643,17 @@ class MockAutopilot:
         if not all(math.isfinite(v) for v in (*sample.position_ned_m[:2], yaw)):
             log.warning("%s with a non-finite pose ignored", sample.msg_type)
             return
-        # EKF2 fuses the sample at its timestamp (the vehicle clock here; PX4 maps the
-        # companion's clock with TIMESYNC).
-        self.estimator.fuse_vision(sample.time_usec * 1e-6, sample.position_ned_m[0], sample.position_ned_m[1], yaw)
+        # EKF2 fuses the sample at its timestamp, the companion's clock mapped onto ours with
+        # the TIMESYNC offset (MavlinkTimesync::sync_stamp); until that has converged, at its
+        # arrival. A repeat of the last sample (the stream resends a pose until the next
+        # camera frame) is not a new measurement.
+        stamp_s = sample.time_usec * 1e-6
+        if stamp_s <= self._last_vision_stamp_s:
+            return
+        self._last_vision_stamp_s = stamp_s
+        offset = self.timesync_offset_s if len(self._timesync_offsets) >= TIMESYNC_CONVERGED_SAMPLES else None
+        fused_at = stamp_s + offset if offset is not None else now
+        self.estimator.fuse_vision(fused_at, sample.position_ned_m[0], sample.position_ned_m[1], yaw)
 
     # --- mission callbacks ---------------------------------------------------------------
 

@@ -179,11 +179,13 @@ class KinematicMulticopter:
 
     # --- simulation ----------------------------------------------------------------------
 
-    def step(self, dt_s: float) -> None:
-        """Advance the model by ``dt_s`` seconds."""
+    def step(self, dt_s: float, clock_s: float | None = None) -> None:
+        """Advance the model by ``dt_s`` seconds; ``clock_s``: the clock reading the new
+        state is stamped with (default: the previous one plus ``dt_s``). A caller that caps
+        ``dt_s`` after a stall passes its clock so the stamps stay on it."""
         if dt_s <= 0.0:
             return
-        self._t_s += dt_s
+        self._t_s = self._t_s + dt_s if clock_s is None else float(clock_s)
         lim = self.limits
         if not self.motors_on:
             self._step_unpowered(dt_s)
