@@ -194,11 +194,11 @@ class SimConfig(StageConfig):
     #: VISION_POSITION_ESTIMATE / ODOMETRY); 0 = vision is recorded, not fused.
     vision_fusion_gain: float = Field(default=0.5, ge=0.0, le=1.0)
     #: How the simulated camera's frames (stamped with ``time.monotonic`` at capture, as a
-    #: RealSense stamps them) get their pose: ``autopilot``, each carries the autopilot's
-    #: estimate at its capture; ``telemetry``, they come without one, as a RealSense delivers
-    #: them, and the service poses them from the autopilot's MAVLink telemetry
-    #: (:mod:`companion.sources.poses`).
-    camera_pose: Literal["autopilot", "telemetry"] = "autopilot"
+    #: RealSense stamps them) get their pose: ``telemetry``, they come without one, as a
+    #: RealSense delivers them, and the service poses them from the autopilot's MAVLink
+    #: telemetry (:mod:`companion.sources.poses`), the drone's own path; ``autopilot``, each
+    #: carries the autopilot's estimate at its capture (no link needed: offline tools).
+    camera_pose: Literal["autopilot", "telemetry"] = "telemetry"
     #: Mock autopilot home (the local NED / map origin); default = PX4 SITL's home.
     home_lat_deg: float = Field(default=47.397742, ge=-90.0, le=90.0)
     home_lon_deg: float = Field(default=8.545594, ge=-180.0, le=180.0)

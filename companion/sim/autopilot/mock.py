@@ -53,8 +53,8 @@ log = logging.getLogger(__name__)
 _LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
 #: MISSION_ITEM_REACHED is sent again this long after the first time.
 REACHED_RESEND_S = 0.5
-#: PX4 asks the other end for its time this often (TIMESYNC with tc1 = 0) ...
-TIMESYNC_PERIOD_S = 0.5
+#: PX4 asks the other end for its time this often (TIMESYNC with tc1 = 0; 10 Hz on an onboard link) ...
+TIMESYNC_PERIOD_S = 0.1
 #: ... and keeps only answers that came back this quickly (``MAX_RTT_SAMPLE``).
 TIMESYNC_MAX_RTT_S = 0.01
 #: Samples before the offset is used (PX4: CONVERGENCE_WINDOW, here short for quick tests).

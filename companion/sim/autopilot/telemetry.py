@@ -1,8 +1,9 @@
 """Telemetry messages the mock autopilot streams, built from one state snapshot.
 
 Each encoder takes the pymavlink ``MAVLink`` object and a :class:`Snapshot` and returns a
-message. :data:`STREAMS` names them with PX4-like default rates (PX4's "onboard" MAVLink mode,
-lowered where a 100 Hz stream would only load a test machine); clients change rates with
+message. :data:`STREAMS` names them with PX4-like default rates (PX4's "onboard" MAVLink mode:
+ATTITUDE at 100 Hz, which the companion interpolates camera poses from; lowered where a fast
+stream would only load a test machine: ATTITUDE_QUATERNION, GLOBAL_POSITION_INT); clients change rates with
 ``MAV_CMD_SET_MESSAGE_INTERVAL`` and ask for one message with ``MAV_CMD_REQUEST_MESSAGE``.
 """
 
@@ -212,7 +213,7 @@ STREAMS: dict[str, tuple[int, Encoder, float]] = {
     "HEARTBEAT": (mavlink.MAVLINK_MSG_ID_HEARTBEAT, heartbeat, 1.0),
     "SYS_STATUS": (mavlink.MAVLINK_MSG_ID_SYS_STATUS, sys_status, 2.0),
     "EXTENDED_SYS_STATE": (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, extended_sys_state, 5.0),
-    "ATTITUDE": (mavlink.MAVLINK_MSG_ID_ATTITUDE, attitude, 30.0),
+    "ATTITUDE": (mavlink.MAVLINK_MSG_ID_ATTITUDE, attitude, 100.0),
     "ATTITUDE_QUATERNION": (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, attitude_quaternion, 30.0),
     "LOCAL_POSITION_NED": (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, local_position_ned, 30.0),
     "GLOBAL_POSITION_INT": (mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, global_position_int, 30.0),
