@@ -13,7 +13,7 @@ Cases (one process, one after the other):
 * ``attitude_100hz``: PX4's onboard-link rates (ATTITUDE 100 Hz, LOCAL_POSITION_NED 30 Hz),
   stamps from ``time_boot_ms`` (:class:`~companion.sources.poses.BootClock`);
 * ``attitude_100hz_busy_loop``: the same with the event loop blocked 25 ms every 100 ms (a
-  busy service), so messages arrive late;
+  busy service; the mock shares the loop, as in the demo), so messages arrive late;
 * ``arrival_stamps_busy_loop``: the busy loop with samples stamped on arrival (what the
   recorder would do without :class:`BootClock`);
 * ``attitude_30hz``: ATTITUDE slowed to 30 Hz with ``MAV_CMD_SET_MESSAGE_INTERVAL``.
