@@ -78,7 +78,7 @@ def _run(args: argparse.Namespace) -> int:
     print(f"demo: room seed {s['seed']}, detector {cfg.detector.kind}, "
           f"{s['waypoints_reached']}/{s['waypoints_total']} waypoints reached, {s['collisions']} collisions, "
           f"min clearance {s['min_clearance_m']} m, {len(s['objects_found'])} objects mapped "
-          f"({s['objects_true']} in the room), longest setpoint gap {s['max_setpoint_gap_ms']} ms, "
+          f"({s['objects_true']} in the room), longest setpoint gap {s['setpoint_gaps']['max_ms']} ms, "
           f"{s['elapsed_s']} s")
     if s.get("mission_error"):
         print(f"mission error: {s['mission_error']}")

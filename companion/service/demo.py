@@ -237,13 +237,6 @@ async def upload_mission_mavsdk(port: int, waypoints_map_xy: list[tuple[float, f
     log.info("mission of %d waypoints uploaded with MAVSDK", len(waypoints_map_xy))
 
 
-def setpoint_gaps_s(stamps_s: list[float]) -> float:
-    """The longest gap between consecutive received setpoints (0 for fewer than two)."""
-    if len(stamps_s) < 2:
-        return 0.0
-    return float(np.max(np.diff(np.asarray(sorted(stamps_s)))))
-
-
 def setpoint_gap_stats_ms(stamps_s: list[float]) -> dict[str, float | int]:
     """The distribution of gaps between consecutive received setpoints (autopilot receive
     times, seconds): ``{"p50_ms", "p99_ms", "max_ms", "over_100ms"}`` (zeros for fewer than two)."""
@@ -388,7 +381,6 @@ def _summary(cfg: CompanionConfig, placement: SimPlacement, report: ServiceRepor
         "collision_points_room_xy_m": [[round(float(v), 2) for v in q[:2]] for q in dense[coll][:: max(1, int(np.count_nonzero(coll)) // 5)]][:5],
         "objects_true": len(true_ids),
         "objects_found": found,
-        "max_setpoint_gap_ms": round(1e3 * setpoint_gaps_s(stamps), 1),
         "setpoint_gaps": setpoint_gap_stats_ms(stamps),
         "setpoints_received": len(stamps),
         "stage_timings_ms": report.stage_timings,
