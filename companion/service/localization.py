@@ -39,7 +39,7 @@ from companion.config import CompanionConfig
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.vision import VisionPose, VisionStream
 from companion.service.perception_worker import semantic_map_settings
-from companion.sources.base import FrameSource
+from companion.sources.base import FrameSource, WrappedSource
 from semmap.costmap import VerticalBand
 from semmap.errors import ConfigError
 from semmap.frames import invert, pose_from_xyz_rpy, rpy_from_rotation
@@ -213,12 +213,12 @@ class Localizer:
         return replace(frame, T_map_camera=T_map_body @ self.T_body_camera)
 
 
-class LocalizedFrameSource(FrameSource):
+class LocalizedFrameSource(WrappedSource):
     """``inner``'s frames re-posed by a :class:`Localizer` (built on open, in whichever
     process reads the camera; picklable before that)."""
 
     def __init__(self, inner: FrameSource, cfg: CompanionConfig, shared: SharedLocalization | None = None) -> None:
-        self.inner = inner
+        super().__init__(inner)
         self.cfg = cfg
         self.shared = shared
         self._localizer: Localizer | None = None
@@ -233,18 +233,6 @@ class LocalizedFrameSource(FrameSource):
             self._localizer = Localizer(self.cfg, self.inner.intrinsics, self.shared)
             log.info("localization: SLAM (%s mode) on the camera's frames", self.cfg.slam.mode)
         return self._localizer
-
-    @property
-    def intrinsics(self) -> CameraIntrinsics:
-        return self.inner.intrinsics
-
-    @property
-    def dropped_frames(self) -> int:  # type: ignore[override]
-        return self.inner.dropped_frames
-
-    @property
-    def frames_read(self) -> int:  # type: ignore[override]
-        return self.inner.frames_read
 
     def open(self) -> None:
         self.inner.open()

@@ -58,3 +58,32 @@ class FrameSource(ABC):
             if frame is None:
                 return
             yield frame
+
+
+class WrappedSource(FrameSource):
+    """A stage wrapped around another source (``inner``): the camera's intrinsics, counters,
+    open and close pass through; subclasses change what :meth:`read` returns."""
+
+    def __init__(self, inner: FrameSource) -> None:
+        self.inner = inner
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        return self.inner.intrinsics
+
+    @property
+    def dropped_frames(self) -> int:  # type: ignore[override]
+        return self.inner.dropped_frames
+
+    @property
+    def frames_read(self) -> int:  # type: ignore[override]
+        return self.inner.frames_read
+
+    def open(self) -> None:
+        self.inner.open()
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def read(self) -> Frame | None:
+        return self.inner.read()

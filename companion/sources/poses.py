@@ -36,9 +36,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation, Slerp
 
 from companion.mavlink.vision import R_FLU_FRD, R_NED_ENU
-from companion.sources.base import FrameSource
+from companion.sources.base import FrameSource, WrappedSource
 from semmap.frames import Transform, make_transform, rotation_from_rpy
-from semmap.types import CameraIntrinsics, Frame
+from semmap.types import Frame
 
 log = logging.getLogger(__name__)
 
@@ -239,7 +239,7 @@ class TelemetryPoseRecorder:
             self.samples += 1
 
 
-class TelemetryPosedSource(FrameSource):
+class TelemetryPosedSource(WrappedSource):
     """``inner``'s frames, those without a pose posed from ``history`` at their stamp (see
     the module docstring). ``T_body_camera``: the camera's mounting (4, 4). ``wait_s``: how
     long a frame newer than the newest sample waits for the next one; ``max_gap_s``: the
@@ -247,7 +247,7 @@ class TelemetryPosedSource(FrameSource):
 
     def __init__(self, inner: FrameSource, history: SharedPoseHistory, T_body_camera: Transform,  # noqa: N803
                  *, wait_s: float = 0.1, max_gap_s: float = 0.25, poll_s: float = 0.002) -> None:
-        self.inner = inner
+        super().__init__(inner)
         self.history = history
         self.T_body_camera = np.asarray(T_body_camera, dtype=np.float64)
         self.wait_s = wait_s
@@ -256,24 +256,6 @@ class TelemetryPosedSource(FrameSource):
         #: Frames left without a pose (no telemetry around their stamp).
         self.unposed_frames = 0
         self.posed_frames = 0
-
-    @property
-    def intrinsics(self) -> CameraIntrinsics:
-        return self.inner.intrinsics
-
-    @property
-    def dropped_frames(self) -> int:  # type: ignore[override]
-        return self.inner.dropped_frames
-
-    @property
-    def frames_read(self) -> int:  # type: ignore[override]
-        return self.inner.frames_read
-
-    def open(self) -> None:
-        self.inner.open()
-
-    def close(self) -> None:
-        self.inner.close()
 
     def pose_at(self, stamp_s: float) -> Transform | None:
         """The body pose at ``stamp_s`` (waits up to ``wait_s`` for a sample after it)."""
