@@ -46,7 +46,7 @@ from companion.service.perception_worker import (
     flight_band,
     new_semantic_map,
 )
-from companion.sources.base import FrameSource
+from companion.sources.base import FrameSource, WrappedSource
 from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import MapError, PerceptionError
 from semmap.grid import GridSpec
@@ -108,29 +108,17 @@ class _ChildSpec:
     log_level: int
 
 
-class _TimedSource(FrameSource):
+class _TimedSource(WrappedSource):
     """A frame source that remembers when each frame was read (its capture time)."""
 
     def __init__(self, inner: FrameSource) -> None:
-        self.inner = inner
+        super().__init__(inner)
         self.read_mono_s: deque[tuple[int, float]] = deque(maxlen=64)
-
-    @property
-    def intrinsics(self) -> Any:
-        return self.inner.intrinsics
-
-    def open(self) -> None:
-        self.inner.open()
-
-    def close(self) -> None:
-        self.inner.close()
 
     def read(self) -> Frame | None:
         frame = self.inner.read()
         if frame is not None:
             self.read_mono_s.append((frame.index, time.monotonic()))
-        self.frames_read = self.inner.frames_read
-        self.dropped_frames = self.inner.dropped_frames
         return frame
 
     def capture_time(self, index: int) -> float | None:
