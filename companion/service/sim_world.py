@@ -84,14 +84,13 @@ class SimPlacement:
 
 
 class SimPoses(NamedTuple):
-    """One published instant of the simulated vehicle: ``stamp_s`` (the mock's clock), the
-    true ``T_map_body``, the autopilot's estimate (None when it is the truth) and the
-    instant on ``time.monotonic`` (``monotonic_s``)."""
+    """One published instant of the simulated vehicle: ``monotonic_s`` (its time on
+    ``time.monotonic``, the clock a camera stamps frames with), the true ``T_map_body`` and
+    the autopilot's estimate (None when it is the truth)."""
 
-    stamp_s: float
+    monotonic_s: float
     T_map_body: NDArray[np.float64]
     T_map_body_estimated: NDArray[np.float64] | None
-    monotonic_s: float
 
 
 class SharedSimState:
@@ -102,33 +101,30 @@ class SharedSimState:
 
     def __init__(self) -> None:
         ctx = mp.get_context("spawn")
-        # [valid, stamp_s, T_map_body (16, row-major), estimated (0/1), the autopilot's
-        # estimated T_map_body (16), stamp_s on time.monotonic]; the array's lock keeps reads whole.
-        self._pose = ctx.Array("d", 36, lock=True)
+        # [valid, monotonic_s, T_map_body (16, row-major), estimated (0/1), the autopilot's
+        # estimated T_map_body (16)]; the array's lock keeps reads whole.
+        self._pose = ctx.Array("d", 35, lock=True)
         self._missing = ctx.Value("b", 0, lock=False)
         self._corrupt = ctx.Value("b", 0, lock=False)
 
-    def set_pose(self, stamp_s: float, T_map_body: NDArray[np.floating],  # noqa: N803 - frame names
-                 T_map_body_estimated: NDArray[np.floating] | None = None,  # noqa: N803
-                 monotonic_s: float | None = None) -> None:
-        """Publish the vehicle pose (``T_map_body`` (4, 4), map frame) at ``stamp_s``, and the
-        autopilot's estimate of it when that differs (odometry drift); ``monotonic_s``: the
-        same instant on ``time.monotonic`` (default: now)."""
+    def set_pose(self, monotonic_s: float, T_map_body: NDArray[np.floating],  # noqa: N803 - frame names
+                 T_map_body_estimated: NDArray[np.floating] | None = None) -> None:  # noqa: N803
+        """Publish the vehicle pose (``T_map_body`` (4, 4), map frame) at ``monotonic_s``
+        (``time.monotonic``), and the autopilot's estimate of it when that differs (odometry drift)."""
         est = ([1.0, *np.asarray(T_map_body_estimated, dtype=np.float64).reshape(16).tolist()]
                if T_map_body_estimated is not None else [0.0] * 17)
-        mono = time.monotonic() if monotonic_s is None else float(monotonic_s)
-        vals = [1.0, float(stamp_s), *np.asarray(T_map_body, dtype=np.float64).reshape(16).tolist(), *est, mono]
+        vals = [1.0, float(monotonic_s), *np.asarray(T_map_body, dtype=np.float64).reshape(16).tolist(), *est]
         with self._pose.get_lock():
             self._pose[:] = vals
 
     def poses(self) -> SimPoses | None:
-        """The pose, the estimate and the stamps published together, or None before the first."""
+        """The instant, the pose and the estimate published together, or None before the first."""
         with self._pose.get_lock():
             vals = list(self._pose[:])
         if vals[0] == 0.0:
             return None
         est = np.asarray(vals[19:35], dtype=np.float64).reshape(4, 4) if vals[18] else None
-        return SimPoses(vals[1], np.asarray(vals[2:18], dtype=np.float64).reshape(4, 4), est, vals[35])
+        return SimPoses(vals[1], np.asarray(vals[2:18], dtype=np.float64).reshape(4, 4), est)
 
     @property
     def camera_missing(self) -> bool:
@@ -159,10 +155,8 @@ class SimCameraSource(FrameSource):
         self.shared = shared
         self.dropped_frames = 0
         self._inner: SimFrameSource | None = None
-        #: The autopilot's estimate of the pose the latest frame was rendered from, and that
-        #: pose's instant on ``time.monotonic``.
+        #: The autopilot's estimate of the pose the latest frame was rendered from.
         self._estimated: NDArray[np.float64] | None = None
-        self._capture_monotonic_s = 0.0
 
     def _source(self) -> SimFrameSource:
         if self._inner is None:
@@ -174,8 +168,8 @@ class SimCameraSource(FrameSource):
                     time.sleep(0.02)
                     p = self.shared.poses()
                 self._estimated = p.T_map_body_estimated
-                self._capture_monotonic_s = p.monotonic_s
-                return p.stamp_s, T_room_map @ p.T_map_body
+                # Stamped on this machine's clock at capture, as a RealSense stamps its frames.
+                return p.monotonic_s, T_room_map @ p.T_map_body
 
             self._inner = SimFrameSource(renderer_from_config(self.placement.room, self.cfg), pose_room,
                                          self.cfg.camera.extrinsics.T_body_camera())
@@ -204,8 +198,6 @@ class SimCameraSource(FrameSource):
         self.frames_read = src.frames_read
         if frame is None or frame.T_map_camera is None:
             return frame
-        # Stamped on this machine's clock at capture, as a RealSense stamps its frames.
-        frame = replace(frame, stamp_s=self._capture_monotonic_s)
         if self.cfg.sim.camera_pose == "telemetry":
             # As a RealSense delivers it: no pose (the service looks it up in the telemetry).
             frame = replace(frame, T_map_camera=None)
@@ -289,10 +281,9 @@ class SimWorld:
         await self.autopilot.__aexit__(exc_type, exc, tb)
 
     def _publish_pose(self) -> None:
-        stamp, T_map_body, T_est = self.autopilot.poses_map_body()
-        self.shared.set_pose(float(stamp), np.asarray(T_map_body),
-                             np.asarray(T_est) if self.autopilot.estimator.active else None,
-                             self.autopilot.tick_monotonic_s)
+        _, T_map_body, T_est = self.autopilot.poses_map_body()
+        self.shared.set_pose(self.autopilot.tick_monotonic_s, np.asarray(T_map_body),
+                             np.asarray(T_est) if self.autopilot.estimator.active else None)
 
     async def _pose_loop(self) -> None:
         while True:
