@@ -101,7 +101,7 @@ async def run_case(corners: int, attitude_hz: float | None, busy: bool, arrival:
                     truth.append((ap.tick_monotonic_s, ap.poses_map_body()[1]))
                     while truth and truth[0][0] < time.monotonic() - LOOKUP_DELAY_S:
                         t, T_true = truth.pop(0)
-                        T = history.track(0.25).at(t)
+                        T = history.pose_at(t, 0.25)
                         if T is None:
                             unposed += 1
                         else:

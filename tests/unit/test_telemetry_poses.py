@@ -75,6 +75,10 @@ def test_history_is_a_ring_of_increasing_stamps_and_survives_pickling() -> None:
     np.testing.assert_allclose(track.t, [2.0, 3.0, 4.0, 5.0])
     T = track.at(3.5)
     assert T is not None and T[0, 3] == pytest.approx(3.5)
+    # A frame's lookup (the two samples around it) gives what the whole track gives.
+    for t in (1.5, 2.0, 3.5, 5.0, 5.5):
+        a, b = track.at(t), hist.pose_at(t, 2.0)
+        assert (a is None and b is None) or np.allclose(a, b), t
     # The perception process (spawned) reads what this one appends.
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
