@@ -389,9 +389,9 @@ async def test_vehicle_stack_from_config(caplog: pytest.LogCaptureFixture, tmp_p
             assert list(ap.last_received["OBSTACLE_DISTANCE"].distances) == [801] * 72  # free room
             # The vehicle answers PX4's TIMESYNC requests on time.monotonic: the autopilot
             # learns the offset between its boot clock and ours (to stamp our vision poses).
-            await ap.wait_until(lambda: ap.timesync_offset_s is not None, 5.0, "timesync answer")
+            await ap.wait_until(lambda: ap.peer_clock.offset_s is not None, 5.0, "timesync answer")
             assert vehicle.timesync.answered >= 1
-            assert ap.timesync_offset_s == pytest.approx(ap.now_s() - time.monotonic(), abs=0.005)
+            assert ap.peer_clock.offset_s == pytest.approx(ap.now_s() - time.monotonic(), abs=0.005)
             await vehicle.commands.arm()
             await vehicle.offboard.engage()  # nothing planned: holds where it stands
             assert ap.mode is FlightMode.OFFBOARD

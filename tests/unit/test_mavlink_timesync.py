@@ -38,3 +38,19 @@ def test_requests_from_the_autopilot_are_answered_on_our_clock_and_nothing_else(
     link.closed = True
     ts.handle(_from(1, 0, 2))  # the link closed under us: no answer, no exception
     assert ts.answered == 1
+
+
+def test_the_mock_learns_the_offset_from_quick_answers_and_converts_after_three() -> None:
+    from companion.sim.autopilot.timesync import PeerClock
+
+    clock = PeerClock(period_s=0.1, max_rtt_s=0.01, converged_samples=3)
+    assert clock.request_due(0.0) and not clock.request_due(0.05) and clock.request_due(0.1)
+    assert clock.sync_stamp(1000.0, now=5.0) == 5.0  # nothing learned: at arrival
+    # Our clock is 995 s behind the companion's; the answers took 2 ms (one took 50 ms).
+    clock.add_answer(int(5.000e9), int(1000.001e9), now=5.002)
+    clock.add_answer(int(5.100e9), int(1000.101e9), now=5.150)  # too slow: not kept
+    clock.add_answer(int(5.200e9), int(1000.201e9), now=5.202)
+    assert clock.sync_stamp(1000.0, now=5.3) == 5.3  # two samples: not converged yet
+    clock.add_answer(int(5.300e9), int(1000.301e9), now=5.302)
+    assert clock.offset_s is not None and abs(clock.offset_s + 995.0) < 1e-6
+    assert abs(clock.sync_stamp(1000.4, now=5.45) - 5.4) < 1e-6

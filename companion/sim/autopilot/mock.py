@@ -26,7 +26,6 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import SimulationError
@@ -38,6 +37,7 @@ from companion.sim.autopilot.estimator import SimEstimator, T_map_body_of
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
+from companion.sim.autopilot.timesync import PeerClock
 from companion.sim.autopilot.transport import Faults, UdpEndpoint
 from companion.sim.autopilot.vehicle import (
     KinematicMulticopter,
@@ -53,12 +53,6 @@ log = logging.getLogger(__name__)
 _LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
 #: MISSION_ITEM_REACHED is sent again this long after the first time.
 REACHED_RESEND_S = 0.5
-#: PX4 asks the other end for its time this often (TIMESYNC with tc1 = 0; 10 Hz on an onboard link) ...
-TIMESYNC_PERIOD_S = 0.1
-#: ... and keeps only answers that came back this quickly (``MAX_RTT_SAMPLE``).
-TIMESYNC_MAX_RTT_S = 0.01
-#: Samples before the offset is used (PX4: CONVERGENCE_WINDOW, here short for quick tests).
-TIMESYNC_CONVERGED_SAMPLES = 3
 
 
 @dataclass(frozen=True)
@@ -147,9 +141,9 @@ class MockAutopilot:
         self._offboard_target: Target | None = None
         self.setpoints: deque[offboard.ReceivedSetpoint] = deque(maxlen=2000)
         self.vision: deque[VisionSample] = deque(maxlen=2000)
-        self._timesync_offsets: deque[float] = deque(maxlen=15)
+        #: The companion's clock, learned from TIMESYNC (see :mod:`.timesync`).
+        self.peer_clock = PeerClock()
         self._last_vision_stamp_s = -math.inf
-        self._next_timesync_s = 0.0
         self.failsafes: list[FailsafeEvent] = []
         #: Every mode change as ``(mock clock s, new mode)``, for judging a flight afterwards.
         self.mode_changes: deque[tuple[float, FlightMode]] = deque(maxlen=1000)
@@ -377,8 +371,7 @@ class MockAutopilot:
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
         self._stream(now)
-        if now >= self._next_timesync_s:
-            self._next_timesync_s = now + TIMESYNC_PERIOD_S
+        if self.peer_clock.request_due(now):
             self.send(self._mav.timesync_encode(0, int(now * 1e9)))
 
     def _check_offboard(self, now: float) -> None:
@@ -551,24 +544,11 @@ class MockAutopilot:
             self._on_timesync(msg, now)
 
     def _on_timesync(self, msg: Any, now: float) -> None:
-        """PX4's ``MavlinkTimesync``: answer a request on our clock; from an answer to ours,
-        a sample of the offset (our clock minus the companion's), kept when the round trip
-        was short."""
+        """Answer a request on our clock; learn from an answer to ours (PX4's ``MavlinkTimesync``)."""
         if msg.tc1 == 0:
             self.send(self._mav.timesync_encode(int(now * 1e9), msg.ts1))
-            return
-        sent_s, remote_s = msg.ts1 * 1e-9, msg.tc1 * 1e-9
-        if 0.0 <= now - sent_s < TIMESYNC_MAX_RTT_S:
-            self._timesync_offsets.append(0.5 * (sent_s + now) - remote_s)
-
-    @property
-    def timesync_offset_s(self) -> float | None:
-        """Our clock minus the companion's, from its answers to our TIMESYNC requests (the
-        median of the recent samples; None before any answer). PX4 converts the companion's
-        timestamps with it (``MavlinkTimesync::sync_stamp``)."""
-        if not self._timesync_offsets:
-            return None
-        return float(np.median(self._timesync_offsets))
+        else:
+            self.peer_clock.add_answer(msg.ts1, msg.tc1, now)
 
     def _send_param(self, name: str) -> None:
         spec = self.params.spec(name)
@@ -651,9 +631,8 @@ class MockAutopilot:
         if stamp_s <= self._last_vision_stamp_s:
             return
         self._last_vision_stamp_s = stamp_s
-        offset = self.timesync_offset_s if len(self._timesync_offsets) >= TIMESYNC_CONVERGED_SAMPLES else None
-        fused_at = stamp_s + offset if offset is not None else now
-        self.estimator.fuse_vision(fused_at, sample.position_ned_m[0], sample.position_ned_m[1], yaw)
+        self.estimator.fuse_vision(self.peer_clock.sync_stamp(stamp_s, now), sample.position_ned_m[0],
+                                   sample.position_ned_m[1], yaw)
 
     # --- mission callbacks ---------------------------------------------------------------
 
