@@ -56,28 +56,27 @@ class PoseTrack:
 
     def __init__(self, stamps_s: NDArray[np.float64], poses: list[NDArray[np.float64]] | NDArray[np.float64],
                  max_gap_s: float) -> None:
-        order = np.argsort(stamps_s, kind="stable")
-        self.t = np.asarray(stamps_s, dtype=np.float64)[order]
-        self.xyz = np.array([poses[i][:3, 3] for i in order]).reshape(-1, 3)
-        self.rot = Rotation.from_matrix(np.array([poses[i][:3, :3] for i in order]).reshape(-1, 3, 3)) \
-            if len(order) else None
-        self.max_gap_s = max_gap_s
-        self._slerp = Slerp(self.t, self.rot) if len(self.t) >= 2 and np.all(np.diff(self.t) > 0) else None
+        T = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        self._init(np.asarray(stamps_s, dtype=np.float64), T[:, :3, 3],
+                   Rotation.from_matrix(T[:, :3, :3]) if len(T) else None, max_gap_s)
 
     @classmethod
     def from_quaternions(cls, stamps_s: NDArray[np.float64], xyz_m: NDArray[np.float64],
                          quat_xyzw: NDArray[np.float64], max_gap_s: float) -> PoseTrack:
         """A track from positions (N, 3) and unit quaternions (N, 4, scipy's x, y, z, w order)."""
-        R = Rotation.from_quat(quat_xyzw).as_matrix() if len(quat_xyzw) else np.zeros((0, 3, 3))
-        poses = np.zeros((len(stamps_s), 4, 4))
-        poses[:, :3, :3] = R
-        poses[:, :3, 3] = xyz_m
-        poses[:, 3, 3] = 1.0
-        return cls(np.asarray(stamps_s, dtype=np.float64), poses, max_gap_s)
+        track = cls.__new__(cls)
+        track._init(np.asarray(stamps_s, dtype=np.float64), np.asarray(xyz_m, dtype=np.float64),
+                    Rotation.from_quat(quat_xyzw) if len(quat_xyzw) else None, max_gap_s)
+        return track
 
-    @property
-    def last_stamp_s(self) -> float | None:
-        return float(self.t[-1]) if len(self.t) else None
+    def _init(self, t: NDArray[np.float64], xyz: NDArray[np.float64], rot: Rotation | None,
+              max_gap_s: float) -> None:
+        order = np.argsort(t, kind="stable")
+        self.t = t[order]
+        self.xyz = xyz.reshape(-1, 3)[order]
+        self.rot = rot[order] if rot is not None else None
+        self.max_gap_s = max_gap_s
+        self._slerp = Slerp(self.t, self.rot) if len(self.t) >= 2 and np.all(np.diff(self.t) > 0) else None
 
     def at(self, t: float) -> NDArray[np.float64] | None:
         """The (4, 4) pose at ``t``, or None (outside the span, or across a long gap)."""
