@@ -120,15 +120,6 @@ class Trajectory:
 
 # --- routing on the ground truth --------------------------------------------------------
 
-def _footprint_distance_xy(obj: FurnitureObject, xy: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(N,) horizontal distance from (N, 2) points to an object's footprint rectangle (0 inside)."""
-    c, s = math.cos(obj.yaw_rad), math.sin(obj.yaw_rad)
-    d = xy - np.asarray(obj.center_xy_m)
-    lx = np.abs(c * d[:, 0] + s * d[:, 1]) - obj.size_m[0] / 2
-    ly = np.abs(-s * d[:, 0] + c * d[:, 1]) - obj.size_m[1] / 2
-    return np.hypot(np.maximum(lx, 0.0), np.maximum(ly, 0.0))
-
-
 def blocking_objects(
     room: Room, altitude_m: float, vehicle_height_m: float, vertical_margin_m: float,
 ) -> list[FurnitureObject]:
@@ -306,7 +297,7 @@ def check_clearance(
     if vertical_margin_m is not None and len(path):
         z = float(np.median(path[:, 2]))
         for obj in blocking_objects(room, z, vehicle_height_m, vertical_margin_m):
-            c = np.minimum(c, _footprint_distance_xy(obj, path[:, :2]))
+            c = np.minimum(c, obj.footprint_distance_m(path[:, :2]))
     worst = float(np.min(c)) if len(c) else math.inf
     if worst < clearance_required_m - 1e-6:
         k = int(np.argmin(c))

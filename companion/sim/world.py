@@ -76,6 +76,14 @@ class FurnitureObject:
             self.yaw_rad,
         ).corners_xy_m()
 
+    def footprint_distance_m(self, xy_m: NDArray[np.floating]) -> NDArray[np.float64]:
+        """(N,) horizontal distance from (N, 2) points to :meth:`footprint_xy_m` (0 inside)."""
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        d = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2) - np.asarray(self.center_xy_m)
+        lx = np.abs(c * d[:, 0] + s * d[:, 1]) - self.size_m[0] / 2
+        ly = np.abs(-s * d[:, 0] + c * d[:, 1]) - self.size_m[1] / 2
+        return np.hypot(np.maximum(lx, 0.0), np.maximum(ly, 0.0))
+
     def centroid_m(self) -> NDArray[np.float64]:
         """Volume-weighted centroid of the primitives, (3,)."""
         vols = np.array([p.size_m[0] * p.size_m[1] * p.size_m[2] for p in self.parts])
