@@ -6,8 +6,24 @@ per Z16 count) is read from the device. A live camera occasionally times out or 
 incomplete frame set: such frames are skipped and counted in ``dropped_frames``; only
 ``max_consecutive_failures`` failures in a row raise :class:`FrameError` (the camera is gone).
 
-``Frame.stamp_s`` is ``time.monotonic()`` at arrival, the clock the rest of the service uses;
-the device's own timestamp is kept in :attr:`RealSenseFrameSource.last_device_stamp_ms`.
+``Frame.stamp_s`` is the capture time on ``time.monotonic()``, the clock the rest of the
+service uses (the telemetry poses a frame is posed from are on it too): by the time a frame set
+has crossed USB and been aligned it is tens of milliseconds old, a few degrees of yaw on a
+turning drone if it were stamped on arrival. :class:`CaptureClock` maps the depth frame's own
+timestamp onto ``time.monotonic`` by its clock domain (librealsense's ``rs2_timestamp_domain``):
+
+* ``global_time`` (D4xx default with frame metadata: the device clock mapped by librealsense
+  onto the host's system clock) and ``system_time`` (no metadata: the host's system clock when
+  the backend received the frame) are wall-clock milliseconds: the frame's age is the wall
+  clock now minus that stamp, and the stamp is ``time.monotonic()`` now minus that age. A wall
+  clock stepped by NTP moves both readings alike. An age outside ``[-5 ms, max_age_s]`` is not
+  believed: that frame is stamped on arrival and counted (``stamps_on_arrival``).
+* ``hardware_clock`` (the device's own counter, unrelated to the host): its offset to
+  ``time.monotonic`` is the running minimum of arrival minus device time
+  (:class:`companion.sources.poses.BootClock`, the autopilot clock's estimator), which removes
+  the varying part of the latency and keeps only the smallest seen.
+
+The global time option is switched on where a sensor offers it.
 """
 
 from __future__ import annotations
@@ -19,10 +35,47 @@ from typing import Any
 import numpy as np
 
 from companion.sources.base import FrameSource
+from companion.sources.poses import BootClock
 from semmap.errors import FrameError
 from semmap.types import CameraIntrinsics, Frame
 
 log = logging.getLogger(__name__)
+
+
+def _domain_name(domain: Any) -> str:
+    """``rs.timestamp_domain.global_time`` -> ``"global_time"``."""
+    return str(domain).rsplit(".", 1)[-1].lower()
+
+
+class CaptureClock:
+    """Capture times of RealSense frames on the host's ``time.monotonic`` (module docstring)."""
+
+    WALL_DOMAINS = ("global_time", "system_time")
+
+    def __init__(self, max_age_s: float = 0.5, tolerance_s: float = 0.005) -> None:
+        self.max_age_s = max_age_s
+        self.tolerance_s = tolerance_s
+        self._hardware = BootClock()
+        self.stamps_on_arrival = 0
+
+    def capture_stamp_s(self, device_ms: float, domain: str, arrival_monotonic_s: float,
+                        arrival_wall_s: float) -> float:
+        """The capture time on the monotonic clock of a frame whose device timestamp is
+        ``device_ms`` in clock ``domain``, read at ``arrival_monotonic_s`` / ``arrival_wall_s``."""
+        if domain in self.WALL_DOMAINS:
+            age_s = arrival_wall_s - device_ms * 1e-3
+            if -self.tolerance_s <= age_s <= self.max_age_s:
+                return arrival_monotonic_s - max(0.0, age_s)
+            self.stamps_on_arrival += 1
+            if self.stamps_on_arrival == 1 or self.stamps_on_arrival % 300 == 0:
+                log.warning("RealSense %s timestamp is %.3f s from the host clock (accepted: "
+                            "-%.3f..%.3f s): stamped on arrival (%d frames so far)", domain, age_s,
+                            self.tolerance_s, self.max_age_s, self.stamps_on_arrival)
+            return arrival_monotonic_s
+        if domain == "hardware_clock":
+            return min(arrival_monotonic_s, self._hardware.to_local(device_ms * 1e-3, arrival_monotonic_s))
+        self.stamps_on_arrival += 1
+        return arrival_monotonic_s
 
 
 class RealSenseFrameSource(FrameSource):
@@ -64,6 +117,10 @@ class RealSenseFrameSource(FrameSource):
         self._consecutive_failures = 0
         self._running = False
         self.last_device_stamp_ms = 0.0
+        self.last_stamp_domain = ""
+        #: Arrival minus capture time of the last frame (what the capture stamp corrected).
+        self.last_latency_s = 0.0
+        self.capture_clock = CaptureClock()
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
@@ -103,6 +160,7 @@ class RealSenseFrameSource(FrameSource):
                 float(ri.fx), float(ri.fy), float(ri.ppx), float(ri.ppy), int(ri.width), int(ri.height)
             )
             self._align = rs.align(rs.stream.color)
+            self._enable_global_time(profile.get_device())
         except RuntimeError as exc:
             who = f"RealSense {self.serial}" if self.serial else "RealSense camera"
             raise FrameError(f"{who}: cannot start {self.width_px}x{self.height_px} "
@@ -110,6 +168,18 @@ class RealSenseFrameSource(FrameSource):
         self._running = True
         log.info("RealSense started: %dx%d @ %g Hz, depth scale %.5f m, fx %.1f", self.width_px,
                  self.height_px, self.rate_hz, self.depth_scale_m, self._intrinsics.fx_px)
+
+    def _enable_global_time(self, device: Any) -> None:
+        """Switch librealsense's global time on where a sensor offers it (off on some SKUs)."""
+        option = getattr(getattr(self._rs, "option", None), "global_time_enabled", None)
+        if option is None or not hasattr(device, "query_sensors"):
+            return
+        for sensor in device.query_sensors():
+            try:
+                if sensor.supports(option) and not sensor.get_option(option):
+                    sensor.set_option(option, 1)
+            except RuntimeError as exc:
+                log.warning("RealSense: cannot switch global time on: %s", exc)
 
     def close(self) -> None:
         """Stop the pipeline. Idempotent."""
@@ -161,11 +231,17 @@ class RealSenseFrameSource(FrameSource):
             return None, f"colour is {rgb.dtype} {rgb.shape}, expected uint8 {(*shape_hw, 3)}"
         depth = depth_raw.astype(np.float32) * np.float32(self.depth_scale_m)
         depth[(depth < self.depth_min_m) | (depth > self.depth_max_m)] = 0.0
+        arrival_s, arrival_wall_s = time.monotonic(), time.time()
         try:
-            self.last_device_stamp_ms = float(frames.get_timestamp())
+            # The depth frame's stamp: the geometry comes from it (colour is hardware-synced).
+            self.last_device_stamp_ms = float(depth_f.get_timestamp())
+            self.last_stamp_domain = _domain_name(depth_f.get_frame_timestamp_domain())
         except (AttributeError, RuntimeError):
-            self.last_device_stamp_ms = 0.0
+            self.last_device_stamp_ms, self.last_stamp_domain = 0.0, "unknown"
+        stamp_s = self.capture_clock.capture_stamp_s(
+            self.last_device_stamp_ms, self.last_stamp_domain, arrival_s, arrival_wall_s)
+        self.last_latency_s = arrival_s - stamp_s
         return Frame(
-            stamp_s=time.monotonic(), rgb=np.array(rgb, dtype=np.uint8, copy=True), depth_m=depth,
+            stamp_s=stamp_s, rgb=np.array(rgb, dtype=np.uint8, copy=True), depth_m=depth,
             intrinsics=intr, T_map_camera=None, index=self.frames_read,
         ), ""

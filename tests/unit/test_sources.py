@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import time
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -22,6 +23,7 @@ from companion.sources import (
     load_tum_pair,
     make_frame_source,
 )
+from companion.sources.realsense import CaptureClock
 from companion.sources.recorded import associate
 from companion.sources.stream import FrameStream
 from semmap.errors import ConfigError, DataError, FrameError
@@ -283,8 +285,8 @@ def test_factory_picks_the_configured_source(shared_data: Path) -> None:
 # --- RealSense with a fake SDK ------------------------------------------------------------
 
 class FakeVideoFrame:
-    def __init__(self, data: np.ndarray | None) -> None:
-        self.data = data
+    def __init__(self, data: np.ndarray | None, stamp_ms: float = 0.0, domain: str = "hardware_clock") -> None:
+        self.data, self.stamp_ms, self.domain = data, stamp_ms, domain
 
     def __bool__(self) -> bool:
         return self.data is not None
@@ -293,16 +295,23 @@ class FakeVideoFrame:
         assert self.data is not None
         return self.data
 
+    def get_timestamp(self) -> float:
+        return self.stamp_ms
+
+    def get_frame_timestamp_domain(self) -> str:
+        return f"timestamp_domain.{self.domain}"  # as str() of pyrealsense2's enum prints
+
 
 class FakeFrameset:
-    def __init__(self, depth: np.ndarray | None, color: np.ndarray | None, stamp_ms: float) -> None:
-        self.depth, self.color, self.stamp_ms = depth, color, stamp_ms
+    def __init__(self, depth: np.ndarray | None, color: np.ndarray | None, stamp_ms: float,
+                 domain: str = "hardware_clock") -> None:
+        self.depth, self.color, self.stamp_ms, self.domain = depth, color, stamp_ms, domain
 
     def get_depth_frame(self) -> FakeVideoFrame:
-        return FakeVideoFrame(self.depth)
+        return FakeVideoFrame(self.depth, self.stamp_ms, self.domain)
 
     def get_color_frame(self) -> FakeVideoFrame:
-        return FakeVideoFrame(self.color)
+        return FakeVideoFrame(self.color, self.stamp_ms, self.domain)
 
     def get_timestamp(self) -> float:
         return self.stamp_ms
@@ -311,8 +320,10 @@ class FakeFrameset:
 class FakePipeline:
     """Plays a script: framesets, or exceptions to raise from wait_for_frames."""
 
-    def __init__(self, script: list[Any], depth_scale: float = 0.001, fail_start: bool = False) -> None:
+    def __init__(self, script: list[Any], depth_scale: float = 0.001, fail_start: bool = False,
+                 sensors: list[Any] | None = None) -> None:
         self.script = list(script)
+        self.sensors = sensors or []
         self.depth_scale = depth_scale
         self.fail_start = fail_start
         self.started_with: Any = None
@@ -327,7 +338,8 @@ class FakePipeline:
         sensor = SimpleNamespace(get_depth_scale=lambda: self.depth_scale)
         stream = SimpleNamespace(as_video_stream_profile=lambda: SimpleNamespace(get_intrinsics=lambda: intr))
         return SimpleNamespace(
-            get_device=lambda: SimpleNamespace(first_depth_sensor=lambda: sensor),
+            get_device=lambda: SimpleNamespace(first_depth_sensor=lambda: sensor,
+                                               query_sensors=lambda: self.sensors),
             get_stream=lambda s: stream,
         )
 
@@ -362,18 +374,34 @@ class FakeAlign:
         return frames
 
 
+class FakeSensor:
+    def __init__(self, global_time: float | None) -> None:
+        self.options = {} if global_time is None else {"global_time_enabled": global_time}
+
+    def supports(self, option: str) -> bool:
+        return option in self.options
+
+    def get_option(self, option: str) -> float:
+        return self.options[option]
+
+    def set_option(self, option: str, value: float) -> None:
+        assert option in self.options
+        self.options[option] = value
+
+
 FAKE_RS = SimpleNamespace(
     stream=SimpleNamespace(depth="depth", color="color"), format=SimpleNamespace(z16="z16", rgb8="rgb8"),
+    option=SimpleNamespace(global_time_enabled="global_time_enabled"),
     config=FakeConfig, align=FakeAlign,
 )
 
 
-def good_frameset(depth_mm: int = 1500, stamp_ms: float = 1000.0) -> FakeFrameset:
+def good_frameset(depth_mm: int = 1500, stamp_ms: float = 1000.0, domain: str = "hardware_clock") -> FakeFrameset:
     depth = np.full((480, 640), depth_mm, dtype=np.uint16)
     depth[0, 0] = 9000  # beyond the range
     color = np.zeros((480, 640, 3), dtype=np.uint8)
     color[..., 0] = 200
-    return FakeFrameset(depth, color, stamp_ms)
+    return FakeFrameset(depth, color, stamp_ms, domain)
 
 
 def test_realsense_reads_aligned_frames_and_skips_bad_ones() -> None:
@@ -399,6 +427,58 @@ def test_realsense_reads_aligned_frames_and_skips_bad_ones() -> None:
     assert b.stamp_s >= a.stamp_s and src.last_device_stamp_ms == 1133.0
     assert src.dropped_frames == 3 and src.frames_read == 2
     assert pipe.stopped
+
+
+def test_realsense_stamps_frames_at_capture_on_the_monotonic_clock() -> None:
+    """A global-time stamp 40 ms old gives a frame stamped 40 ms before its arrival; one the
+    host clock does not believe (in the future, or 10 s old) falls back to arrival, counted."""
+    ref_monotonic_s, now_wall_ms = time.monotonic(), time.time() * 1e3
+    pipe = FakePipeline([
+        good_frameset(stamp_ms=now_wall_ms - 40.0, domain="global_time"),
+        good_frameset(stamp_ms=now_wall_ms + 1000.0, domain="global_time"),
+        good_frameset(stamp_ms=now_wall_ms - 10_000.0, domain="system_time"),
+    ], sensors=[FakeSensor(global_time=0.0), FakeSensor(global_time=None)])
+    src = RealSenseFrameSource(rs_module=FAKE_RS, pipeline=pipe)
+    with src:
+        t0 = time.monotonic()
+        a = src.read()
+        lat_a, dom_a = src.last_latency_s, src.last_stamp_domain
+        b = src.read()
+        c = src.read()
+        t1 = time.monotonic()
+    assert pipe.sensors[0].options["global_time_enabled"] == 1  # switched on where offered
+    assert a is not None and b is not None and c is not None
+    assert dom_a == "global_time"
+    # Captured 40 ms before the reference instant, whatever the start-up took:
+    assert a.stamp_s == pytest.approx(ref_monotonic_s - 0.040, abs=0.003)
+    assert lat_a >= 0.040 and a.stamp_s < t0
+    assert t0 <= b.stamp_s <= t1 and t0 <= c.stamp_s <= t1  # on arrival
+    assert src.capture_clock.stamps_on_arrival == 2
+
+
+def test_capture_clock_removes_the_varying_latency_of_a_hardware_clock() -> None:
+    """Device counter 1000 s ahead of the host; latency 30 ms plus up to 40 ms of jitter: the
+    stamps keep only the smallest latency, so their spacing is the device's, not the arrivals'."""
+    clock = CaptureClock()
+    rng = np.random.default_rng(0)
+    stamps, arrivals, captures = [], [], []
+    for k in range(60):
+        capture_s = 10.0 + k / 30.0
+        arrival = capture_s + 0.030 + float(rng.uniform(0.0, 0.040))
+        stamps.append(clock.capture_stamp_s((capture_s + 1000.0) * 1e3, "hardware_clock", arrival, 0.0))
+        arrivals.append(arrival)
+        captures.append(capture_s)
+    latency = np.asarray(arrivals) - np.asarray(stamps)
+    assert np.all(latency >= 0.0)
+    # After the first frames the offset has settled at the smallest latency seen (30 ms + a
+    # little): the stamps' error is constant to a few ms while the arrivals' varies by ~40 ms.
+    stamp_err = np.asarray(stamps[20:]) - np.asarray(captures[20:]) - 0.030
+    arrival_err = np.asarray(arrivals[20:]) - np.asarray(captures[20:]) - 0.030
+    assert np.all((stamp_err >= 0.0) & (stamp_err < 0.006))
+    assert np.ptp(arrival_err) > 0.025
+    assert clock.stamps_on_arrival == 0
+    # A domain it does not know is stamped on arrival, counted.
+    assert clock.capture_stamp_s(5.0, "unknown", 42.0, 0.0) == 42.0 and clock.stamps_on_arrival == 1
 
 
 def test_realsense_gives_up_after_too_many_failures_in_a_row() -> None:
