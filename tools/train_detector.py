@@ -86,7 +86,7 @@ def train(args: argparse.Namespace) -> None:
         "device": "cpu",
         "workers": 2,
         "cache": "ram",
-        "optimizer": "AdamW",
+        "optimizer": args.optimizer,
         "lr0": args.lr0,
         "lrf": 0.05,
         "cos_lr": True,
@@ -318,6 +318,9 @@ def main() -> None:
                    help="start from this checkpoint (e.g. an earlier run's last.pt), not from scratch")
     t.add_argument("--name", default="furniture", help="run folder name under --out")
     t.add_argument("--lr0", type=float, default=0.002)
+    t.add_argument("--optimizer", default="AdamW", choices=("AdamW", "SGD"),
+                   help="AdamW trains from scratch; SGD (momentum 0.937) continues a trained "
+                   "checkpoint without AdamW's full-size first steps shaking it")
     t.add_argument("--bf16", action="store_true",
                    help="bfloat16 autocast and channels-last for the training forward pass (a CPU "
                    "with AMX or AVX-512 BF16: about 1.7x faster); weights and loss stay float32")
