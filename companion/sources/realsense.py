@@ -66,15 +66,17 @@ class CaptureClock:
             age_s = arrival_wall_s - device_ms * 1e-3
             if -self.tolerance_s <= age_s <= self.max_age_s:
                 return arrival_monotonic_s - max(0.0, age_s)
-            self.stamps_on_arrival += 1
-            if self.stamps_on_arrival == 1 or self.stamps_on_arrival % 300 == 0:
-                log.warning("RealSense %s timestamp is %.3f s from the host clock (accepted: "
-                            "-%.3f..%.3f s): stamped on arrival (%d frames so far)", domain, age_s,
-                            self.tolerance_s, self.max_age_s, self.stamps_on_arrival)
-            return arrival_monotonic_s
+            return self._on_arrival(arrival_monotonic_s, f"{domain} timestamp is {age_s:.3f} s from "
+                                    f"the host clock (accepted: -{self.tolerance_s:.3f}..{self.max_age_s:.3f} s)")
         if domain == "hardware_clock":
             return min(arrival_monotonic_s, self._hardware.to_local(device_ms * 1e-3, arrival_monotonic_s))
+        return self._on_arrival(arrival_monotonic_s, f"timestamp domain {domain!r} is not a known one")
+
+    def _on_arrival(self, arrival_monotonic_s: float, reason: str) -> float:
+        """Stamp a frame on arrival, counted; logged on the first and every 300th."""
         self.stamps_on_arrival += 1
+        if self.stamps_on_arrival == 1 or self.stamps_on_arrival % 300 == 0:
+            log.warning("RealSense %s: stamped on arrival (%d frames so far)", reason, self.stamps_on_arrival)
         return arrival_monotonic_s
 
 
@@ -171,9 +173,7 @@ class RealSenseFrameSource(FrameSource):
 
     def _enable_global_time(self, device: Any) -> None:
         """Switch librealsense's global time on where a sensor offers it (off on some SKUs)."""
-        option = getattr(getattr(self._rs, "option", None), "global_time_enabled", None)
-        if option is None or not hasattr(device, "query_sensors"):
-            return
+        option = self._rs.option.global_time_enabled
         for sensor in device.query_sensors():
             try:
                 if sensor.supports(option) and not sensor.get_option(option):
