@@ -46,17 +46,20 @@ CLASS_NAMES = ("chair", "coffee_table", "conference_table", "sofa", "whiteboard"
 
 
 def _val_list(data_dir: Path, n_val: int, out_dir: Path) -> Path:
-    """A data.yaml using all train images and the first ``n_val`` held-out images for the
-    per-epoch validation (the full held-out set is for ``bench/detector.py``)."""
+    """A data.yaml using all train images and ``n_val`` images of the ``val`` split (rooms of
+    their own) for the per-epoch validation that picks ``best.pt``. The held-out rooms are only
+    for ``bench/detector.py``: choosing the epoch on them would let the reported figure pick
+    its own model."""
     import yaml
 
-    heldout = sorted((data_dir / "images" / "heldout").glob("*.jpg"))
-    if not heldout:
-        sys.exit(f"{data_dir}/images/heldout has no images: generate the held-out split first")
-    step = max(1, len(heldout) // max(1, n_val))
+    val = sorted((data_dir / "images" / "val").glob("*.jpg"))
+    if not val:
+        sys.exit(f"{data_dir}/images/val has no images: generate the val split first "
+                 f"(companion dataset --out {data_dir} --split val ...)")
+    step = max(1, len(val) // max(1, n_val))
     out_dir.mkdir(parents=True, exist_ok=True)
     val_txt = out_dir / "val_subset.txt"
-    val_txt.write_text("".join(f"{p}\n" for p in heldout[::step][:n_val]))
+    val_txt.write_text("".join(f"{p}\n" for p in val[::step][:n_val]))
     cfg = {
         "path": str(data_dir.resolve()),
         "train": "images/train",
@@ -327,7 +330,7 @@ def main() -> None:
     t.add_argument("--close-mosaic", type=int, default=1)
     t.add_argument("--warmup-epochs", type=float, default=0.0)
     t.add_argument("--val-images", type=int, default=100,
-                   help="held-out images validated after each epoch")
+                   help="val-split images validated after each epoch (picks best.pt)")
     t.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                    help="torch threads (default: all cores; Ultralytics alone leaves one idle)")
     t.set_defaults(func=train)

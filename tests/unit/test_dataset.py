@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.sim.dataset import (
+    MAX_ROOMS_PER_SPLIT,
     DatasetSpec,
     generate,
     labels_from_instance_mask,
@@ -61,7 +62,13 @@ def test_yolo_line_round_trips_the_box(u0: int, v0: int, w: int, h: int, c: int)
 
 
 def test_split_room_seeds_are_disjoint() -> None:
-    assert not set(room_seeds("train", 5000)) & set(room_seeds("heldout", 5000))
+    n = MAX_ROOMS_PER_SPLIT
+    train, val, heldout = (set(room_seeds(s, n)) for s in ("train", "val", "heldout"))
+    assert not train & val and not train & heldout and not val & heldout
+    with pytest.raises(SimulationError, match="at most"):
+        room_seeds("train", n + 1)
+    with pytest.raises(SimulationError, match="at most"):
+        list(generate(DatasetSpec(split="train", n_rooms=2, intrinsics=SMALL), room_start=n - 1))
     with pytest.raises(SimulationError, match="split"):
         room_seeds("validation", 3)
     with pytest.raises(SimulationError, match="split"):
