@@ -13,8 +13,10 @@ pixels are marked ``iscrowd`` (ignored: neither required nor counted as false po
 detected), the same rule the training labels use. AP@0.5 per class is COCO's 101-point
 interpolated AP at IoU 0.5 (detections kept down to score 0.001, COCO's protocol); mAP@0.5 is
 its mean over classes. Precision and recall are at the runtime's operating point
-(``detector.score_threshold``, 0.25 by default), greedy matching at IoU 0.5 per class.
-Inference time is the whole :meth:`OnnxDetector.detect` per 640x480 frame.
+(``detector.score_threshold``, 0.25 by default), greedy matching at IoU 0.5 per class
+(``bench/_detection_eval.py``), with where the errors are: missed objects and false positives by
+kind, class confusions, recall of border-cut vs whole objects and by COCO box-area range, and
+mAP@0.5 by area range. Inference time is the whole :meth:`OnnxDetector.detect` per 640x480 frame.
 
 The last line printed is one JSON object with every figure.
 """
@@ -22,8 +24,6 @@ The last line printed is one JSON object with every figure.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import os
 import platform
@@ -38,86 +38,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench._detection_eval import (  # noqa: E402
+    GroundTruth,
+    coco_ap50,
+    error_breakdown,
+    match,
+    match_counts,
+)
 from companion.config import CompanionConfig  # noqa: E402
 from companion.sim.dataset import DatasetSpec, generate, room_seeds  # noqa: E402
 from semmap.detection import BUILTIN_MODELS_DIR, detector_from_config  # noqa: E402
 from semmap.detection.onnx_detector import OnnxDetector  # noqa: E402
 from semmap.types import Detection  # noqa: E402
-
-
-def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N, M) IoU of xyxy boxes (N, 4) and (M, 4)."""
-    tl = np.maximum(a[:, None, :2], b[None, :, :2])
-    br = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.prod(np.clip(br - tl, 0.0, None), axis=2)
-    area_a = np.prod(a[:, 2:] - a[:, :2], axis=1)
-    area_b = np.prod(b[:, 2:] - b[:, :2], axis=1)
-    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
-
-
-def _match_counts(
-    gts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], dets: list[list[Detection]],
-    class_names: list[str], score_threshold: float, iou_threshold: float = 0.5,
-) -> dict[str, dict[str, int]]:
-    """Per class TP/FP/FN at ``score_threshold``; detections matching only ignored ground
-    truth are neither TP nor FP."""
-    out = {c: {"tp": 0, "fp": 0, "fn": 0} for c in class_names}
-    for (g_boxes, g_cls, g_ignore), frame_dets in zip(gts, dets, strict=True):
-        for k, name in enumerate(class_names):
-            gsel = g_cls == k
-            gb, gi = g_boxes[gsel], g_ignore[gsel]
-            ds = sorted((d for d in frame_dets if d.class_name == name and d.score >= score_threshold),
-                        key=lambda d: -d.score)
-            db = np.array([d.xyxy_px for d in ds], dtype=np.float64).reshape(-1, 4)
-            taken = np.zeros(len(gb), dtype=bool)
-            iou = _iou(db, gb) if len(db) and len(gb) else np.zeros((len(db), len(gb)))
-            for i in range(len(db)):
-                cand = np.where(~taken & ~gi & (iou[i] >= iou_threshold))[0]
-                if len(cand):
-                    taken[cand[np.argmax(iou[i, cand])]] = True
-                    out[name]["tp"] += 1
-                elif not np.any(gi & (iou[i] >= iou_threshold)):
-                    out[name]["fp"] += 1
-            out[name]["fn"] += int(np.sum(~taken & ~gi))
-    return out
-
-
-def _coco_ap50(
-    gts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], dets: list[list[Detection]],
-    class_names: list[str],
-) -> tuple[float, dict[str, float]]:
-    """COCOeval AP at IoU 0.5: (mean over classes, per class). -1 for a class with no ground truth."""
-    from pycocotools.coco import COCO
-    from pycocotools.cocoeval import COCOeval
-
-    images, anns, results = [], [], []
-    for img_id, ((g_boxes, g_cls, g_ignore), frame_dets) in enumerate(zip(gts, dets, strict=True), 1):
-        images.append({"id": img_id, "width": 640, "height": 480})
-        for (u0, v0, u1, v1), c, ign in zip(g_boxes.tolist(), g_cls.tolist(), g_ignore.tolist(), strict=True):
-            anns.append({
-                "id": len(anns) + 1, "image_id": img_id, "category_id": int(c) + 1,
-                "bbox": [u0, v0, u1 - u0, v1 - v0], "area": (u1 - u0) * (v1 - v0), "iscrowd": int(ign),
-            })
-        for d in frame_dets:
-            u0, v0, u1, v1 = d.xyxy_px
-            results.append({"image_id": img_id, "category_id": class_names.index(d.class_name) + 1,
-                            "bbox": [u0, v0, u1 - u0, v1 - v0], "score": d.score})
-    coco = COCO()
-    coco.dataset = {"images": images, "annotations": anns,
-                    "categories": [{"id": i + 1, "name": n} for i, n in enumerate(class_names)]}
-    with contextlib.redirect_stdout(io.StringIO()):
-        coco.createIndex()
-        dt = coco.loadRes(results) if results else COCO()
-        ev = COCOeval(coco, dt, iouType="bbox")
-        ev.evaluate()
-        ev.accumulate()
-    prec = ev.eval["precision"][0, :, :, 0, -1]  # (recall points, classes) at IoU 0.5, all areas, 100 dets
-    per_class = {}
-    for k, name in enumerate(class_names):
-        p = prec[:, k]
-        per_class[name] = float(p[p > -1].mean()) if np.any(p > -1) else -1.0
-    valid = [v for v in per_class.values() if v >= 0]
-    return (float(np.mean(valid)) if valid else 0.0), per_class
 
 
 def _n_parameters(path: Path) -> int:
@@ -152,7 +84,7 @@ def main() -> None:
     spec = DatasetSpec(split="heldout", n_rooms=n_rooms, images_per_room=per_room, seed=args.seed,
                        class_names=tuple(class_names), intrinsics=cfg.camera.intrinsics(),
                        min_visible_px=1)
-    gts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    gts: list[GroundTruth] = []
     dets: list[list[Detection]] = []
     infer_s: list[float] = []
     t_render = 0.0
@@ -166,8 +98,10 @@ def main() -> None:
         infer_s.append(time.perf_counter() - t1)
         t0 = time.perf_counter()
 
-    map50, ap50 = _coco_ap50(gts, dets, class_names)
-    counts = _match_counts(gts, dets, class_names, operating_threshold)
+    map50, ap50, map50_by_area = coco_ap50(gts, dets, class_names)
+    matched = match(gts, dets, class_names, operating_threshold)
+    counts = match_counts(gts, matched, class_names)
+    errors = error_breakdown(gts, dets, matched, class_names, operating_threshold)
     ms = np.asarray(infer_s) * 1e3
     n_params = _n_parameters(detector.model_path)
     n_img = len(gts)
@@ -211,6 +145,17 @@ def main() -> None:
         r_txt = f"{r['recall']:>9.3f}" if r["instances"] else f"{'n/a':>9}"
         print(f"{name:<18}{r['instances']:>10}{p_txt}{r_txt}{ap_txt}")
     print()
+    fn, fp = errors["false_negatives"], errors["false_positives"]
+    print("where the errors are, at the operating point:")
+    print(f"  missed objects ({sum(fn.values())}): " + ", ".join(f"{k} {v}" for k, v in fn.items()))
+    print(f"  false positives ({sum(fp.values())}): " + ", ".join(f"{k} {v}" for k, v in fp.items()))
+    print("  wrong class, true->detected: " + ", ".join(
+        f"{k} {v}" for k, v in errors["confused_true_to_detected"].items()))
+    print("  recall by kind: " + ", ".join(
+        f"{k} {v['recall']:.3f} ({v['objects']})" for k, v in errors["recall_by_kind"].items()
+        if v["recall"] is not None))
+    print("  mAP@0.5 by box area: " + ", ".join(f"{k} {v:.3f}" for k, v in map50_by_area.items()))
+    print()
     print(f"parameters: {n_params:,}   inference per frame (letterbox + ONNX Runtime + decode + NMS): "
           f"p50 {np.percentile(ms, 50):.1f} ms, p95 {np.percentile(ms, 95):.1f} ms, mean {ms.mean():.1f} ms"
           f"   (rendering took {t_render:.0f} s)")
@@ -222,6 +167,8 @@ def main() -> None:
         "heldout_rooms": n_rooms,
         "overall": overall,
         "per_class": rows,
+        "map50_by_area": map50_by_area,
+        "errors": errors,
         "inference": {
             "p50_ms": round(float(np.percentile(ms, 50)), 2),
             "p95_ms": round(float(np.percentile(ms, 95)), 2),

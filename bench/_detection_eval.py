@@ -1,0 +1,181 @@
+"""Scoring a detector against ground-truth boxes (``bench/detector.py``).
+
+A frame's ground truth is ``(boxes (N, 4) xyxy px, class ids (N,), ignore (N,) bool)``: ignored
+objects (too few visible pixels) are neither required nor counted as false positives when
+detected. :func:`coco_ap50` is pycocotools' AP at IoU 0.5; the rest scores the detections at
+one operating point (a score threshold) by greedy matching at IoU 0.5 per class, and says where
+the errors are.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from typing import Any
+
+import numpy as np
+
+from semmap.types import Detection
+
+GroundTruth = tuple[np.ndarray, np.ndarray, np.ndarray]
+#: Per frame: whether each ground-truth object was found, and each detection's outcome.
+Matched = list[tuple[np.ndarray, list[tuple[Detection, str]]]]
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, M) IoU of xyxy boxes (N, 4) and (M, 4)."""
+    tl = np.maximum(a[:, None, :2], b[None, :, :2])
+    br = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.prod(np.clip(br - tl, 0.0, None), axis=2)
+    area_a = np.prod(a[:, 2:] - a[:, :2], axis=1)
+    area_b = np.prod(b[:, 2:] - b[:, :2], axis=1)
+    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
+
+
+def match(
+    gts: list[GroundTruth], dets: list[list[Detection]],
+    class_names: list[str], score_threshold: float, iou_threshold: float = 0.5,
+) -> Matched:
+    """Greedy per-class matching at ``score_threshold``, per frame: whether each ground-truth
+    box was found (a same-class detection at IoU >= 0.5), and each detection's outcome:
+    ``tp``, ``ignored`` (it matches only ignored ground truth), or why it is a false positive:
+    ``duplicate`` (its object was already found), ``wrong_class`` (another class's object),
+    ``loose_box`` (its object at IoU 0.1-0.5) or ``background``."""
+    out = []
+    for (g_boxes, g_cls, g_ignore), frame_dets in zip(gts, dets, strict=True):
+        found = np.zeros(len(g_boxes), dtype=bool)
+        outcomes: list[tuple[Detection, str]] = []
+        ds = sorted((d for d in frame_dets if d.score >= score_threshold), key=lambda d: -d.score)
+        db = np.array([d.xyxy_px for d in ds], dtype=np.float64).reshape(-1, 4)
+        iou = _iou(db, g_boxes) if len(db) and len(g_boxes) else np.zeros((len(db), len(g_boxes)))
+        for i, d in enumerate(ds):
+            same = g_cls == class_names.index(d.class_name)
+            hit = iou[i] >= iou_threshold
+            cand = np.where(same & ~found & ~g_ignore & hit)[0]
+            if len(cand):
+                found[cand[np.argmax(iou[i, cand])]] = True
+                outcomes.append((d, "tp"))
+            elif np.any(same & g_ignore & hit):
+                outcomes.append((d, "ignored"))
+            elif np.any(same & hit):
+                outcomes.append((d, "duplicate"))
+            elif np.any(~same & ~g_ignore & hit):
+                outcomes.append((d, "wrong_class"))
+            elif np.any(same & ~g_ignore & (iou[i] >= 0.1)):
+                outcomes.append((d, "loose_box"))
+            else:
+                outcomes.append((d, "background"))
+        out.append((found, outcomes))
+    return out
+
+
+def match_counts(
+    gts: list[GroundTruth],
+    matched: Matched, class_names: list[str],
+) -> dict[str, dict[str, int]]:
+    """Per class TP/FP/FN; detections matching only ignored ground truth are neither."""
+    out = {c: {"tp": 0, "fp": 0, "fn": 0} for c in class_names}
+    for (_, g_cls, g_ignore), (found, outcomes) in zip(gts, matched, strict=True):
+        for d, what in outcomes:
+            if what != "ignored":
+                out[d.class_name]["tp" if what == "tp" else "fp"] += 1
+        for k, name in enumerate(class_names):
+            out[name]["fn"] += int(np.sum((g_cls == k) & ~g_ignore & ~found))
+    return out
+
+
+def error_breakdown(
+    gts: list[GroundTruth], dets: list[list[Detection]],
+    matched: Matched, class_names: list[str],
+    score_threshold: float, width_px: int = 640, height_px: int = 480,
+) -> dict[str, Any]:
+    """Where the errors are at the operating point. Each missed object is counted once, as
+    ``wrong_class`` (a detection of another class covers it at IoU >= 0.5), ``loose_box`` (one
+    of its class at IoU 0.1-0.5) or ``missed``; and the recall of objects by kind: cut by the
+    image border or whole, and by box area (COCO's small < 32^2, medium < 96^2 px, large).
+    False positives by kind, and the wrong-class ones by ``true->detected`` class pair."""
+    miss = {"wrong_class": 0, "loose_box": 0, "missed": 0}
+    groups: dict[str, list[int]] = {k: [0, 0] for k in
+                                    ("border_cut", "whole", "small", "medium", "large")}
+    for (g_boxes, g_cls, g_ignore), frame_dets, (found, _) in zip(gts, dets, matched, strict=True):
+        ds = [d for d in frame_dets if d.score >= score_threshold]
+        db = np.array([d.xyxy_px for d in ds], dtype=np.float64).reshape(-1, 4)
+        dc = np.array([class_names.index(d.class_name) for d in ds], dtype=np.int64)
+        iou = _iou(g_boxes, db) if len(db) and len(g_boxes) else np.zeros((len(g_boxes), len(db)))
+        for j in np.where(~g_ignore)[0]:
+            u0, v0, u1, v1 = g_boxes[j]
+            area = (u1 - u0) * (v1 - v0)
+            cut = u0 <= 1 or v0 <= 1 or u1 >= width_px - 1 or v1 >= height_px - 1
+            size = "small" if area < 32 ** 2 else "medium" if area < 96 ** 2 else "large"
+            for g in ("border_cut" if cut else "whole", size):
+                groups[g][0] += 1
+                groups[g][1] += int(found[j])
+            if found[j]:
+                continue
+            same = dc == g_cls[j]
+            if np.any(~same & (iou[j] >= 0.5)):
+                miss["wrong_class"] += 1
+            elif np.any(same & (iou[j] >= 0.1)):
+                miss["loose_box"] += 1
+            else:
+                miss["missed"] += 1
+    fp: dict[str, int] = {"duplicate": 0, "wrong_class": 0, "loose_box": 0, "background": 0}
+    confused: dict[str, int] = {}
+    for (g_boxes, g_cls, g_ignore), (_, outcomes) in zip(gts, matched, strict=True):
+        for d, what in outcomes:
+            if what in fp:
+                fp[what] += 1
+            if what == "wrong_class":  # the object it covers best, among the other classes'
+                iou = _iou(np.asarray([d.xyxy_px], dtype=np.float64), g_boxes)[0]
+                iou[(g_cls == class_names.index(d.class_name)) | g_ignore] = -1.0
+                pair = f"{class_names[int(g_cls[int(np.argmax(iou))])]}->{d.class_name}"
+                confused[pair] = confused.get(pair, 0) + 1
+    return {
+        "false_negatives": miss,
+        "false_positives": fp,
+        "confused_true_to_detected": dict(sorted(confused.items(), key=lambda kv: -kv[1])),
+        "recall_by_kind": {g: {"objects": n, "recall": round(k / n, 4) if n else None}
+                           for g, (n, k) in groups.items()},
+    }
+
+
+def coco_ap50(
+    gts: list[GroundTruth], dets: list[list[Detection]],
+    class_names: list[str],
+) -> tuple[float, dict[str, float], dict[str, float]]:
+    """COCOeval AP at IoU 0.5: (mean over classes, per class, mean over classes by COCO's box
+    area ranges small / medium / large). -1 for a class with no ground truth."""
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    images, anns, results = [], [], []
+    for img_id, ((g_boxes, g_cls, g_ignore), frame_dets) in enumerate(zip(gts, dets, strict=True), 1):
+        images.append({"id": img_id, "width": 640, "height": 480})
+        for (u0, v0, u1, v1), c, ign in zip(g_boxes.tolist(), g_cls.tolist(), g_ignore.tolist(), strict=True):
+            anns.append({
+                "id": len(anns) + 1, "image_id": img_id, "category_id": int(c) + 1,
+                "bbox": [u0, v0, u1 - u0, v1 - v0], "area": (u1 - u0) * (v1 - v0), "iscrowd": int(ign),
+            })
+        for d in frame_dets:
+            u0, v0, u1, v1 = d.xyxy_px
+            results.append({"image_id": img_id, "category_id": class_names.index(d.class_name) + 1,
+                            "bbox": [u0, v0, u1 - u0, v1 - v0], "score": d.score})
+    coco = COCO()
+    coco.dataset = {"images": images, "annotations": anns,
+                    "categories": [{"id": i + 1, "name": n} for i, n in enumerate(class_names)]}
+    with contextlib.redirect_stdout(io.StringIO()):
+        coco.createIndex()
+        dt = coco.loadRes(results) if results else COCO()
+        ev = COCOeval(coco, dt, iouType="bbox")
+        ev.evaluate()
+        ev.accumulate()
+    # precision: (IoU thresholds, recall points, classes, area ranges all/small/medium/large, max dets)
+    def mean_ap(prec: np.ndarray) -> tuple[float, list[float]]:
+        aps = [float(p[p > -1].mean()) if np.any(p > -1) else -1.0 for p in prec.T]
+        valid = [v for v in aps if v >= 0]
+        return (float(np.mean(valid)) if valid else -1.0), aps
+
+    overall, aps = mean_ap(ev.eval["precision"][0, :, :, 0, -1])
+    by_area = {name: round(mean_ap(ev.eval["precision"][0, :, :, a, -1])[0], 4)
+               for a, name in ((1, "small"), (2, "medium"), (3, "large"))}
+    return max(overall, 0.0), dict(zip(class_names, aps, strict=True)), by_area
