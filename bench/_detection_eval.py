@@ -11,97 +11,96 @@ from __future__ import annotations
 
 import contextlib
 import io
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from semmap.tracking.matching import iou_matrix
 from semmap.types import Detection
 
 GroundTruth = tuple[np.ndarray, np.ndarray, np.ndarray]
-#: Per frame: whether each ground-truth object was found, and each detection's outcome.
-Matched = list[tuple[np.ndarray, list[tuple[Detection, str]]]]
 
 
-def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N, M) IoU of xyxy boxes (N, 4) and (M, 4)."""
-    tl = np.maximum(a[:, None, :2], b[None, :, :2])
-    br = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.prod(np.clip(br - tl, 0.0, None), axis=2)
-    area_a = np.prod(a[:, 2:] - a[:, :2], axis=1)
-    area_b = np.prod(b[:, 2:] - b[:, :2], axis=1)
-    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
+@dataclass(frozen=True)
+class FrameMatch:
+    """One frame scored at the operating point: its detections at or above the score
+    threshold (highest score first), their IoU with the ground truth (D, G), whether each
+    ground-truth object was found, and each detection's outcome: ``tp``, ``ignored`` (it
+    matches only ignored ground truth), or why it is a false positive: ``duplicate`` (its
+    object was already found), ``wrong_class`` (another class's object), ``loose_box`` (its
+    object at IoU 0.1-0.5) or ``background``."""
+
+    dets: list[Detection]
+    iou: np.ndarray
+    found: np.ndarray
+    outcomes: list[str]
 
 
 def match(
     gts: list[GroundTruth], dets: list[list[Detection]],
     class_names: list[str], score_threshold: float, iou_threshold: float = 0.5,
-) -> Matched:
-    """Greedy per-class matching at ``score_threshold``, per frame: whether each ground-truth
-    box was found (a same-class detection at IoU >= 0.5), and each detection's outcome:
-    ``tp``, ``ignored`` (it matches only ignored ground truth), or why it is a false positive:
-    ``duplicate`` (its object was already found), ``wrong_class`` (another class's object),
-    ``loose_box`` (its object at IoU 0.1-0.5) or ``background``."""
+) -> list[FrameMatch]:
+    """Greedy per-class matching at ``score_threshold``, per frame: a detection finds the
+    unfound object of its class it overlaps most at IoU >= ``iou_threshold``."""
     out = []
     for (g_boxes, g_cls, g_ignore), frame_dets in zip(gts, dets, strict=True):
-        found = np.zeros(len(g_boxes), dtype=bool)
-        outcomes: list[tuple[Detection, str]] = []
         ds = sorted((d for d in frame_dets if d.score >= score_threshold), key=lambda d: -d.score)
-        db = np.array([d.xyxy_px for d in ds], dtype=np.float64).reshape(-1, 4)
-        iou = _iou(db, g_boxes) if len(db) and len(g_boxes) else np.zeros((len(db), len(g_boxes)))
+        iou = iou_matrix(np.array([d.xyxy_px for d in ds], dtype=np.float64), g_boxes)
+        found = np.zeros(len(g_boxes), dtype=bool)
+        outcomes: list[str] = []
         for i, d in enumerate(ds):
             same = g_cls == class_names.index(d.class_name)
             hit = iou[i] >= iou_threshold
             cand = np.where(same & ~found & ~g_ignore & hit)[0]
             if len(cand):
                 found[cand[np.argmax(iou[i, cand])]] = True
-                outcomes.append((d, "tp"))
+                outcomes.append("tp")
             elif np.any(same & g_ignore & hit):
-                outcomes.append((d, "ignored"))
+                outcomes.append("ignored")
             elif np.any(same & hit):
-                outcomes.append((d, "duplicate"))
+                outcomes.append("duplicate")
             elif np.any(~same & ~g_ignore & hit):
-                outcomes.append((d, "wrong_class"))
+                outcomes.append("wrong_class")
             elif np.any(same & ~g_ignore & (iou[i] >= 0.1)):
-                outcomes.append((d, "loose_box"))
+                outcomes.append("loose_box")
             else:
-                outcomes.append((d, "background"))
-        out.append((found, outcomes))
+                outcomes.append("background")
+        out.append(FrameMatch(ds, iou, found, outcomes))
     return out
 
 
 def match_counts(
-    gts: list[GroundTruth],
-    matched: Matched, class_names: list[str],
+    gts: list[GroundTruth], matched: list[FrameMatch], class_names: list[str],
 ) -> dict[str, dict[str, int]]:
     """Per class TP/FP/FN; detections matching only ignored ground truth are neither."""
     out = {c: {"tp": 0, "fp": 0, "fn": 0} for c in class_names}
-    for (_, g_cls, g_ignore), (found, outcomes) in zip(gts, matched, strict=True):
-        for d, what in outcomes:
+    for (_, g_cls, g_ignore), fm in zip(gts, matched, strict=True):
+        for d, what in zip(fm.dets, fm.outcomes, strict=True):
             if what != "ignored":
                 out[d.class_name]["tp" if what == "tp" else "fp"] += 1
         for k, name in enumerate(class_names):
-            out[name]["fn"] += int(np.sum((g_cls == k) & ~g_ignore & ~found))
+            out[name]["fn"] += int(np.sum((g_cls == k) & ~g_ignore & ~fm.found))
     return out
 
 
 def error_breakdown(
-    gts: list[GroundTruth], dets: list[list[Detection]],
-    matched: Matched, class_names: list[str],
-    score_threshold: float, width_px: int = 640, height_px: int = 480,
+    gts: list[GroundTruth], matched: list[FrameMatch], class_names: list[str],
+    width_px: int = 640, height_px: int = 480,
 ) -> dict[str, Any]:
     """Where the errors are at the operating point. Each missed object is counted once, as
     ``wrong_class`` (a detection of another class covers it at IoU >= 0.5), ``loose_box`` (one
     of its class at IoU 0.1-0.5) or ``missed``; and the recall of objects by kind: cut by the
     image border or whole, and by box area (COCO's small < 32^2, medium < 96^2 px, large).
-    False positives by kind, and the wrong-class ones by ``true->detected`` class pair."""
+    False positives by kind, and the wrong-class ones by ``true->detected`` class pair (the
+    other class's object the detection covers best)."""
     miss = {"wrong_class": 0, "loose_box": 0, "missed": 0}
     groups: dict[str, list[int]] = {k: [0, 0] for k in
                                     ("border_cut", "whole", "small", "medium", "large")}
-    for (g_boxes, g_cls, g_ignore), frame_dets, (found, _) in zip(gts, dets, matched, strict=True):
-        ds = [d for d in frame_dets if d.score >= score_threshold]
-        db = np.array([d.xyxy_px for d in ds], dtype=np.float64).reshape(-1, 4)
-        dc = np.array([class_names.index(d.class_name) for d in ds], dtype=np.int64)
-        iou = _iou(g_boxes, db) if len(db) and len(g_boxes) else np.zeros((len(g_boxes), len(db)))
+    fp: dict[str, int] = {"duplicate": 0, "wrong_class": 0, "loose_box": 0, "background": 0}
+    confused: dict[str, int] = {}
+    for (g_boxes, g_cls, g_ignore), fm in zip(gts, matched, strict=True):
+        dc = np.array([class_names.index(d.class_name) for d in fm.dets], dtype=np.int64)
         for j in np.where(~g_ignore)[0]:
             u0, v0, u1, v1 = g_boxes[j]
             area = (u1 - u0) * (v1 - v0)
@@ -109,26 +108,22 @@ def error_breakdown(
             size = "small" if area < 32 ** 2 else "medium" if area < 96 ** 2 else "large"
             for g in ("border_cut" if cut else "whole", size):
                 groups[g][0] += 1
-                groups[g][1] += int(found[j])
-            if found[j]:
+                groups[g][1] += int(fm.found[j])
+            if fm.found[j]:
                 continue
-            same = dc == g_cls[j]
-            if np.any(~same & (iou[j] >= 0.5)):
+            same, iou = dc == g_cls[j], fm.iou[:, j]
+            if np.any(~same & (iou >= 0.5)):
                 miss["wrong_class"] += 1
-            elif np.any(same & (iou[j] >= 0.1)):
+            elif np.any(same & (iou >= 0.1)):
                 miss["loose_box"] += 1
             else:
                 miss["missed"] += 1
-    fp: dict[str, int] = {"duplicate": 0, "wrong_class": 0, "loose_box": 0, "background": 0}
-    confused: dict[str, int] = {}
-    for (g_boxes, g_cls, g_ignore), (_, outcomes) in zip(gts, matched, strict=True):
-        for d, what in outcomes:
+        for i, what in enumerate(fm.outcomes):
             if what in fp:
                 fp[what] += 1
-            if what == "wrong_class":  # the object it covers best, among the other classes'
-                iou = _iou(np.asarray([d.xyxy_px], dtype=np.float64), g_boxes)[0]
-                iou[(g_cls == class_names.index(d.class_name)) | g_ignore] = -1.0
-                pair = f"{class_names[int(g_cls[int(np.argmax(iou))])]}->{d.class_name}"
+            if what == "wrong_class":
+                iou = np.where((g_cls == dc[i]) | g_ignore, -1.0, fm.iou[i])
+                pair = f"{class_names[int(g_cls[int(np.argmax(iou))])]}->{class_names[dc[i]]}"
                 confused[pair] = confused.get(pair, 0) + 1
     return {
         "false_negatives": miss,

@@ -101,7 +101,7 @@ def main() -> None:
     map50, ap50, map50_by_area = coco_ap50(gts, dets, class_names)
     matched = match(gts, dets, class_names, operating_threshold)
     counts = match_counts(gts, matched, class_names)
-    errors = error_breakdown(gts, dets, matched, class_names, operating_threshold)
+    errors = error_breakdown(gts, matched, class_names)
     ms = np.asarray(infer_s) * 1e3
     n_params = _n_parameters(detector.model_path)
     n_img = len(gts)

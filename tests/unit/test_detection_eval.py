@@ -44,15 +44,14 @@ def test_each_detection_and_each_miss_gets_its_kind() -> None:
         _det((400, 300, 500, 400), "coffee_table", 0.1),  # below the operating point
     ]]
     matched = match(gts, dets, CLASSES, score_threshold=0.25)
-    found, outcomes = matched[0]
-    assert found.tolist() == [True, False, False, False, False]
-    assert [what for _, what in outcomes] == [
+    assert matched[0].found.tolist() == [True, False, False, False, False]
+    assert matched[0].outcomes == [
         "tp", "duplicate", "wrong_class", "loose_box", "ignored", "background"]
     counts = match_counts(gts, matched, CLASSES)
     assert counts["chair"] == {"tp": 1, "fp": 2, "fn": 1}
     assert counts["coffee_table"] == {"tp": 0, "fp": 1, "fn": 1}
     assert counts["desk"] == {"tp": 0, "fp": 1, "fn": 1}
-    errors = error_breakdown(gts, dets, matched, CLASSES, score_threshold=0.25)
+    errors = error_breakdown(gts, matched, CLASSES)
     assert errors["false_negatives"] == {"wrong_class": 1, "loose_box": 1, "missed": 1}
     assert errors["false_positives"] == {"duplicate": 1, "wrong_class": 1, "loose_box": 1, "background": 1}
     assert errors["confused_true_to_detected"] == {"desk->coffee_table": 1}
@@ -66,7 +65,7 @@ def test_objects_cut_by_the_border_and_small_ones_are_told_apart() -> None:
     gts = [_gt([(0, 50, 100, 150), (600, 400, 640, 480), (300, 200, 320, 220)], [0, 1, 2])]
     dets = [[_det((0, 50, 100, 150), "chair")]]
     matched = match(gts, dets, CLASSES, score_threshold=0.25)
-    by_kind = error_breakdown(gts, dets, matched, CLASSES, score_threshold=0.25)["recall_by_kind"]
+    by_kind = error_breakdown(gts, matched, CLASSES)["recall_by_kind"]
     assert by_kind["border_cut"] == {"objects": 2, "recall": 0.5}
     assert by_kind["whole"] == {"objects": 1, "recall": 0.0}
     assert by_kind["small"] == {"objects": 1, "recall": 0.0}      # 20 x 20 px
