@@ -62,7 +62,13 @@ def test_slam_keeps_the_pose_while_the_odometry_drifts(tmp_path: Path) -> None:
             st = svc.localization.latest()
             # The camera stamps on time.monotonic; the truth is on the mock's clock.
             st_stamp = ap.stamp_of_monotonic(st.stamp_s) if st is not None else 0.0
-            if st is not None and ap.armed and stamps[0] < st_stamp:
+            # In flight only: once landed the camera sees the floor, the SLAM falls back to the
+            # (still) odometry and its error freezes at the touchdown value; counted every 50 ms
+            # until disarm, that one value was 5-8 % of the samples and, on a slow run, set the
+            # p95 (one fresh-clone run failed at p95 0.287 m: its touchdown error, 0.280 m,
+            # repeated over the last samples).
+            airborne = float(np.asarray(T)[2, 3]) > 0.3
+            if st is not None and ap.armed and airborne and stamps[0] < st_stamp:
                 k = min(bisect.bisect_left(stamps, st_stamp), len(stamps) - 1)
                 n, e, _ = ap.estimator.raw_pose_ned
                 odo_err = math.dist((e, n), truth[-1])
