@@ -17,8 +17,9 @@ Steps (each can be run alone):
        YOLO_OFFLINE=1 .venv-train/bin/python tools/train_detector.py train --data /tmp/furn \\
            --out /tmp/furn-runs --time-hours 1.3
 
-3. Export the best checkpoint to ONNX (static 1x3x320x320, opset 17) and copy it into
-   ``semmap/models/``, with the training summary beside it::
+3. Export the best checkpoint to ONNX (static 1x3xSxS at the training ``--imgsz`` S, opset
+   17) and copy it into ``semmap/models/`` as ``furniture_yolov8n_S.onnx`` (replacing a model
+   at another size), with the training summary beside it::
 
        YOLO_OFFLINE=1 .venv-train/bin/python tools/train_detector.py export \\
            --run /tmp/furn-runs/furniture
@@ -40,7 +41,19 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 MODELS_DIR = REPO / "semmap" / "models"
-MODEL_NAME = "furniture_yolov8n_320"
+#: Shipped as ``furniture_yolov8n_<imgsz>.onnx``: the name states the architecture and input
+#: size, and ``builtin:furniture`` resolves the single ``furniture_*.onnx`` in the folder.
+MODEL_STEM = "furniture_yolov8n"
+
+
+def shipped_onnx() -> Path:
+    """The one shipped ``furniture_yolov8n_*.onnx`` (the default for ``from-onnx``)."""
+    found = sorted(MODELS_DIR.glob(f"{MODEL_STEM}_*.onnx"))
+    if len(found) != 1:
+        sys.exit(f"{MODELS_DIR}: expected one {MODEL_STEM}_*.onnx, found {[p.name for p in found]}")
+    return found[0]
+
+
 #: Our classes in CompanionConfig().classes order: the ONNX metadata's ``names`` must match.
 CLASS_NAMES = ("chair", "coffee_table", "conference_table", "sofa", "whiteboard", "desk")
 
@@ -201,7 +214,11 @@ def from_onnx(args: argparse.Namespace) -> None:
     from ultralytics.nn.modules.conv import Conv
     from ultralytics.nn.tasks import DetectionModel
 
+    if args.onnx is None:
+        args.onnx = shipped_onnx()
     proto = onnx.load(str(args.onnx))
+    if args.imgsz is None:  # the size the network was exported at
+        args.imgsz = int(proto.graph.input[0].type.tensor_type.shape.dim[-1].dim_value)
     fused = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in proto.graph.initializer}
     model = DetectionModel("yolov8n.yaml", nc=len(CLASS_NAMES), verbose=False)
     model.names = dict(enumerate(CLASS_NAMES))
@@ -279,6 +296,8 @@ def export(args: argparse.Namespace) -> None:
     run = Path(args.run)
     weights = run / "weights" / ("best.pt" if args.best else "last.pt")
     model = YOLO(str(weights))
+    if args.imgsz is None:  # export at the size the run trained at
+        args.imgsz = int(model.ckpt.get("train_args", {}).get("imgsz", 320))
     names = [model.names[i] for i in sorted(model.names)]
     if tuple(names) != CLASS_NAMES:
         sys.exit(f"{weights}: class names {names} are not {list(CLASS_NAMES)}")
@@ -286,8 +305,14 @@ def export(args: argparse.Namespace) -> None:
                                   simplify=args.simplify, half=False, batch=1))
     proto = onnx.load(str(onnx_path))
     meta = {p.key: p.value for p in proto.metadata_props}
-    dst = MODELS_DIR / f"{MODEL_NAME}.onnx"
+    name = f"{MODEL_STEM}_{args.imgsz}"
+    dst = MODELS_DIR / f"{name}.onnx"
     MODELS_DIR.mkdir(parents=True, exist_ok=True)
+    # A model at another input size is replaced, not kept beside: two variants would make
+    # ``builtin:furniture`` ambiguous.
+    for old in MODELS_DIR.glob(f"{MODEL_STEM}_*"):
+        if not old.name.startswith(f"{name}."):
+            old.unlink()
     shutil.copyfile(onnx_path, dst)
     summary_src = run / "train_summary.json"
     summary = json.loads(summary_src.read_text()) if summary_src.exists() else {}
@@ -302,7 +327,7 @@ def export(args: argparse.Namespace) -> None:
     results = run / "results.csv"
     if results.exists():
         summary["results_csv_tail"] = results.read_text().strip().splitlines()[-3:]
-    (MODELS_DIR / f"{MODEL_NAME}.train.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (MODELS_DIR / f"{name}.train.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(json.dumps({"onnx": str(dst), "bytes": dst.stat().st_size, "names": meta.get("names")}))
 
 
@@ -344,15 +369,15 @@ def main() -> None:
                    help="torch threads (default: all cores; Ultralytics alone leaves one idle)")
     t.set_defaults(func=train)
     o = sub.add_parser("from-onnx", help="rebuild a trainable checkpoint from a shipped ONNX model")
-    o.add_argument("--onnx", default=str(MODELS_DIR / f"{MODEL_NAME}.onnx"))
+    o.add_argument("--onnx", default=None, help="default: the shipped furniture_yolov8n_*.onnx")
     o.add_argument("--images", required=True, help="folder of .jpg images for the batch-norm statistics")
     o.add_argument("--calib-images", type=int, default=64)
-    o.add_argument("--imgsz", type=int, default=320)
+    o.add_argument("--imgsz", type=int, default=None, help="default: the ONNX model's input size")
     o.add_argument("--out", default="/tmp/furn-runs/from_onnx.pt")
     o.set_defaults(func=from_onnx)
     e = sub.add_parser("export", help="export a run's checkpoint to semmap/models/")
     e.add_argument("--run", required=True, help="the run folder (…/furniture)")
-    e.add_argument("--imgsz", type=int, default=320)
+    e.add_argument("--imgsz", type=int, default=None, help="default: the run's training size")
     e.add_argument("--opset", type=int, default=17)
     e.add_argument("--simplify", action="store_true", help="onnxslim (must be installed)")
     e.add_argument("--last", dest="best", action="store_false", help="export last.pt, not best.pt")
