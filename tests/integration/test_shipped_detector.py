@@ -24,6 +24,8 @@ BIG_PX = 2000
 #: held-out benchmark, bench/detector.py, measures the model properly; this catches a model
 #: that does not load, runs on the wrong colour order or scale, or has lost its class names).
 MIN_RECALL = 0.6
+#: The shipped file's name: architecture and input size, one of the two that suit the Jetson.
+SHIPPED_NAME = re.compile(r"furniture_yolov8n_(320|416)\.onnx")
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +38,7 @@ def detector() -> OnnxDetector:
 
 def test_the_model_ships_in_the_package_with_its_card() -> None:
     path = builtin_model_file(BUILTIN_MODELS_DIR, "furniture")
-    assert re.fullmatch(r"furniture_yolov8n_(320|416)\.onnx", path.name), path.name
+    assert SHIPPED_NAME.fullmatch(path.name), path.name
     assert path.is_file() and path.stat().st_size <= 15 * 1024 * 1024
     card = (BUILTIN_MODELS_DIR / "MODEL_CARD.md").read_text()
     for name in CLASSES:
@@ -52,10 +54,11 @@ def test_builtin_name_resolves_to_the_single_variant_or_the_exact_file(tmp_path:
 
 
 def test_the_model_reports_our_classes_at_the_input_size_its_file_names(detector: OnnxDetector) -> None:
-    """The file name says the input size (one of the two that suit the Jetson); the network
-    must take that size, or the model card and the latency figures describe another model."""
-    size_px = int(re.fullmatch(r"furniture_yolov8n_(\d+)\.onnx",
-                               builtin_model_file(BUILTIN_MODELS_DIR, "furniture").name).group(1))
+    """The file name says the input size; the network must take that size, or the model card
+    and the latency figures describe another model."""
+    name = SHIPPED_NAME.fullmatch(builtin_model_file(BUILTIN_MODELS_DIR, "furniture").name)
+    assert name is not None
+    size_px = int(name.group(1))
     assert detector.head == "yolov8"
     assert detector.input_hw_px == (size_px, size_px)
     assert detector.class_map.model_names == CLASSES
