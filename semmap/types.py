@@ -42,7 +42,12 @@ class Frame:
 
     ``rgb``: (H, W, 3) uint8 in RGB order. ``depth_m``: (H, W) float32 metres, 0 or NaN where
     invalid. ``T_map_camera``: (4, 4) camera pose in the map frame (optical camera axes) when the
-    source knows it (simulation, recorded ground truth), else None.
+    source knows it (simulation, recorded ground truth, the autopilot's estimate), else None.
+    ``T_odom_body``: (4, 4) body (FLU) pose in the autopilot's *odometry* frame, dead-reckoned
+    from its velocity and yaw rate: continuous, and independent of the external vision the
+    companion feeds back (the autopilot's position estimate is not: it fuses that vision).
+    The SLAM's motion prior when present (:mod:`companion.service.localization`); None when
+    the source has none.
     """
 
     stamp_s: float
@@ -54,6 +59,7 @@ class Frame:
     #: Extra per-pixel data a simulated source provides (``"instance"``: (H, W) int32 object
     #: ids, 0 = none; ``"class"``: (H, W) int16 class index, -1 = none).
     masks: dict[str, NDArray[np.generic]] = field(default_factory=dict)
+    T_odom_body: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)

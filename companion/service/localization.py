@@ -7,8 +7,12 @@ wrong cells. With ``service.localization: slam`` every frame passes through
 * the altitude-band scan is extracted from the depth (the band the occupancy grid uses) in
   the gravity-aligned body frame, roll and pitch taken from the frame's pose (the
   autopilot's attitude, which does not drift);
-* :class:`semmap.slam.Slam2D` matches it with the autopilot's pose as the odometry prior
-  (loop closure runs on its own background thread and never blocks this step);
+* :class:`semmap.slam.Slam2D` matches it with the autopilot's odometry as the motion prior
+  (loop closure runs on its own background thread and never blocks this step). The prior is
+  the frame's dead-reckoned odometry (``Frame.T_odom_body``: velocity and yaw rate
+  integrated), not the autopilot's position estimate: that estimate fuses the poses this
+  stage sends it, so its increments would hand the SLAM's own corrections back to it as
+  motion (see :meth:`Localizer.odometry_prior`);
 * the frame leaves with ``T_map_camera`` built from the SLAM's x, y, yaw and the autopilot's
   height, roll and pitch: the map frame is the autopilot's frame at the first scan.
 
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import multiprocessing as mp
 import time
 from dataclasses import dataclass, replace
@@ -44,6 +49,7 @@ from semmap.costmap import VerticalBand
 from semmap.errors import ConfigError
 from semmap.frames import invert, pose_from_xyz_rpy, rpy_from_rotation
 from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth
+from semmap.slam.pose2d import compose, inverse
 from semmap.types import CameraIntrinsics, Frame
 
 log = logging.getLogger(__name__)
@@ -175,10 +181,52 @@ class Localizer:
         self.band = slam_band(cfg)
         self.slam = Slam2D.from_config(cfg.slam)
         self.last_status: SlamStatus | None = None
+        #: Where the motion prior comes from: "odometry" (the frame's dead-reckoned
+        #: T_odom_body), "estimate" (the autopilot's pose: frames without odometry), None yet.
+        self.prior_source: str | None = None
+        self._prior_anchor = np.zeros(3)
+        self._last_prior: NDArray[np.float64] | None = None
 
     def close(self) -> None:
         """Stop the background loop closer."""
         self.slam.close()
+
+    def odometry_prior(self, frame: Frame, estimate_xy_yaw: tuple[float, float, float]) -> NDArray[np.float64]:
+        """The odometry pose (3,) x_m, y_m, yaw_rad handed to the SLAM with ``frame``'s scan:
+        the SLAM predicts each scan's pose by composing its previous pose with the
+        increment of this pose since the previous scan.
+
+        It is the frame's dead-reckoned odometry (``T_odom_body``) when it has one, else the
+        autopilot's estimate ``estimate_xy_yaw`` (from ``T_map_camera``). The estimate is the
+        fallback only: PX4 fuses the SLAM poses this stage sends as external vision, so the
+        estimate's increment between two frames holds, beside the motion, the part of the
+        SLAM's latest correction PX4 took in, and the SLAM would apply that correction
+        twice. While the scans constrain the pose weakly (turning on the spot, few hits) the
+        two then chase each other off the truth. Measured on the SLAM integration test's
+        flight (tests/integration/test_service_slam.py): live error p95 0.13-0.27 m over 11
+        runs with the estimate's increments, 0.065-0.098 m over 8 with the odometry's.
+
+        The odometry frame is anchored to the map frame by the fixed offset that puts its
+        first pose on the estimate (the map frame is the autopilot's frame at the first scan).
+        Should the source change (a frame without odometry), the new one is anchored on the
+        last pose handed over, so the prior stays continuous."""
+        T = frame.T_odom_body
+        if T is not None and np.all(np.isfinite(T)):
+            raw = np.array([T[0, 3], T[1, 3], math.atan2(T[1, 0], T[0, 0])], dtype=np.float64)
+            source = "odometry"
+        else:
+            raw = np.asarray(estimate_xy_yaw, dtype=np.float64)
+            source = "estimate"
+        if source != self.prior_source:
+            on = np.asarray(estimate_xy_yaw, dtype=np.float64) if self._last_prior is None else self._last_prior
+            self._prior_anchor = compose(on, inverse(raw))
+            log.log(logging.INFO if self.prior_source is None else logging.WARNING,
+                    "SLAM motion prior: the %s%s", "frames' dead-reckoned odometry" if source == "odometry"
+                    else "autopilot's position estimate (the frames carry no odometry)",
+                    "" if self.prior_source is None else f" from frame {frame.index} on (was the {self.prior_source})")
+            self.prior_source = source
+        self._last_prior = compose(self._prior_anchor, raw)
+        return self._last_prior.copy()
 
     def localize(self, frame: Frame) -> Frame:
         """``frame`` with ``T_map_camera`` from the SLAM pose. Its incoming ``T_map_camera`` is
@@ -196,7 +244,7 @@ class Localizer:
                                      max_depth_m=self.cfg.camera.depth_max_m,
                                      stride_px=2 if depth.shape[1] > 200 else 1, stamp_s=frame.stamp_s)
         # Slam2D locks its own state against the loop-closure thread.
-        est = self.slam.add_scan(frame.stamp_s, scan, (x, y, yaw))
+        est = self.slam.add_scan(frame.stamp_s, scan, self.odometry_prior(frame, (x, y, yaw)))
         stats = self.slam.stats()
         self.last_status = est.status
         px, py, pyaw = (float(v) for v in est.pose_map)

@@ -91,6 +91,8 @@ class SimPoses(NamedTuple):
     monotonic_s: float
     T_map_body: NDArray[np.float64]
     T_map_body_estimated: NDArray[np.float64] | None
+    #: The body pose in the autopilot's odometry frame (never vision-corrected), None with the estimate.
+    T_odom_body: NDArray[np.float64] | None = None
 
 
 class SharedSimState:
@@ -102,18 +104,23 @@ class SharedSimState:
     def __init__(self) -> None:
         ctx = mp.get_context("spawn")
         # [valid, monotonic_s, T_map_body (16, row-major), estimated (0/1), the autopilot's
-        # estimated T_map_body (16)]; the array's lock keeps reads whole.
-        self._pose = ctx.Array("d", 35, lock=True)
+        # estimated T_map_body (16), odometry (0/1), T_odom_body (16)]; the array's lock
+        # keeps reads whole.
+        self._pose = ctx.Array("d", 52, lock=True)
         self._missing = ctx.Value("b", 0, lock=False)
         self._corrupt = ctx.Value("b", 0, lock=False)
 
     def set_pose(self, monotonic_s: float, T_map_body: NDArray[np.floating],  # noqa: N803 - frame names
-                 T_map_body_estimated: NDArray[np.floating] | None = None) -> None:  # noqa: N803
+                 T_map_body_estimated: NDArray[np.floating] | None = None,  # noqa: N803
+                 T_odom_body: NDArray[np.floating] | None = None) -> None:  # noqa: N803
         """Publish the vehicle pose (``T_map_body`` (4, 4), map frame) at ``monotonic_s``
-        (``time.monotonic``), and the autopilot's estimate of it when that differs (odometry drift)."""
-        est = ([1.0, *np.asarray(T_map_body_estimated, dtype=np.float64).reshape(16).tolist()]
-               if T_map_body_estimated is not None else [0.0] * 17)
-        vals = [1.0, float(monotonic_s), *np.asarray(T_map_body, dtype=np.float64).reshape(16).tolist(), *est]
+        (``time.monotonic``), and the autopilot's estimate of it when that differs (odometry
+        drift) with its odometry pose (``T_odom_body``, never vision-corrected)."""
+        def flag(T: NDArray[np.floating] | None) -> list[float]:
+            return [1.0, *np.asarray(T, dtype=np.float64).reshape(16).tolist()] if T is not None else [0.0] * 17
+
+        vals = [1.0, float(monotonic_s), *np.asarray(T_map_body, dtype=np.float64).reshape(16).tolist(),
+                *flag(T_map_body_estimated), *flag(T_odom_body)]
         with self._pose.get_lock():
             self._pose[:] = vals
 
@@ -124,7 +131,8 @@ class SharedSimState:
         if vals[0] == 0.0:
             return None
         est = np.asarray(vals[19:35], dtype=np.float64).reshape(4, 4) if vals[18] else None
-        return SimPoses(vals[1], np.asarray(vals[2:18], dtype=np.float64).reshape(4, 4), est)
+        odo = np.asarray(vals[36:52], dtype=np.float64).reshape(4, 4) if vals[35] else None
+        return SimPoses(vals[1], np.asarray(vals[2:18], dtype=np.float64).reshape(4, 4), est, odo)
 
     @property
     def camera_missing(self) -> bool:
@@ -155,8 +163,10 @@ class SimCameraSource(FrameSource):
         self.shared = shared
         self.dropped_frames = 0
         self._inner: SimFrameSource | None = None
-        #: The autopilot's estimate of the pose the latest frame was rendered from.
+        #: The autopilot's estimate of the pose the latest frame was rendered from, and its
+        #: odometry pose.
         self._estimated: NDArray[np.float64] | None = None
+        self._odometry: NDArray[np.float64] | None = None
 
     def _source(self) -> SimFrameSource:
         if self._inner is None:
@@ -167,7 +177,7 @@ class SimCameraSource(FrameSource):
                 while p is None:  # the world has not published a pose yet
                     time.sleep(0.02)
                     p = self.shared.poses()
-                self._estimated = p.T_map_body_estimated
+                self._estimated, self._odometry = p.T_map_body_estimated, p.T_odom_body
                 # Stamped on this machine's clock at capture, as a RealSense stamps its frames.
                 return p.monotonic_s, T_room_map @ p.T_map_body
 
@@ -203,7 +213,7 @@ class SimCameraSource(FrameSource):
             frame = replace(frame, T_map_camera=None)
         elif self._estimated is not None:
             # Rendered where the vehicle is, posed where the autopilot thinks it is.
-            frame = replace(frame, T_map_camera=self._estimated @ src.T_body_camera)
+            frame = replace(frame, T_map_camera=self._estimated @ src.T_body_camera, T_odom_body=self._odometry)
         else:
             frame = replace(frame, T_map_camera=self.placement.T_map_room @ np.asarray(frame.T_map_camera))
         if self.shared.camera_corrupt:
@@ -282,8 +292,10 @@ class SimWorld:
 
     def _publish_pose(self) -> None:
         _, T_map_body, T_est = self.autopilot.poses_map_body()
+        active = self.autopilot.estimator.active
         self.shared.set_pose(self.autopilot.tick_monotonic_s, np.asarray(T_map_body),
-                             np.asarray(T_est) if self.autopilot.estimator.active else None)
+                             np.asarray(T_est) if active else None,
+                             np.asarray(self.autopilot.T_odom_body()) if active else None)
 
     async def _pose_loop(self) -> None:
         while True:

@@ -7,8 +7,13 @@ the frame's capture time, as a ROS node would look a transform up in tf at the i
 * :class:`TelemetryPoseRecorder` (service process) turns each ATTITUDE from the autopilot,
   with the latest LOCAL_POSITION_NED moved on by its velocity to the attitude's time, into
   one map-frame body pose stamped with the message's ``time_boot_ms`` on this machine's clock
-  (``time.monotonic``, the clock the camera stamps frames with; :class:`BootClock`), and
-  appends it to
+  (``time.monotonic``, the clock the camera stamps frames with; :class:`BootClock`). Beside
+  it, a dead-reckoned *odometry* pose: the attitude's yaw rate and the body-frame velocity
+  integrated. The position estimate fuses the external vision the companion sends (SLAM
+  mode), so its increments carry the companion's own corrections back to it; the velocity
+  and yaw rate do not (PX4 fuses a vision position into its position states; the body-frame
+  velocity and the gyro rate are what the flow sensor and the IMU measured). Both are
+  appended to
 * :class:`SharedPoseHistory`, a ring buffer in shared memory (picklable into the ``spawn``ed
   perception process, where the camera is read);
 * :class:`TelemetryPosedSource` wraps the camera: a frame without a pose gets the pose
@@ -16,7 +21,8 @@ the frame's capture time, as a ROS node would look a transform up in tf at the i
   telemetry samples around its stamp. When the newest sample is still older than the frame
   it waits up to ``wait_s`` for the next (telemetry streams at 30-50 Hz, so about one
   period); a frame no sample brackets within ``max_gap_s`` keeps no pose and is counted in
-  :attr:`TelemetryPosedSource.unposed_frames` (perception skips and counts it too).
+  :attr:`TelemetryPosedSource.unposed_frames` (perception skips and counts it too). The
+  odometry pose is interpolated the same way into :attr:`semmap.types.Frame.T_odom_body`.
   Frames that already carry a pose (a recording with ground truth, the simulated camera in
   ``sim.camera_pose: autopilot``) pass unchanged.
 """
@@ -37,15 +43,15 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from companion.mavlink.vision import R_FLU_FRD, R_NED_ENU
 from companion.sources.base import FrameSource, WrappedSource
-from semmap.frames import Transform, make_transform, rotation_from_rpy
+from semmap.frames import Transform, make_transform, rotation_from_rpy, rpy_from_rotation
 from semmap.types import Frame
 
 log = logging.getLogger(__name__)
 
 #: Telemetry samples kept (about 5 s at 50 Hz: longer than any camera latency).
 HISTORY_SAMPLES = 256
-#: Values per sample: stamp, x, y, z, quaternion x, y, z, w.
-_ROW = 8
+#: Values per sample: stamp, x, y, z, quaternion x, y, z, w, odometry x, y, yaw (NaN: none).
+_ROW = 11
 
 
 class PoseTrack:
@@ -112,14 +118,19 @@ class SharedPoseHistory:
         with self._rows.get_lock():
             return min(int(self._count.value), self.capacity)
 
-    def push(self, stamp_s: float, T_map_body: Transform) -> bool:  # noqa: N803 - frame names
-        """Append one pose (4, 4) at ``stamp_s``; False when it is not newer than the last
+    def push(self, stamp_s: float, T_map_body: Transform,  # noqa: N803 - frame names
+             odometry_xy_yaw: tuple[float, float, float] | None = None) -> bool:
+        """Append one pose (4, 4) at ``stamp_s``, and the odometry pose (x_m, y_m, yaw_rad in
+        the odometry frame, ENU) when there is one; False when it is not newer than the last
         or not finite."""
         T = np.asarray(T_map_body, dtype=np.float64)
         if T.shape != (4, 4) or not (math.isfinite(stamp_s) and np.all(np.isfinite(T))):
             return False
+        odo = (math.nan,) * 3 if odometry_xy_yaw is None else tuple(float(v) for v in odometry_xy_yaw)
+        if len(odo) != 3:
+            return False
         q = Rotation.from_matrix(T[:3, :3]).as_quat()
-        row = [float(stamp_s), *(float(v) for v in T[:3, 3]), *(float(v) for v in q)]
+        row = [float(stamp_s), *(float(v) for v in T[:3, 3]), *(float(v) for v in q), *odo]
         with self._rows.get_lock():
             n = int(self._count.value)
             if n and self._rows[((n - 1) % self.capacity) * _ROW] >= stamp_s:
@@ -153,10 +164,29 @@ class SharedPoseHistory:
     def pose_at(self, stamp_s: float, max_gap_s: float) -> Transform | None:
         """``track(max_gap_s).at(stamp_s)`` from the two samples around ``stamp_s`` only (a
         frame's lookup: a 256-sample track costs 1.5 ms to build, these two a fraction)."""
+        near = self._around(stamp_s)
+        return PoseTrack.from_quaternions(near[:, 0], near[:, 1:4], near[:, 4:8], max_gap_s).at(stamp_s)
+
+    def odometry_at(self, stamp_s: float, max_gap_s: float) -> NDArray[np.float64] | None:
+        """The odometry pose (3,) x_m, y_m, yaw_rad at ``stamp_s``, interpolated between the
+        two samples around it as :class:`PoseTrack` does (position linearly, yaw the short
+        way); None outside the samples, across a gap longer than ``max_gap_s``, or where the
+        samples carry none."""
+        near = self._around(stamp_s)
+        near = near[np.all(np.isfinite(near[:, 8:11]), axis=1)]  # samples that carry one
+        if len(near) == 0:
+            return None
+        odo = near[:, 8:11]
+        xyz = np.column_stack([odo[:, :2], np.zeros(len(odo))])
+        T = PoseTrack.from_quaternions(near[:, 0], xyz, Rotation.from_euler("z", odo[:, 2:3]).as_quat(),
+                                       max_gap_s).at(stamp_s)
+        return None if T is None else np.array([T[0, 3], T[1, 3], math.atan2(T[1, 0], T[0, 0])])
+
+    def _around(self, stamp_s: float) -> NDArray[np.float64]:
+        """The (up to two) rows around ``stamp_s``, oldest first."""
         rows = self._rows_oldest_first()
         k = int(np.searchsorted(rows[:, 0], stamp_s))
-        near = rows[max(0, k - 1):k + 1]
-        return PoseTrack.from_quaternions(near[:, 0], near[:, 1:4], near[:, 4:8], max_gap_s).at(stamp_s)
+        return rows[max(0, k - 1):k + 1]
 
 
 def map_pose_from_ned(position_ned_m: tuple[float, float, float],
@@ -208,7 +238,14 @@ class TelemetryPoseRecorder:
     by its velocity to the attitude's time, when that position is no more than
     ``max_position_age_s`` older. Stamps are the messages' ``time_boot_ms`` mapped onto
     ``clock`` (``time.monotonic``, the clock the camera stamps frames with) by a
-    :class:`BootClock`. Only the autopilot's messages count (``target_system``/``target_component``)."""
+    :class:`BootClock`. Only the autopilot's messages count (``target_system``/``target_component``).
+
+    The sample's odometry pose is dead-reckoned from one sample to the next: the yaw by the
+    ATTITUDE's ``yawspeed``, the position by the LOCAL_POSITION_NED velocity taken into the
+    body frame (with the attitude's yaw) and out again with the odometry's yaw, midpoint
+    rule. It starts at the first sample's pose. The interval integrated over is capped at
+    ``max_position_age_s``: across a longer telemetry gap the odometry misses the motion
+    of the gap (the SLAM's scan match takes it up) rather than extrapolating a stale velocity."""
 
     MESSAGES = ("ATTITUDE", "LOCAL_POSITION_NED")
 
@@ -222,6 +259,9 @@ class TelemetryPoseRecorder:
         self.clock = clock
         self.boot_clock = BootClock()
         self._pos: tuple[float, float, float, float, float, float, float] | None = None  # t, xyz, vxyz
+        #: Dead-reckoned odometry (x_m, y_m, yaw_rad; ENU) at ``_odo_t``.
+        self._odo: NDArray[np.float64] | None = None
+        self._odo_t = 0.0
         self.samples = 0
 
     def handle(self, msg: mavlink.MAVLink_message) -> None:
@@ -244,8 +284,31 @@ class TelemetryPoseRecorder:
         if not all(math.isfinite(v) for v in rpy) or abs(dt) > self.max_position_age_s:
             return
         T = map_pose_from_ned((x + vx * dt, y + vy * dt, z + vz * dt), rpy)
-        if self.history.push(t_msg, T):
+        yaw_rate = float(msg.yawspeed)
+        odo = self._dead_reckon(t_msg, T, (vy, vx), -yaw_rate if math.isfinite(yaw_rate) else 0.0)
+        if self.history.push(t_msg, T, odo):
             self.samples += 1
+
+    def _dead_reckon(self, t_s: float, T_map_body: Transform, velocity_enu_m_s: tuple[float, float],  # noqa: N803
+                     yaw_rate_enu_rad_s: float) -> tuple[float, float, float]:
+        """The odometry pose at ``t_s`` (see the class docstring)."""
+        yaw_map = math.atan2(T_map_body[1, 0], T_map_body[0, 0])
+        if self._odo is None:
+            self._odo = np.array([T_map_body[0, 3], T_map_body[1, 3], yaw_map], dtype=np.float64)
+            self._odo_t = t_s
+        if t_s > self._odo_t:
+            dt = min(t_s - self._odo_t, self.max_position_age_s)
+            # Body-frame velocity (what the flow sensor measured), then out with the odometry's yaw.
+            c, s = math.cos(yaw_map), math.sin(yaw_map)
+            ve, vn = velocity_enu_m_s
+            v_fwd, v_left = c * ve + s * vn, -s * ve + c * vn
+            mid = float(self._odo[2]) + 0.5 * yaw_rate_enu_rad_s * dt
+            cm, sm = math.cos(mid), math.sin(mid)
+            self._odo[0] += (cm * v_fwd - sm * v_left) * dt
+            self._odo[1] += (sm * v_fwd + cm * v_left) * dt
+            self._odo[2] = math.remainder(float(self._odo[2]) + yaw_rate_enu_rad_s * dt, math.tau)
+            self._odo_t = t_s
+        return float(self._odo[0]), float(self._odo[1]), float(self._odo[2])
 
 
 class TelemetryPosedSource(WrappedSource):
@@ -290,4 +353,11 @@ class TelemetryPosedSource(WrappedSource):
                             self.unposed_frames)
             return frame
         self.posed_frames += 1
-        return replace(frame, T_map_camera=T_map_body @ self.T_body_camera)
+        odo = self.history.odometry_at(frame.stamp_s, self.max_gap_s)
+        T_odom_body = None
+        if odo is not None:
+            # Height, roll and pitch are the estimate's (range finder, IMU: no drift, no vision).
+            roll, pitch, _ = rpy_from_rotation(T_map_body[:3, :3])
+            T_odom_body = make_transform(rotation_from_rpy(roll, pitch, float(odo[2])),
+                                         np.array([odo[0], odo[1], T_map_body[2, 3]]))
+        return replace(frame, T_map_camera=T_map_body @ self.T_body_camera, T_odom_body=T_odom_body)

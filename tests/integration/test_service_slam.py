@@ -29,7 +29,6 @@ SMALL: dict[str, Any] = {
             "odometry_scale_error": 0.03, "odometry_heading_drift_deg_s": 2.0},
     "service": {"localization": "slam"},
     "link": {"external_vision": True},
-    "slam": {"translation_weight": 1.0},
 }
 
 
@@ -85,19 +84,22 @@ def test_slam_keeps_the_pose_while_the_odometry_drifts(tmp_path: Path) -> None:
     errs = np.array([e for _, e, _ in samples])
     odo = np.array([o for _, _, o in samples])
     # The drifting odometry wanders off (about 2 m); the live SLAM pose stays within a bound
-    # (this 160 px camera at the demo's speed; bench/slam.py measures the accuracy). Measured
-    # over 10 runs on a busy 2-core machine: p95 0.049-0.177 m, max 0.067-0.194 m (a yaw error
-    # built while turning on the spot at the far waypoint carries through the return leg); with
-    # the shipped ONNX detector, 6 runs: p95 0.13-0.21 m, max 0.17-0.21 m; with the frames posed
-    # from telemetry (ATTITUDE at 100 Hz), 10 runs: p95 0.089-0.155 m, max 0.119-0.197 m. It
-    # was 0.16-0.58 m while partly matched poses were fed back through PX4's vision fusion. The
-    # bounds leave room for a loaded CI machine and still fail a pose that follows the odometry.
+    # (this 160 px camera at the demo's speed; bench/slam.py measures the accuracy). With the
+    # SLAM's motion prior dead-reckoned from the telemetry's velocity and yaw rate (shipped SLAM
+    # settings), 8 runs on a 2-core machine busy with a training job: p95 0.065-0.098 m, max
+    # 0.085-0.108 m. With the prior taken from the increments of PX4's position estimate,
+    # which fuses the SLAM's own vision and so hands its corrections back as motion (and the
+    # weaker translation prior, 1.0, this test then set), 11 runs: p95 0.13-0.27 m, max
+    # 0.16-0.30 m, 3 of them over the old 0.25 m bound: the pose and the estimate chased each
+    # other off the truth while the drone turned on the spot with few hits in view. The bounds
+    # leave room for a loaded CI machine and fail both that feedback and a pose that follows
+    # the odometry.
     loc = result.report.localization
     detail = (f"SLAM error p95 {np.percentile(errs, 95):.3f} max {errs.max():.3f} m, odometry max "
               f"{odo.max():.3f} m, {loc}")
     assert odo.max() > 0.5, detail
-    assert float(np.percentile(errs, 95)) < 0.25, detail
-    assert float(errs.max()) < 0.35, detail
+    assert float(np.percentile(errs, 95)) < 0.15, detail
+    assert float(errs.max()) < 0.20, detail
     assert float(errs.max()) < 0.5 * float(odo.max()), detail
     assert loc["scans"] > 50 and loc["vision_sent"] > 300, detail
     assert loc["fallbacks"] < 0.25 * loc["scans"], detail

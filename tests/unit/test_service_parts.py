@@ -1,4 +1,5 @@
-"""Pure parts of the companion service: mission legs, frame sanity checks, checkpoints."""
+"""Pure parts of the companion service: mission legs, frame sanity checks, checkpoints, the
+SLAM's motion prior."""
 
 from __future__ import annotations
 
@@ -15,9 +16,12 @@ from companion.mavlink.mission_download import MissionItem
 from companion.mavlink.state import HomePosition
 from companion.service.app import frozen_heap
 from companion.service.checkpoint import checkpoint_path, restore_map
+from companion.service.localization import Localizer
 from companion.service.mission_runner import SURVEY_CARROT_DEG, SurveyTurn, mission_legs
 from companion.service.perception_worker import check_frame, new_semantic_map
+from companion.service.sim_world import SharedSimState
 from semmap.errors import FrameError, MissionError
+from semmap.frames import pose_from_xyz_rpy
 from semmap.types import CameraIntrinsics, Frame
 
 HOME = HomePosition(47.397742, 8.545594, 488.0, (0.0, 0.0, 0.0))
@@ -114,3 +118,50 @@ def test_frozen_heap_keeps_the_collector_off_live_objects_and_restores_an_outer_
         assert gc.get_freeze_count() >= outer  # the caller's freeze is not undone
     finally:
         gc.unfreeze()
+
+
+def test_slam_motion_prior_is_the_odometry_anchored_on_the_estimate_and_never_the_fused_estimate() -> None:
+    """The autopilot's estimate fuses the SLAM's vision; the prior must move with the
+    frame's odometry only, in the map frame the estimate had at the first scan."""
+    cfg = CompanionConfig()
+    intr = cfg.camera.intrinsics()
+    loc = Localizer(cfg, intr)
+    try:
+        def frame(i: int, odo: tuple[float, float, float] | None) -> Frame:
+            T = None if odo is None else pose_from_xyz_rpy(odo[0], odo[1], 1.0, 0.0, 0.0, odo[2])
+            return Frame(0.1 * i, np.zeros((2, 2, 3), np.uint8), np.ones((2, 2), np.float32), intr, None, i,
+                         T_odom_body=T)
+
+        # First frame: odometry frame rotated 90 deg and shifted against the estimate's frame.
+        p0 = loc.odometry_prior(frame(0, (10.0, 5.0, math.pi / 2)), (1.0, 2.0, 0.0))
+        np.testing.assert_allclose(p0, [1.0, 2.0, 0.0], atol=1e-12)
+        assert loc.prior_source == "odometry"
+        # The odometry moved 0.5 m forward (its +y); the estimate jumped 0.3 m (vision fused):
+        # the prior moves 0.5 m forward in the map (+x), none of the jump.
+        p1 = loc.odometry_prior(frame(1, (10.0, 5.5, math.pi / 2)), (1.5, 2.3, 0.0))
+        np.testing.assert_allclose(p1, [1.5, 2.0, 0.0], atol=1e-12)
+        # A frame without odometry: the estimate takes over from where the prior was.
+        p2 = loc.odometry_prior(frame(2, None), (1.6, 2.3, 0.0))
+        np.testing.assert_allclose(p2, [1.5, 2.0, 0.0], atol=1e-12)
+        assert loc.prior_source == "estimate"
+        p3 = loc.odometry_prior(frame(3, None), (1.7, 2.3, 0.1))
+        np.testing.assert_allclose(p3, [1.6, 2.0, 0.1], atol=1e-12)
+    finally:
+        loc.close()
+
+
+def test_sim_state_carries_the_estimate_and_the_odometry_pose_together() -> None:
+    shared = SharedSimState()
+    assert shared.poses() is None
+    truth, est, odo = (pose_from_xyz_rpy(1.0, 2.0, 1.0), pose_from_xyz_rpy(1.1, 2.0, 1.0, 0.0, 0.0, 0.1),
+                       pose_from_xyz_rpy(5.0, 0.0, 1.0, 0.0, 0.0, 1.0))
+    shared.set_pose(3.0, truth, est, odo)
+    p = shared.poses()
+    assert p is not None and p.monotonic_s == 3.0
+    np.testing.assert_array_equal(p.T_map_body, truth)
+    assert p.T_map_body_estimated is not None and p.T_odom_body is not None
+    np.testing.assert_array_equal(p.T_map_body_estimated, est)
+    np.testing.assert_array_equal(p.T_odom_body, odo)
+    shared.set_pose(3.1, truth)  # an exact estimate: neither is published
+    p = shared.poses()
+    assert p is not None and p.T_map_body_estimated is None and p.T_odom_body is None

@@ -49,6 +49,8 @@ def test_drift_shows_in_the_reported_state_only_horizontally() -> None:
     assert rep.position_ned_m[1] > 0.2
     # Height, roll and pitch are not affected.
     assert rep.position_ned_m[2] == -1.0 and rep.roll_rad == 0.01 and rep.pitch_rad == -0.02
+    # The reported yaw rate has the gyro bias that drifts the heading (integrated, it is the drift).
+    assert math.degrees(rep.yaw_rate_rad_s) == pytest.approx(2.0)
     T = T_map_body_of(rep)
     assert T[2, 3] == pytest.approx(1.0)  # ENU up
 

@@ -181,3 +181,53 @@ def test_posed_source_interpolates_waits_for_telemetry_and_counts_what_it_cannot
     lonely = TelemetryPosedSource(_Camera([_frame(9.0)]), hist, T_body_camera, wait_s=0.05)
     f = lonely.read()
     assert f is not None and f.T_map_camera is None and lonely.unposed_frames == 1
+
+
+def test_recorder_dead_reckons_odometry_that_ignores_vision_corrections_of_the_position() -> None:
+    """The position estimate jumps when PX4 fuses the companion's vision; the odometry pose,
+    integrated from the velocity and the yaw rate, does not (the SLAM's motion prior)."""
+    now = [0.0]
+    hist = SharedPoseHistory(64)
+    rec = TelemetryPoseRecorder(hist, clock=lambda: now[0])
+    mav = _mav()
+    # Flying east (map +x) at 1 m/s, heading east (NED yaw pi/2), for 0.5 s.
+    for k in range(51):
+        t_ms = 10 * k
+        now[0] = t_ms * 1e-3
+        jump = 0.3 if t_ms >= 250 else 0.0  # vision moved the estimate 0.3 m north at 0.25 s
+        rec.handle(_decoded(mav, mav.local_position_ned_encode(t_ms, jump, 0.001 * t_ms, -1.0, 0.0, 1.0, 0.0)))
+        rec.handle(_decoded(mav, mav.attitude_encode(t_ms, 0.0, 0.0, math.pi / 2, 0.0, 0.0, 0.0)))
+    odo = hist.odometry_at(0.5, 0.1)
+    assert odo is not None
+    # Started on the estimate (0, 0, yaw 0 in ENU); moved 0.5 m east, none of the jump.
+    np.testing.assert_allclose(odo, [0.5, 0.0, 0.0], atol=1e-6)  # MAVLink floats are float32
+    T = hist.pose_at(0.5, 0.1)
+    assert T is not None and T[1, 3] == pytest.approx(0.3)  # the estimate has the jump
+    # Turning on the spot at 0.2 rad/s (NED yawspeed, clockwise seen from above) for 0.5 s:
+    # the odometry's yaw follows the rate, its position stays.
+    for k in range(1, 51):
+        t_ms = 500 + 10 * k
+        now[0] = t_ms * 1e-3
+        rec.handle(_decoded(mav, mav.local_position_ned_encode(t_ms, 0.3, 0.5, -1.0, 0.0, 0.0, 0.0)))
+        rec.handle(_decoded(mav, mav.attitude_encode(t_ms, 0.0, 0.0, math.pi / 2 + 0.2 * k * 0.01, 0.0, 0.0, 0.2)))
+    odo = hist.odometry_at(1.0, 0.1)
+    assert odo is not None
+    np.testing.assert_allclose(odo, [0.5, 0.0, -0.1], atol=1e-6)
+    # Between two samples the odometry is interpolated; outside them there is none.
+    mid = hist.odometry_at(0.995, 0.1)
+    assert mid is not None and mid[2] == pytest.approx(-0.099, abs=1e-6)
+    assert hist.odometry_at(2.0, 0.1) is None
+
+
+def test_posed_source_passes_the_odometry_pose_with_the_estimates_height_and_tilt() -> None:
+    hist = SharedPoseHistory(16)
+    hist.push(1.0, pose_from_xyz_rpy(5.0, 0.0, 1.2, 0.1, 0.0, 0.0), (0.0, 0.0, 0.0))
+    hist.push(1.1, pose_from_xyz_rpy(6.0, 0.0, 1.2, 0.1, 0.0, 0.0), (1.0, 0.0, 0.2))
+    hist.push(1.2, pose_from_xyz_rpy(7.0, 0.0, 1.2, 0.1, 0.0, 0.0))  # no odometry from here on
+    src = TelemetryPosedSource(_Camera([_frame(1.05), _frame(1.15)]), hist, np.eye(4), wait_s=0.0)
+    f = src.read()
+    assert f is not None and f.T_odom_body is not None
+    roll, pitch, yaw = rpy_from_rotation(f.T_odom_body[:3, :3])
+    np.testing.assert_allclose([*f.T_odom_body[:3, 3], roll, pitch, yaw], [0.5, 0.0, 1.2, 0.1, 0.0, 0.1], atol=1e-9)
+    f = src.read()  # bracketed by a sample without odometry: the frame has none
+    assert f is not None and f.T_map_camera is not None and f.T_odom_body is None

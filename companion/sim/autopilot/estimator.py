@@ -111,6 +111,8 @@ class SimEstimator:
             return state
         dyaw = wrap_angle_rad(float(self._est[2] - self._true[2]))
         scale = 1.0 + (self.drift.scale_error if self.drift is not None else 0.0)
+        # The gyro's uncorrected bias is what drifts the heading: the reported rate has it too.
+        bias = math.radians(self.drift.heading_drift_deg_s) if self.drift is not None and self._drifting else 0.0
         c, s = math.cos(dyaw), math.sin(dyaw)
         vn, ve, vd = state.velocity_ned_m_s
         return replace(
@@ -118,6 +120,7 @@ class SimEstimator:
             position_ned_m=(float(self._est[0]), float(self._est[1]), state.position_ned_m[2]),
             velocity_ned_m_s=(scale * (c * vn - s * ve), scale * (s * vn + c * ve), vd),
             yaw_rad=float(self._est[2]),
+            yaw_rate_rad_s=state.yaw_rate_rad_s + bias,
         )
 
     def fuse_vision(self, stamp_s: float, north_m: float, east_m: float, yaw_rad: float) -> bool:

@@ -23,7 +23,7 @@ import math
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -255,6 +255,14 @@ class MockAutopilot:
         autopilot's telemetry would."""
         state = self.vehicle.state()
         return state.stamp_s, self.vehicle.T_map_body(), T_map_body_of(self.estimator.estimated(state))
+
+    def T_odom_body(self) -> Transform:  # noqa: N802 - frame names
+        """The body pose in the odometry frame: the drifting odometry alone, never corrected by
+        vision (what dead reckoning the reported velocity and yaw rate gives; height, roll and
+        pitch as estimated)."""
+        state = self.estimator.estimated(self.vehicle.state())
+        n, e, yaw = self.estimator.raw_pose_ned
+        return T_map_body_of(replace(state, position_ned_m=(n, e, state.position_ned_m[2]), yaw_rad=yaw))
 
     @property
     def home_ned_m(self) -> tuple[float, float, float]:
