@@ -18,7 +18,9 @@ Judged against the true boxes (``companion.sim.judge``): collision with the vert
 (the vehicle's radius and height stretched by ``planner.vertical_margin_m`` above and below:
 grazing under a table top counts) and exact; success (goal within 0.3 m before the time limit);
 path length, time and minimum clearance. Per-stage latencies are wall-clock on this machine,
-beside the reference design's Jetson Xavier AGX figures.
+beside the reference design's Jetson Xavier AGX figures. The map-update kernels are compiled
+(or loaded from numba's cache) before the first flight, as the service does at start, so the
+stage maxima are those of flight frames, not of a one-off compile (about 9 s on a fresh clone).
 
 Writes ``results.json`` and PNGs into ``--out`` (default ``bench/out/safety``); ``--readme``
 also writes the example picture and the chart into ``docs/images/``. The last line printed is
@@ -51,6 +53,7 @@ from companion.sim.judge import FlightVerdict, judge_flight, side_clearance_m  #
 from companion.sim.render import renderer_from_config  # noqa: E402
 from semmap.costmap import VerticalBand  # noqa: E402
 from semmap.detection import Detector, detector_from_config  # noqa: E402
+from semmap.kernels import warm_up  # noqa: E402
 
 MAPS = ("metric", "semantic")
 #: The reference design's per-stage figures on a Jetson Xavier AGX (ms).
@@ -230,6 +233,7 @@ def print_report(fig: dict[str, Any]) -> None:
                   f"{f('safe_success_rate_pct', '{:.0f}'):>6} {f('path_over_straight_median'):>12} "
                   f"{f('time_s_median', '{:.1f}'):>7} {f('min_clearance_m_p5'):>10} {f('min_clearance_m_median'):>11}")
     print("\nper-stage latency on this machine (wall clock, ms) beside the reference design on a Jetson Xavier AGX")
+    print(f"(map-update kernels compiled or loaded before the first flight: {fig['kernel_warm_up_s']:.2f} s, not counted)")
     head = f"{'stage':<24} {'p50':>8} {'p95':>8} {'max':>8} {'n':>6} {'Xavier AGX':>11}  what"
     print(head)
     print("-" * (len(head) + 40))
@@ -280,6 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
+    kernels_s = warm_up()
     scenarios = make_scenarios(cfg, rooms, args.seed, altitudes)
     if len(scenarios) < rooms:
         print(f"only {len(scenarios)} of {rooms} rooms had a fitting start and goal", file=sys.stderr)
@@ -318,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{'COLLIDED' if v.collided else 'ok'}, {'reached' if v.reached else 'NOT reached'}")
     fig: dict[str, Any] = {
         "rooms": len(scenarios), "seed": args.seed, "detector": args.detector, "flights": len(records),
-        "wall_s": round(time.monotonic() - t0, 1), "sim_s": round(sum(r["sim_s"] for r in records), 1),
+        "wall_s": round(time.monotonic() - t0, 1), "kernel_warm_up_s": round(kernels_s, 2), "sim_s": round(sum(r["sim_s"] for r in records), 1),
         "judge": {"vehicle_radius_m": cfg.planner.vehicle_radius_m, "vehicle_height_m": cfg.planner.vehicle_height_m,
                   "vertical_margin_m": cfg.planner.vertical_margin_m, "acceptance_m": ACCEPTANCE_M},
         "config": {"altitudes_m": altitudes, "perception_hz": args.perception_hz,
