@@ -174,3 +174,32 @@ def coco_ap50(
     by_area = {name: round(mean_ap(ev.eval["precision"][0, :, :, a, -1])[0], 4)
                for a, name in ((1, "small"), (2, "medium"), (3, "large"))}
     return max(overall, 0.0), dict(zip(class_names, aps, strict=True)), by_area
+
+
+#: Visible-fraction bins (occlusion and truncation together) the bench reports recall in.
+VISIBILITY_BINS = ((0.0, 0.1), (0.1, 0.25), (0.25, 0.5), (0.5, 0.75), (0.75, 1.0))
+
+
+def by_visibility(
+    gts: list[GroundTruth], visible_fraction: list[np.ndarray], matched: list[FrameMatch],
+    dets: list[list[Detection]], class_names: list[str], min_fractions: tuple[float, ...] = (0.1, 0.25, 0.5),
+) -> dict[str, Any]:
+    """How the scores depend on how much of each object shows. ``visible_fraction`` holds,
+    per frame, each ground-truth object's visible pixels over its unoccluded silhouette
+    (``LabeledImage.visible_fraction``). Returns the objects (not already ignored) and
+    their recall at the operating point per :data:`VISIBILITY_BINS` bin, and COCO AP@0.5
+    (mean over classes) with the objects below each of ``min_fractions`` ignored as well:
+    the figure a KITTI-style rule that does not ask for barely visible objects would give."""
+    bins: dict[str, dict[str, Any]] = {}
+    for lo, hi in VISIBILITY_BINS:
+        n = k = 0
+        for (_, _, g_ignore), vf, fm in zip(gts, visible_fraction, matched, strict=True):
+            sel = ~g_ignore & (vf >= lo) & ((vf < hi) if hi < 1.0 else (vf <= hi))
+            n += int(sel.sum())
+            k += int(fm.found[sel].sum())
+        bins[f"{lo:g}-{hi:g}"] = {"objects": n, "recall": round(k / n, 4) if n else None}
+    map50 = {}
+    for f in min_fractions:
+        g2 = [(b, c, ign | (vf < f)) for (b, c, ign), vf in zip(gts, visible_fraction, strict=True)]
+        map50[f"{f:g}"] = round(coco_ap50(g2, dets, class_names)[0], 4)
+    return {"recall_by_visible_fraction": bins, "map50_ignoring_visible_below": map50}

@@ -84,6 +84,11 @@ class DatasetSpec:
     class_weights: tuple[tuple[str, float], ...] = ()
     min_clearance_m: float = 0.3
     min_visible_px: int = 120
+    #: Also measure each labelled object's visible fraction (visible pixels over its
+    #: unoccluded silhouette on an image plane three times the size,
+    #: :meth:`~companion.sim.render.RoomRenderer.silhouette_px`): for evaluation by
+    #: visibility (``bench/detector.py``); about 0.2 s a frame, so off for training data.
+    measure_visibility: bool = False
     motion_blur_fraction: float = 0.3
     max_motion_blur_px: int = 9
     jpeg_quality: int = 92
@@ -105,7 +110,9 @@ class LabeledImage:
     """One rendered image and its labels.
 
     ``rgb`` (H, W, 3) uint8; ``boxes_xyxy_px`` (N, 4) visible-pixel boxes (half-open max);
-    ``class_ids`` (N,) indices into the spec's class names; ``visible_px`` (N,) pixel counts.
+    ``class_ids`` (N,) indices into the spec's class names; ``visible_px`` (N,) pixel counts;
+    ``object_ids`` (N,) the room's object ids; ``visible_fraction`` (N,) in (0, 1], occlusion
+    and truncation together, when the spec asks for it (:attr:`DatasetSpec.measure_visibility`).
     """
 
     name: str
@@ -115,6 +122,8 @@ class LabeledImage:
     class_ids: NDArray[np.int64]
     visible_px: NDArray[np.int64]
     T_map_camera: NDArray[np.float64]
+    object_ids: NDArray[np.int64] = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    visible_fraction: NDArray[np.float64] | None = None
 
 
 def room_seeds(split: str, n_rooms: int) -> list[int]:
@@ -223,18 +232,19 @@ def photometric(rgb: NDArray[np.uint8], spec: DatasetSpec, rng: np.random.Genera
 
 def labels_from_instance_mask(
     instance: NDArray[np.integer], class_mask: NDArray[np.integer], min_visible_px: int,
-) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
+) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
     """Boxes of the visible pixels of every labelled object in an instance mask.
 
     ``instance`` (H, W) object ids (0 = none), ``class_mask`` (H, W) class indices (-1 = none).
-    Returns ``(boxes (N, 4) xyxy px, half-open max; class ids (N,); visible pixel counts (N,))``
-    for objects with a class and at least ``min_visible_px`` pixels, ordered by object id.
+    Returns ``(boxes (N, 4) xyxy px, half-open max; class ids (N,); visible pixel counts (N,);
+    object ids (N,))`` for objects with a class and at least ``min_visible_px`` pixels, ordered
+    by object id.
     """
     inst = np.asarray(instance)
     cls = np.asarray(class_mask)
     fg = (inst > 0) & (cls >= 0)
     ids, counts = np.unique(inst[fg], return_counts=True)
-    boxes, classes, px = [], [], []
+    boxes, classes, px, oids = [], [], [], []
     for oid, cnt in zip(ids.tolist(), counts.tolist(), strict=True):
         if cnt < min_visible_px:
             continue
@@ -242,10 +252,12 @@ def labels_from_instance_mask(
         boxes.append((uu.min(), vv.min(), uu.max() + 1, vv.max() + 1))
         classes.append(int(cls[vv[0], uu[0]]))
         px.append(cnt)
+        oids.append(int(oid))
     return (
         np.asarray(boxes, dtype=np.float64).reshape(-1, 4),
         np.asarray(classes, dtype=np.int64),
         np.asarray(px, dtype=np.int64),
+        np.asarray(oids, dtype=np.int64),
     )
 
 
@@ -276,13 +288,20 @@ def generate(spec: DatasetSpec, room_start: int = 0) -> Iterator[LabeledImage]:
         for k in range(spec.images_per_room):
             T = sample_camera_pose(room, spec, rng)
             frame = renderer.render(T, index=k, rng=rng)
-            boxes, classes, px = labels_from_instance_mask(
+            boxes, classes, px, oids = labels_from_instance_mask(
                 frame.masks["instance"], frame.masks["class"], spec.min_visible_px
             )
+            visible_fraction = None
+            if spec.measure_visibility:
+                silhouette = renderer.silhouette_px(T)
+                visible_fraction = np.array(
+                    [min(1.0, p / max(silhouette.get(o, 0.0), 1.0)) for p, o in zip(px.tolist(), oids.tolist(), strict=True)],
+                    dtype=np.float64,
+                )
             yield LabeledImage(
                 name=f"{spec.split}_r{room_seed}_{k:03d}", room_seed=room_seed,
                 rgb=photometric(frame.rgb, spec, rng), boxes_xyxy_px=boxes, class_ids=classes,
-                visible_px=px, T_map_camera=T,
+                visible_px=px, T_map_camera=T, object_ids=oids, visible_fraction=visible_fraction,
             )
 
 

@@ -269,6 +269,9 @@ class RoomRenderer:
             "down": np.empty(n_px, bool), "take": np.empty(n_px, bool), "ok": np.empty(n_px, bool),
         }
         self._objects = {o.object_id: o for o in room.objects}
+        # The furniture alone, built on first use by :meth:`silhouette_px`.
+        self._object_scene: Any = None
+        self._object_owner = np.zeros(0, dtype=np.int64)
 
     # --- scene -------------------------------------------------------------------------
 
@@ -675,6 +678,61 @@ class RoomRenderer:
             )
         out.sort(key=lambda o: -o.pixel_count)
         return out
+
+    def silhouette_px(
+        self, T_map_camera: Transform, margin_images: float = 1.0, stride_px: int = 2,
+    ) -> dict[int, float]:
+        """Unoccluded silhouette area of every object, in pixels, on the image plane extended
+        by ``margin_images`` image widths/heights beyond each border: what the object would
+        cover with nothing in front of it and an image large enough to hold it.
+
+        An object's visible pixels (instance mask) over this area is its visible fraction,
+        occlusion and truncation together (KITTI labels the two apart; one figure is enough
+        to say "a sliver"). Rays are cast on a ``stride_px`` grid (each sample stands for
+        ``stride_px**2`` pixels) against the furniture alone, with every hit along each ray
+        listed, so an object counts wherever any part of it lies on the ray. Parts beyond the
+        extended plane or behind the camera do not count: for an object that large the
+        figure is an upper bound on what it covers, so its visible fraction errs high.
+        """
+        T = np.asarray(T_map_camera, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise SimulationError(f"T_map_camera must be a finite (4, 4) transform (got shape {T.shape})")
+        if margin_images < 0 or stride_px < 1:
+            raise SimulationError(
+                f"silhouette_px needs margin_images >= 0 and stride_px >= 1 (got {margin_images}, {stride_px})")
+        if not self.room.objects:
+            return {}
+        o3d = self._o3d
+        if self._object_scene is None:
+            scene = o3d.t.geometry.RaycastingScene(nthreads=self.n_threads)
+            owners = []
+            for obj in self.room.objects:
+                for part in obj.parts:
+                    verts, tris = _box_mesh_arrays(part)
+                    mesh = o3d.t.geometry.TriangleMesh()
+                    mesh.vertex.positions = o3d.core.Tensor(verts)
+                    mesh.triangle.indices = o3d.core.Tensor(tris)
+                    if int(scene.add_triangles(mesh)) != len(owners):
+                        raise SimulationError("unexpected Open3D geometry id in the furniture-only scene")
+                    owners.append(obj.object_id)
+            self._object_scene = scene
+            self._object_owner = np.asarray(owners, dtype=np.int64)
+        intr = self.intrinsics
+        mu, mv = int(round(margin_images * intr.width_px)), int(round(margin_images * intr.height_px))
+        u = (np.arange(-mu, intr.width_px + mu, stride_px, dtype=np.float64) - intr.cx_px) / intr.fx_px
+        v = (np.arange(-mv, intr.height_px + mv, stride_px, dtype=np.float64) - intr.cy_px) / intr.fy_px
+        U, V = np.meshgrid(u, v)
+        dirs = np.stack([U.ravel(), V.ravel(), np.ones(U.size)], axis=1) @ T[:3, :3].T
+        rays = np.empty((dirs.shape[0], 6), dtype=np.float32)
+        rays[:, :3] = T[:3, 3]
+        rays[:, 3:] = dirs
+        hits = self._object_scene.list_intersections(o3d.core.Tensor.from_numpy(rays), nthreads=self.n_threads)
+        owner = self._object_owner[hits["geometry_ids"].numpy().astype(np.int64)]
+        ray = hits["ray_ids"].numpy().astype(np.int64)
+        pairs = np.unique(ray * (int(owner.max(initial=0)) + 1) + owner)  # one count per (ray, object)
+        ids, counts = np.unique(pairs % (int(owner.max(initial=0)) + 1), return_counts=True)
+        area = float(stride_px * stride_px)
+        return {int(i): float(c) * area for i, c in zip(ids.tolist(), counts.tolist(), strict=True)}
 
 
 def renderer_from_config(room: Room, cfg: Any, seed: int | None = None) -> RoomRenderer:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -36,17 +37,18 @@ def test_labels_are_tight_boxes_of_visible_pixels_and_small_objects_are_dropped(
     inst[40:42, 0:5] = 7  # 10 px: below the threshold
     cls[40:42, 0:5] = 0
     inst[0:30, 70:80] = 9  # building-less object without a class: never labelled
-    boxes, classes, px = labels_from_instance_mask(inst, cls, min_visible_px=100)
+    boxes, classes, px, ids = labels_from_instance_mask(inst, cls, min_visible_px=100)
     np.testing.assert_array_equal(boxes, [[30, 10, 45, 20]])
     np.testing.assert_array_equal(classes, [2])
     np.testing.assert_array_equal(px, [150])
+    np.testing.assert_array_equal(ids, [3])
 
 
 def test_empty_mask_gives_empty_arrays() -> None:
-    boxes, classes, px = labels_from_instance_mask(
+    boxes, classes, px, ids = labels_from_instance_mask(
         np.zeros((4, 4), np.int32), np.full((4, 4), -1, np.int16), 1
     )
-    assert boxes.shape == (0, 4) and classes.shape == (0,) and px.shape == (0,)
+    assert boxes.shape == (0, 4) and classes.shape == (0,) and px.shape == (0,) and ids.shape == (0,)
 
 
 @given(
@@ -123,6 +125,21 @@ def test_generated_images_are_labelled_from_the_rendered_masks(tmp_path) -> None
     lines = [ln for p in (tmp_path / "labels" / "heldout").glob("*.txt") for ln in p.read_text().splitlines()]
     assert len(lines) == n_labels
     assert "names" in (tmp_path / "data.yaml").read_text()
+
+
+def test_visible_fraction_is_visible_pixels_over_the_silhouette() -> None:
+    """Measured on request (evaluation by visibility), the same images otherwise."""
+    plain = DatasetSpec(split="heldout", n_rooms=1, images_per_room=4, intrinsics=SMALL, min_visible_px=20)
+    spec = dataclasses.replace(plain, measure_visibility=True)
+    fractions = []
+    for a, b in zip(generate(plain), generate(spec), strict=True):
+        assert a.visible_fraction is None
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.object_ids, b.object_ids)
+        assert b.visible_fraction is not None and b.visible_fraction.shape == b.visible_px.shape
+        assert np.all((b.visible_fraction > 0) & (b.visible_fraction <= 1))
+        fractions.extend(b.visible_fraction.tolist())
+    assert fractions and min(fractions) < 1.0  # furniture hides furniture, borders cut it
 
 
 def test_class_weights_shift_the_rooms_class_mix_and_bad_weights_are_named() -> None:

@@ -11,7 +11,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bench._detection_eval import coco_ap50, error_breakdown, match, match_counts  # noqa: E402
+from bench._detection_eval import by_visibility, coco_ap50, error_breakdown, match, match_counts  # noqa: E402
 from semmap.types import Detection  # noqa: E402
 
 CLASSES = ["chair", "coffee_table", "desk"]
@@ -89,3 +89,19 @@ def test_coco_ap_is_one_for_perfect_detections_and_drops_with_a_confident_false_
     mean_worse, per_class_worse, _ = coco_ap50(gts, worse, CLASSES)
     assert per_class_worse["chair"] < 0.9 and per_class_worse["desk"] == pytest.approx(1.0)
     assert mean_worse < mean
+
+
+def test_barely_visible_objects_are_scored_apart() -> None:
+    """Recall per visible-fraction bin, and the AP once objects below a fraction are ignored:
+    a missed sliver costs AP with every object counted, nothing once slivers are ignored."""
+    gts = [_gt([(100, 100, 200, 200), (300, 100, 400, 200), (10, 10, 20, 20)], [0, 2, 0], [False, False, True])]
+    vf = [np.array([0.9, 0.05, 0.5])]  # chair well in view, desk a sliver, an ignored speck
+    dets = [[_det((100, 100, 200, 200), "chair", 0.9)]]
+    matched = match(gts, dets, CLASSES, 0.25)
+    out = by_visibility(gts, vf, matched, dets, CLASSES, min_fractions=(0.1,))
+    bins = out["recall_by_visible_fraction"]
+    assert bins["0.75-1"] == {"objects": 1, "recall": 1.0}
+    assert bins["0-0.1"] == {"objects": 1, "recall": 0.0}
+    assert bins["0.25-0.5"] == {"objects": 0, "recall": None}  # the ignored speck is not counted
+    assert coco_ap50(gts, dets, CLASSES)[0] == pytest.approx(0.5)  # chair 1, desk 0
+    assert out["map50_ignoring_visible_below"]["0.1"] == pytest.approx(1.0)  # desk has no required object left

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -12,7 +13,8 @@ from hypothesis import strategies as st
 
 from companion.config import CompanionConfig
 from companion.sim.render import DepthNoise, RoomRenderer, renderer_from_config
-from companion.sim.world import Box, Room, generate_room
+from companion.sim.world import Box, FurnitureObject, Room, generate_room
+from semmap.errors import SimulationError
 from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform, pose_from_xyz_rpy, transform_points
 from semmap.pointcloud import backproject
 from semmap.types import CameraIntrinsics
@@ -213,6 +215,46 @@ def test_visible_objects_report_mask_pixels_and_ground_truth(furnished: tuple[Ro
         assert np.allclose(v.footprint_xy_m, obj.footprint_xy_m())
         assert v.height_m == pytest.approx(obj.height_m)
     assert r.visible_objects(frame, min_pixels=10**9) == []
+
+
+def test_silhouette_is_what_each_object_covers_alone(furnished: tuple[Room, RoomRenderer]) -> None:
+    """With no margin and one ray per pixel, an object's silhouette is exactly its mask in a
+    render of the room with that object alone; with others in front it covers more than
+    its visible pixels."""
+    room, r = furnished
+    occluded = 0
+    for T in object_poses(room)[:3]:
+        inst = r.render(T).masks["instance"]
+        sil = r.silhouette_px(T, margin_images=0.0, stride_px=1)
+        for obj in room.objects:
+            alone = RoomRenderer(dataclasses.replace(room, objects=(obj,)), CLASSES, HALF, noise=EXACT)
+            n_alone = int(np.count_nonzero(alone.render(T).masks["instance"] == obj.object_id))
+            assert sil.get(obj.object_id, 0.0) == n_alone
+            n_visible = int(np.count_nonzero(inst == obj.object_id))
+            assert n_visible <= n_alone
+            occluded += n_visible < n_alone
+    assert occluded > 0, "some object is partly hidden behind another from these poses"
+
+
+def test_silhouette_counts_what_lies_beyond_the_image_border() -> None:
+    """A thin board facing the camera, half past the right border: the image holds half of
+    it, the extended plane all of it, f**2 * area / distance**2 pixels."""
+    d_m, w_m, h_m = 3.0, 1.0, 0.8
+    f = HALF.fx_px
+    half_w_m = (HALF.width_px - HALF.cx_px) / f * d_m  # image-plane half width at the board
+    board = Box((4.0 + d_m, 3.0 - half_w_m, 1.0), (0.01, w_m, h_m))  # centred on the right border
+    obj = FurnitureObject(1, "whiteboard", (board.center_m[0], board.center_m[1]), 0.0, board.size_m, (board,), (255, 255, 255))
+    room = dataclasses.replace(empty_room(), objects=(obj,))
+    r = RoomRenderer(room, CLASSES, HALF, noise=EXACT)
+    T = camera_facing_east(4.0, 3.0, 1.0)
+    expected_px = f * f * w_m * h_m / d_m**2
+    in_image = r.silhouette_px(T, margin_images=0.0, stride_px=1)[1]
+    assert in_image == int(np.count_nonzero(r.render(T).masks["instance"] == 1))
+    assert in_image == pytest.approx(expected_px / 2, rel=0.03)
+    assert r.silhouette_px(T)[1] == pytest.approx(expected_px, rel=0.03)
+    assert r.silhouette_px(T, stride_px=3)[1] == pytest.approx(expected_px, rel=0.05)
+    with pytest.raises(SimulationError, match="stride_px"):
+        r.silhouette_px(T, stride_px=0)
 
 
 def test_edge_dropout_invalidates_depth_discontinuities(furnished: tuple[Room, RoomRenderer]) -> None:
