@@ -692,7 +692,7 @@ class RoomRenderer:
         ``stride_px**2`` pixels) against the furniture alone, with every hit along each ray
         listed, so an object counts wherever any part of it lies on the ray. Parts beyond the
         extended plane or behind the camera do not count: for an object that large the
-        figure is an upper bound on what it covers, so its visible fraction errs high.
+        figure falls short of what it covers, so its visible fraction errs high.
         """
         T = np.asarray(T_map_camera, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
