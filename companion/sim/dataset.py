@@ -122,7 +122,7 @@ class LabeledImage:
     class_ids: NDArray[np.int64]
     visible_px: NDArray[np.int64]
     T_map_camera: NDArray[np.float64]
-    object_ids: NDArray[np.int64] = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    object_ids: NDArray[np.int64]
     visible_fraction: NDArray[np.float64] | None = None
 
 

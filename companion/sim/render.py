@@ -31,7 +31,7 @@ import math
 import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -124,6 +124,23 @@ def _box_mesh_arrays(box: Box) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
         ]
     )
     return verts.astype(np.float32), tris.astype(np.int32)
+
+
+def _box_mesh(o3d: Any, box: Box) -> Any:
+    """An Open3D tensor triangle mesh of a box (:func:`_box_mesh_arrays`)."""
+    verts, tris = _box_mesh_arrays(box)
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(verts)
+    mesh.triangle.indices = o3d.core.Tensor(tris)
+    return mesh
+
+
+def _checked_pose(T_map_camera: Transform) -> NDArray[np.float64]:
+    """The camera pose as a float (4, 4) array, or a :class:`SimulationError` naming what is wrong."""
+    T = np.asarray(T_map_camera, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise SimulationError(f"T_map_camera must be a finite (4, 4) transform (got shape {T.shape})")
+    return T
 
 
 def _smooth_noise(rng: np.random.Generator, size: int, blur_px: float) -> NDArray[np.float32]:
@@ -319,10 +336,7 @@ class RoomRenderer:
         self._face_tex_base = np.zeros(nf + 1, dtype=np.intp)
         self._boxes: list[Box] = []
         for i, (box, owner, cls, mat, col) in enumerate(entries):
-            verts, tris = _box_mesh_arrays(box)
-            mesh = o3d.t.geometry.TriangleMesh()
-            mesh.vertex.positions = o3d.core.Tensor(verts)
-            mesh.triangle.indices = o3d.core.Tensor(tris)
+            mesh = _box_mesh(o3d, box)
             gid = int(scene.add_triangles(mesh))
             if gid != i:
                 raise SimulationError(f"unexpected Open3D geometry id {gid} for primitive {i}")
@@ -383,9 +397,7 @@ class RoomRenderer:
         (inf on a miss), ``"prim"`` primitive index (``n_primitives`` on a miss), ``"face"``
         face index ``6 * prim + k`` (``6 * n_primitives`` on a miss), and ``"T"`` the pose.
         """
-        T = np.asarray(T_map_camera, dtype=np.float64)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise SimulationError(f"T_map_camera must be a finite (4, 4) transform (got shape {T.shape})")
+        T = _checked_pose(T_map_camera)
         R = T[:3, :3].astype(np.float32)
         rays = self._rays  # reused: a fresh 7 MB buffer per frame costs page faults
         n_px = rays.shape[0]
@@ -694,9 +706,7 @@ class RoomRenderer:
         extended plane or behind the camera do not count: for an object that large the
         figure falls short of what it covers, so its visible fraction errs high.
         """
-        T = np.asarray(T_map_camera, dtype=np.float64)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise SimulationError(f"T_map_camera must be a finite (4, 4) transform (got shape {T.shape})")
+        T = _checked_pose(T_map_camera)
         if margin_images < 0 or stride_px < 1:
             raise SimulationError(
                 f"silhouette_px needs margin_images >= 0 and stride_px >= 1 (got {margin_images}, {stride_px})")
@@ -708,29 +718,30 @@ class RoomRenderer:
             owners = []
             for obj in self.room.objects:
                 for part in obj.parts:
-                    verts, tris = _box_mesh_arrays(part)
-                    mesh = o3d.t.geometry.TriangleMesh()
-                    mesh.vertex.positions = o3d.core.Tensor(verts)
-                    mesh.triangle.indices = o3d.core.Tensor(tris)
-                    if int(scene.add_triangles(mesh)) != len(owners):
+                    if int(scene.add_triangles(_box_mesh(o3d, part))) != len(owners):
                         raise SimulationError("unexpected Open3D geometry id in the furniture-only scene")
                     owners.append(obj.object_id)
             self._object_scene = scene
             self._object_owner = np.asarray(owners, dtype=np.int64)
+        # Sample k of the grid is pixel u = -margin + k * stride: the pixel grid of a camera
+        # with fx / stride and (cx + margin) / stride, through the module's pixel convention.
         intr = self.intrinsics
         mu, mv = int(round(margin_images * intr.width_px)), int(round(margin_images * intr.height_px))
-        u = (np.arange(-mu, intr.width_px + mu, stride_px, dtype=np.float64) - intr.cx_px) / intr.fx_px
-        v = (np.arange(-mv, intr.height_px + mv, stride_px, dtype=np.float64) - intr.cy_px) / intr.fy_px
-        U, V = np.meshgrid(u, v)
-        dirs = np.stack([U.ravel(), V.ravel(), np.ones(U.size)], axis=1) @ T[:3, :3].T
+        grid = replace(
+            intr, fx_px=intr.fx_px / stride_px, fy_px=intr.fy_px / stride_px,
+            cx_px=(intr.cx_px + mu) / stride_px, cy_px=(intr.cy_px + mv) / stride_px,
+            width_px=-(-(intr.width_px + 2 * mu) // stride_px), height_px=-(-(intr.height_px + 2 * mv) // stride_px),
+        )
+        dirs = self._pixel_directions(grid)
         rays = np.empty((dirs.shape[0], 6), dtype=np.float32)
         rays[:, :3] = T[:3, 3]
-        rays[:, 3:] = dirs
+        rays[:, 3:] = dirs @ T[:3, :3].T
         hits = self._object_scene.list_intersections(o3d.core.Tensor.from_numpy(rays), nthreads=self.n_threads)
         owner = self._object_owner[hits["geometry_ids"].numpy().astype(np.int64)]
         ray = hits["ray_ids"].numpy().astype(np.int64)
-        pairs = np.unique(ray * (int(owner.max(initial=0)) + 1) + owner)  # one count per (ray, object)
-        ids, counts = np.unique(pairs % (int(owner.max(initial=0)) + 1), return_counts=True)
+        n_ids = int(self._object_owner.max(initial=0)) + 1
+        pairs = np.unique(ray * n_ids + owner)  # one count per (ray, object)
+        ids, counts = np.unique(pairs % n_ids, return_counts=True)
         area = float(stride_px * stride_px)
         return {int(i): float(c) * area for i, c in zip(ids.tolist(), counts.tolist(), strict=True)}
 
