@@ -203,3 +203,28 @@ def by_visibility(
         g2 = [(b, c, ign | (vf < f)) for (b, c, ign), vf in zip(gts, visible_fraction, strict=True)]
         map50[f"{f:g}"] = round(coco_ap50(g2, dets, class_names)[0], 4)
     return {"recall_by_visible_fraction": bins, "map50_ignoring_visible_below": map50}
+
+
+def bootstrap_map50(
+    gts: list[GroundTruth], dets: list[list[Detection]], class_names: list[str],
+    frames_per_room: int, n_resamples: int = 200, seed: int = 0, level: float = 0.95,
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of COCO mAP@0.5 over rooms: the frames of one room share
+    its furniture, so they are resampled together (a per-frame bootstrap would count 15 views
+    of the same table as 15 independent trials and give too narrow an interval). The frames
+    are in room order, ``frames_per_room`` each. Returns (low, high) at ``level``: how far the
+    headline figure could move on another draw of held-out rooms of the same kind."""
+    if frames_per_room < 1 or len(gts) % frames_per_room:
+        raise ValueError(f"{len(gts)} frames do not split into rooms of {frames_per_room} frames")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1) (got {level})")
+    n_rooms = len(gts) // frames_per_room
+    rng = np.random.default_rng(seed)
+    maps = []
+    for _ in range(n_resamples):
+        rooms = rng.integers(0, n_rooms, n_rooms)
+        idx = [r * frames_per_room + k for r in rooms.tolist() for k in range(frames_per_room)]
+        maps.append(coco_ap50([gts[i] for i in idx], [dets[i] for i in idx], class_names)[0])
+    tail = (1.0 - level) / 2.0 * 100.0
+    lo, hi = np.percentile(maps, [tail, 100.0 - tail])
+    return float(lo), float(hi)

@@ -11,7 +11,14 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bench._detection_eval import by_visibility, coco_ap50, error_breakdown, match, match_counts  # noqa: E402
+from bench._detection_eval import (  # noqa: E402
+    bootstrap_map50,
+    by_visibility,
+    coco_ap50,
+    error_breakdown,
+    match,
+    match_counts,
+)
 from semmap.types import Detection  # noqa: E402
 
 CLASSES = ["chair", "coffee_table", "desk"]
@@ -105,3 +112,26 @@ def test_barely_visible_objects_are_scored_apart() -> None:
     assert bins["0.25-0.5"] == {"objects": 0, "recall": None}  # the ignored speck is not counted
     assert coco_ap50(gts, dets, CLASSES)[0] == pytest.approx(0.5)  # chair 1, desk 0
     assert out["map50_ignoring_visible_below"]["0.1"] == pytest.approx(1.0)  # desk has no required object left
+
+
+def test_the_room_bootstrap_interval_brackets_the_figure_and_spans_what_rooms_disagree_on() -> None:
+    pytest.importorskip("pycocotools")
+    # Four rooms of two frames, one chair per frame. Two rooms detect it perfectly; in the other
+    # two a confident phantom chair precedes the real one in every frame.
+    gts, dets = [], []
+    for room in range(4):
+        for _ in range(2):
+            gts.append(_gt([(100, 100, 200, 200)], [0]))
+            good = [_det((100, 100, 200, 200), "chair", 0.5)]
+            dets.append(good if room < 2 else good + [_det((400, 300, 500, 400), "chair", 0.9)])
+    point = coco_ap50(gts, dets, CLASSES)[0]
+    low, high = bootstrap_map50(gts, dets, CLASSES, frames_per_room=2, n_resamples=300)
+    assert low < point < high
+    assert high == pytest.approx(1.0)  # a draw of only the good rooms
+    assert low < 0.6                   # a draw of mostly phantom rooms
+    # Rooms that all score the same leave nothing to resample: the interval is the figure.
+    perfect = [[_det((100, 100, 200, 200), "chair")] for _ in gts]
+    assert bootstrap_map50(gts, perfect, CLASSES, frames_per_room=2, n_resamples=20) == (
+        pytest.approx(1.0), pytest.approx(1.0))
+    with pytest.raises(ValueError, match="rooms of 3 frames"):
+        bootstrap_map50(gts, dets, CLASSES, frames_per_room=3)
