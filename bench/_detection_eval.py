@@ -218,6 +218,8 @@ def bootstrap_map50(
         raise ValueError(f"{len(gts)} frames do not split into rooms of {frames_per_room} frames")
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1) (got {level})")
+    if n_resamples < 1:
+        raise ValueError(f"n_resamples must be at least 1 (got {n_resamples})")
     n_rooms = len(gts) // frames_per_room
     rng = np.random.default_rng(seed)
     maps = []

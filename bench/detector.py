@@ -84,6 +84,8 @@ def main() -> None:
     ap.add_argument("--split", default="heldout", choices=("heldout", "val"),
                     help="rooms to score: held-out (the headline) or val (for choosing a model)")
     args = ap.parse_args()
+    if args.resamples < 1:  # checked before minutes of rendering, not after
+        ap.error(f"--resamples must be at least 1 (got {args.resamples})")
     n_rooms = args.rooms or (4 if args.quick else 20)
     per_room = args.images_per_room or (6 if args.quick else 15)
 

@@ -135,3 +135,5 @@ def test_the_room_bootstrap_interval_brackets_the_figure_and_spans_what_rooms_di
         pytest.approx(1.0), pytest.approx(1.0))
     with pytest.raises(ValueError, match="rooms of 3 frames"):
         bootstrap_map50(gts, dets, CLASSES, frames_per_room=3)
+    with pytest.raises(ValueError, match="n_resamples"):
+        bootstrap_map50(gts, dets, CLASSES, frames_per_room=2, n_resamples=0)
