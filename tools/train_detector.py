@@ -115,6 +115,7 @@ def train(args: argparse.Namespace) -> None:
         "degrees": args.degrees,
         "scale": args.scale,
         "translate": args.translate,
+        "cls": args.cls,
         "pretrained": False,
         "amp": False,
         "plots": False,
@@ -363,6 +364,8 @@ def main() -> None:
     t.add_argument("--scale", type=float, default=0.5, help="random zoom gain (+-)")
     t.add_argument("--translate", type=float, default=0.1, help="random shift (fraction of size)")
     t.add_argument("--degrees", type=float, default=5.0, help="random rotation (+-deg)")
+    t.add_argument("--cls", type=float, default=0.5,
+                   help="classification loss gain (Ultralytics' default 0.5; box 7.5, dfl 1.5)")
     t.add_argument("--val-images", type=int, default=100,
                    help="val-split images validated after each epoch (picks best.pt)")
     t.add_argument("--threads", type=int, default=os.cpu_count() or 1,
