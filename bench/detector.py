@@ -29,6 +29,13 @@ Inference time is the whole :meth:`OnnxDetector.detect` per 640x480 frame.
 a training run's exported epoch): use it to choose between candidate models, so the held-out
 figure stays a test figure and is not also the thing that chose the model.
 
+``--split train --room-start N --seed 0`` scores rooms a model trained on (room seeds 100000+N..,
+the same rooms ``companion dataset --split train --room-start N --seed 0`` rendered, seen from
+the held-out protocol's poses): how well the model fits its own training rooms. Next to the
+validation figure it tells an under-fitting model (both low: more rooms of the same kind will
+not help) from an over-fitting one (training rooms much higher: more varied rooms will). Only
+rooms rendered without ``--class-weights`` come out the same (the weights change the furniture).
+
 The last line printed is one JSON object with every figure.
 """
 
@@ -81,11 +88,16 @@ def main() -> None:
     ap.add_argument("--min-visible-px", type=int, default=120)
     ap.add_argument("--model", default="builtin:furniture", help="ONNX path or builtin:NAME")
     ap.add_argument("--resamples", type=int, default=200, help="room bootstrap resamples for the mAP interval")
-    ap.add_argument("--split", default="heldout", choices=("heldout", "val"),
-                    help="rooms to score: held-out (the headline) or val (for choosing a model)")
+    ap.add_argument("--split", default="heldout", choices=("heldout", "val", "train"),
+                    help="rooms to score: held-out (the headline), val (for choosing a model) or "
+                         "train (how well a model fits rooms it trained on)")
+    ap.add_argument("--room-start", type=int, default=0,
+                    help="first room within the split (as for `companion dataset --room-start`)")
     args = ap.parse_args()
     if args.resamples < 1:  # checked before minutes of rendering, not after
         ap.error(f"--resamples must be at least 1 (got {args.resamples})")
+    if args.room_start < 0:
+        ap.error(f"--room-start must be >= 0 (got {args.room_start})")
     n_rooms = args.rooms or (4 if args.quick else 20)
     per_room = args.images_per_room or (6 if args.quick else 15)
 
@@ -108,7 +120,7 @@ def main() -> None:
     infer_s: list[float] = []
     t_render = 0.0
     t0 = time.perf_counter()
-    for item in generate(spec):
+    for item in generate(spec, room_start=args.room_start):
         t_render += time.perf_counter() - t0
         ignore = item.visible_px < args.min_visible_px
         gts.append((item.boxes_xyxy_px, item.class_ids, ignore))
@@ -152,8 +164,9 @@ def main() -> None:
     print(f"model {detector.model_path.name} ({detector.model_path.stat().st_size / 1e6:.2f} MB, "
           f"{n_params / 1e6:.2f} M parameters, input {detector.input_hw_px[1]}x{detector.input_hw_px[0]}, "
           f"{detector.head} head)")
-    seeds = room_seeds(args.split, n_rooms)
-    print(f"{'held-out' if args.split == 'heldout' else 'validation'} rooms: seeds {seeds[0]}..{seeds[-1]}, "
+    seeds = room_seeds(args.split, args.room_start + n_rooms)[args.room_start:]
+    split_text = {"heldout": "held-out", "val": "validation", "train": "training"}[args.split]
+    print(f"{split_text} rooms: seeds {seeds[0]}..{seeds[-1]} (appearance seed {args.seed}), "
           f"{n_img} frames 640x480; P/R at score >= {operating_threshold}; "
           f"objects < {args.min_visible_px} visible px ignored")
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average "
@@ -197,6 +210,7 @@ def main() -> None:
         "input_px": detector.input_hw_px[1],
         "split": args.split,
         "rooms": n_rooms,
+        "room_seeds": {"first": seeds[0], "last": seeds[-1], "appearance_seed": args.seed},
         "overall": overall,
         "map50_interval95_rooms": {"low": round(map50_lo, 4), "high": round(map50_hi, 4),
                                    "resamples": args.resamples},
