@@ -16,7 +16,9 @@ Figures (section ``objects``), against the ground truth of objects seen well dur
   comparable with that (a chair's points crowd on its backrest), so it is reported separately
   against the ground-truth volume centroid, for information;
 * footprint IoU (polygons rasterised at 1 cm), height error (top of the object above the floor),
-  class correctness, and spurious objects (confirmed map objects matching no real one).
+  class correctness, spurious objects (confirmed map objects matching no real one) and duplicate
+  objects (confirmed map objects left unmatched over a real object that has its match: one
+  thing mapped twice, as a detector's class confusions can cause).
 
 The output is structured in sections (``SECTIONS``): each section is a function taking the
 parsed arguments and returning (table lines, figures dict). The last line printed is one JSON
@@ -160,6 +162,9 @@ class RoomResult:
     n_in_room: int
     n_spurious: int
     geometry_ms: list[float]
+    #: Confirmed objects left unmatched whose best-overlapping real object already has its
+    #: match: one thing mapped twice (e.g. under two classes).
+    n_duplicate: int = 0
     #: Per scored object, in the order of the lists above: (ground-truth id, class, frames
     #: seen whole, map object id, map object's observations), for ``--tail``.
     labels: list[tuple[int, str, int, int, int]] = field(default_factory=list)
@@ -261,9 +266,15 @@ def score_room(room: Room, omap: ObjectMap, seen: dict[int, int], min_frames: in
     # Spurious: confirmed objects that overlap no real object at all (real but unscored
     # objects, e.g. seen in fewer frames, are not spurious).
     all_fp = [o.footprint_xy_m() for o in room.objects]
+    matched_ids = {gts[gi].object_id for gi in used_g}
     for mi, m in enumerate(objs):
-        if mi not in used_m and not any(raster_iou(fp, m.footprint_xy_m) > 0 for fp in all_fp):
+        if mi in used_m:
+            continue
+        overlap = [raster_iou(fp, m.footprint_xy_m) for fp in all_fp]
+        if max(overlap, default=0.0) <= 0:
             res.n_spurious += 1
+        elif room.objects[int(np.argmax(overlap))].object_id in matched_ids:
+            res.n_duplicate += 1
     return res
 
 
@@ -275,7 +286,7 @@ def objects_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]
     """Object geometry + object map accuracy over seeded rooms."""
     n_rooms, n_frames = (3, 40) if args.quick else (args.rooms, args.frames)
     results = []
-    lines = [f"{'seed':>4} {'gt':>3} {'match':>5} {'spur':>4} {'pos p95 cm':>10} "
+    lines = [f"{'seed':>4} {'gt':>3} {'match':>5} {'spur':>4} {'dup':>3} {'pos p95 cm':>10} "
              f"{'IoU med':>7} {'h p95 cm':>8} {'class %':>7}"]
     for k in range(n_rooms):
         seed = args.seed + k
@@ -284,7 +295,7 @@ def objects_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]
         r.geometry_ms = times
         results.append(r)
         lines.append(
-            f"{seed:>4} {r.n_gt:>3} {r.n_matched:>5} {r.n_spurious:>4} "
+            f"{seed:>4} {r.n_gt:>3} {r.n_matched:>5} {r.n_spurious:>4} {r.n_duplicate:>3} "
             f"{_pct(r.position_err_m, 95) * 100:>10.1f} {_pct(r.iou, 50):>7.2f} "
             f"{_pct(r.height_err_m, 95) * 100:>8.1f} {100 * np.mean(r.class_ok) if r.class_ok else float('nan'):>7.0f}"
         )
@@ -321,6 +332,7 @@ def objects_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]
         "height_err_m_p95": _pct(h, 95),
         "class_correct_frac": float(np.mean(cls)) if cls else float("nan"),
         "spurious_objects": int(sum(r.n_spurious for r in results)),
+        "duplicate_objects": int(sum(r.n_duplicate for r in results)),
         "geometry_ms_per_frame_p50": _pct([t for r in results for t in r.geometry_ms], 50),
     }
     targets = {
