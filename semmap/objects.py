@@ -376,12 +376,16 @@ class ObjectMap:
         (:meth:`_shows_surface_of`) whatever the classes, or (same class, not two detections of
         one frame) overlap / proximity as for re-association."""
         cfg = self.config
-        reach = float(np.ptp(a.hull_xy_m, axis=0).max() + np.ptp(b.hull_xy_m, axis=0).max())
+        # The hulls are the latest best views (a partial one can be a sliver of the object);
+        # the evidence footprints (what the map reports) hold every view.
+        fa, fb = self._evidence_footprint(a), self._evidence_footprint(b)
+        reach = float(max(np.ptp(a.hull_xy_m, axis=0).max(), np.ptp(fa, axis=0).max())
+                      + max(np.ptp(b.hull_xy_m, axis=0).max(), np.ptp(fb, axis=0).max()))
         dist = float(np.linalg.norm(a.position_m[:2] - b.position_m[:2]))
         if dist > reach:
             return False
         iou, contained = _overlaps(a.hull_xy_m, b.hull_xy_m)
-        if iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
+        if max(iou, _overlaps(fa, fb)[0]) >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
             return True
         if self._shows_surface_of(a, b) or self._shows_surface_of(b, a):
             return True

@@ -229,6 +229,27 @@ def test_an_object_that_turns_out_to_show_anothers_surface_is_merged_into_it() -
     assert sorted(o.class_name for o in m.objects()) == ["chair", "coffee_table"]
 
 
+def test_duplicates_are_judged_on_the_footprint_of_every_view_not_the_latest_hull() -> None:
+    # A desk seen whole only in views cut by the image border, then once uncut but only its
+    # corner: its hull (the best views' outline) is that corner, its footprint (every view's
+    # evidence) the whole desk. A second track over the whole desk, under another class and
+    # with no top plane, is the same desk.
+    import dataclasses
+
+    m = ObjectMap(default_classes())
+    for t in range(3):
+        cut = dataclasses.replace(_rect_obs(1, "desk", 3.0, 0.0, 4.4, 0.7, (0.0, 0.73), None, float(t)),
+                                  at_image_edge=True)
+        m.update([cut], float(t))
+    m.update([_rect_obs(1, "desk", 4.2, 0.5, 4.4, 0.7, (0.0, 0.73), None, 3.0)], 3.0)
+    (desk,) = m.objects()
+    assert np.ptp(desk.footprint_xy_m[:, 0]) > 1.3  # the whole desk
+    ids = []
+    for t in range(4, 7):
+        ids = m.update([_rect_obs(2, "conference_table", 3.0, 0.0, 4.4, 0.7, (0.0, 0.73), None, float(t))], float(t))
+    assert ids == [desk.object_id] and len(m) == 1
+
+
 def test_grow_to_least_size_grows_on_the_unseen_side() -> None:
     # A 0.8 x 0.1 m sliver (a table top's near edge) seen by cameras to its north (+y).
     sliver = np.array([[0.0, 0.0], [0.8, 0.0], [0.8, 0.1], [0.0, 0.1]])
