@@ -395,7 +395,7 @@ class ObjectMap:
         )
 
     def _shows_surface_of(self, inner: _State, outer: _State) -> bool:
-        """``inner`` is ``outer``'s surface mapped a second time, under another class: both
+        """``inner`` is ``outer``'s surface mapped a second time (often under another class): both
         seen near, the same top plane (within ``_SAME_SURFACE_M``), ``inner`` reaching no
         higher and lying mostly inside ``outer``'s footprint.
 
