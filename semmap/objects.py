@@ -376,17 +376,20 @@ class ObjectMap:
         (:meth:`_shows_surface_of`) whatever the classes, or (same class, not two detections of
         one frame) overlap / proximity as for re-association."""
         cfg = self.config
-        # The hulls are the latest best views (a partial one can be a sliver of the object);
-        # the evidence footprints (what the map reports) hold every view.
+        # Any-class overlap is judged on the evidence footprints (what the map reports: cells
+        # several views agree on), not the hulls: a hull is the union of the best views'
+        # outlines, so one can be a corner of the object (two desks at 0.91 footprint IoU over
+        # one real desk stayed apart) or, after one box that held a neighbour's points too,
+        # both objects (a chair's hull grew over the coffee table beside it and swallowed it).
         fa, fb = self._evidence_footprint(a), self._evidence_footprint(b)
         reach = float(max(np.ptp(a.hull_xy_m, axis=0).max(), np.ptp(fa, axis=0).max())
                       + max(np.ptp(b.hull_xy_m, axis=0).max(), np.ptp(fb, axis=0).max()))
         dist = float(np.linalg.norm(a.position_m[:2] - b.position_m[:2]))
         if dist > reach:
             return False
-        iou, contained = _overlaps(a.hull_xy_m, b.hull_xy_m)
-        if max(iou, _overlaps(fa, fb)[0]) >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
+        if _overlaps(fa, fb)[0] >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
             return True
+        iou, contained = _overlaps(a.hull_xy_m, b.hull_xy_m)
         if self._shows_surface_of(a, b) or self._shows_surface_of(b, a):
             return True
         same_class = int(np.argmax(a.class_probs)) == int(np.argmax(b.class_probs))

@@ -250,6 +250,27 @@ def test_duplicates_are_judged_on_the_footprint_of_every_view_not_the_latest_hul
     assert ids == [desk.object_id] and len(m) == 1
 
 
+def test_one_box_over_two_objects_does_not_merge_them() -> None:
+    # bench/mapping.py --quick, room 1000: a chair's track once had a box that held the coffee
+    # table beside it too; the chair's hull (the union of its best views' outlines) grew over
+    # the table, and the any-class overlap merge then swallowed the table into a 1.9 x 1.7 m
+    # "chair". The footprints several views agree on still show two objects.
+    m = ObjectMap(default_classes())
+    for t in range(4):
+        m.update([_rect_obs(2, "coffee_table", 3.6, 0.0, 4.6, 0.7, (0.0, 0.44), 0.43, float(t)),
+                  _rect_obs(1, "chair", 3.0, 0.0, 3.5, 0.5, (0.0, 0.9), 0.45, float(t))], float(t))
+    before = {o.class_name: o.object_id for o in m.objects()}
+    assert len(before) == 2
+    m.update([_rect_obs(1, "chair", 3.0, 0.0, 4.6, 0.7, (0.0, 0.9), 0.45, 4.0)], 4.0)
+    assert len(m) == 2
+    for t in range(5, 8):
+        m.update([_rect_obs(2, "coffee_table", 3.6, 0.0, 4.6, 0.7, (0.0, 0.44), 0.43, float(t)),
+                  _rect_obs(1, "chair", 3.0, 0.0, 3.5, 0.5, (0.0, 0.9), 0.45, float(t))], float(t))
+    assert {o.class_name: o.object_id for o in m.objects()} == before  # the same two objects
+    footprints = {o.class_name: o.footprint_xy_m for o in m.objects()}
+    assert footprints["chair"][:, 0].max() < 3.6 and footprints["coffee_table"][:, 0].min() > 3.5
+
+
 def test_grow_to_least_size_grows_on_the_unseen_side() -> None:
     # A 0.8 x 0.1 m sliver (a table top's near edge) seen by cameras to its north (+y).
     sliver = np.array([[0.0, 0.0], [0.8, 0.0], [0.8, 0.1], [0.0, 0.1]])
