@@ -372,9 +372,9 @@ class ObjectMap:
         return [ids[i] for i in np.nonzero(overlap | close)[0]]
 
     def _same_object(self, a: _State, b: _State, both_seen_now: bool) -> bool:
-        """Duplicate test: heavy overlap whatever the classes, one showing the other's surface
-        (:meth:`_shows_surface_of`) whatever the classes, or (same class, not two detections of
-        one frame) overlap / proximity as for re-association."""
+        """Duplicate test: heavy overlap of the footprints whatever the classes, one showing the
+        other's surface (:meth:`_shows_surface_of`) whatever the classes, or (same class, not two
+        detections of one frame) overlap / proximity as for re-association."""
         cfg = self.config
         # Any-class overlap is judged on the evidence footprints (what the map reports: cells
         # several views agree on), not the hulls: a hull is the union of the best views'
@@ -389,9 +389,9 @@ class ObjectMap:
             return False
         if _overlaps(fa, fb)[0] >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
             return True
-        iou, contained = _overlaps(a.hull_xy_m, b.hull_xy_m)
         if self._shows_surface_of(a, b) or self._shows_surface_of(b, a):
             return True
+        iou, contained = _overlaps(a.hull_xy_m, b.hull_xy_m)
         same_class = int(np.argmax(a.class_probs)) == int(np.argmax(b.class_probs))
         return same_class and not both_seen_now and (
             iou >= cfg.reassociate_iou or contained >= _CONTAINED or dist <= cfg.reassociate_distance_m
