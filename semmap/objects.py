@@ -409,18 +409,26 @@ class ObjectMap:
         under a desk) has a top of its own and reaches higher, so it stays apart. The merge
         pools both objects' footprint evidence and class probabilities, as every merge does.
         """
-        if not (inner.seen_near and outer.seen_near and inner.top_hist and outer.top_hist
-                and inner.z_max_hist and outer.z_max_hist):
+        if not (inner.seen_near and inner.top_hist and inner.z_max_hist):
             return False
-        if abs(_quantile(inner.top_hist, 0.5) - _quantile(outer.top_hist, 0.5)) > _SAME_SURFACE_M:
-            return False
-        if _quantile(inner.z_max_hist, 0.8) > _quantile(outer.z_max_hist, 0.8) + _SAME_SURFACE_M:
-            return False
-        fp = self._evidence_footprint(inner)
-        area = polygon_area_m2(fp)
+        return self._share_on_surface(_quantile(inner.top_hist, 0.5), _quantile(inner.z_max_hist, 0.8),
+                                      self._evidence_footprint(inner), outer) >= _CONTAINED
+
+    def _share_on_surface(self, top_m: float, z_max_m: float, fp_xy_m: NDArray[np.float64], outer: _State) -> float:
+        """The share of ``fp_xy_m`` inside ``outer``'s footprint when something with this top
+        plane and reach shows ``outer``'s surface (``outer`` seen near, the same top within
+        ``_SAME_SURFACE_M``, reaching no higher), else 0: the test of :meth:`_surface_owner`
+        (one observation) and :meth:`_shows_surface_of` (a mapped object)."""
+        if not outer.seen_near or not outer.top_hist or not outer.z_max_hist:
+            return 0.0
+        if abs(top_m - _quantile(outer.top_hist, 0.5)) > _SAME_SURFACE_M:
+            return 0.0
+        if z_max_m > _quantile(outer.z_max_hist, 0.8) + _SAME_SURFACE_M:
+            return 0.0
+        area = polygon_area_m2(fp_xy_m)
         if area <= 0.0:
-            return False
-        return polygon_area_m2(convex_intersection(self._evidence_footprint(outer), fp)) / area >= _CONTAINED
+            return 0.0
+        return polygon_area_m2(convex_intersection(self._evidence_footprint(outer), fp_xy_m)) / area
 
     def _merge_duplicates(self, touched: set[int], seen_now: set[int]) -> dict[int, int]:
         """Merge objects updated this frame into older duplicates (the same thing detected
@@ -524,19 +532,11 @@ class ObjectMap:
         if o.top_height_m is None:
             return None
         fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
-        area = polygon_area_m2(fp)
-        if area <= 0.0:
+        if polygon_area_m2(fp) <= 0.0:
             return None
         best: tuple[float, int] | None = None
         for cand in self._nearby(fp.min(axis=0), fp.max(axis=0), o.centroid_xy_m):
-            s = self._objects[cand]
-            if not s.seen_near or not s.top_hist or not s.z_max_hist:
-                continue
-            if abs(o.top_height_m - _quantile(s.top_hist, 0.5)) > _SAME_SURFACE_M:
-                continue
-            if o.z_max_m > _quantile(s.z_max_hist, 0.8) + _SAME_SURFACE_M:
-                continue
-            inside = polygon_area_m2(convex_intersection(self._evidence_footprint(s), fp)) / area
+            inside = self._share_on_surface(o.top_height_m, o.z_max_m, fp, self._objects[cand])
             if inside >= _CONTAINED and (best is None or inside > best[0]):
                 best = (inside, cand)
         if best is not None:
