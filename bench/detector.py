@@ -164,7 +164,7 @@ def main() -> None:
     print(f"model {detector.model_path.name} ({detector.model_path.stat().st_size / 1e6:.2f} MB, "
           f"{n_params / 1e6:.2f} M parameters, input {detector.input_hw_px[1]}x{detector.input_hw_px[0]}, "
           f"{detector.head} head)")
-    seeds = room_seeds(args.split, args.room_start + n_rooms)[args.room_start:]
+    seeds = room_seeds(args.split, n_rooms, start=args.room_start)
     split_text = {"heldout": "held-out", "val": "validation", "train": "training"}[args.split]
     print(f"{split_text} rooms: seeds {seeds[0]}..{seeds[-1]} (appearance seed {args.seed}), "
           f"{n_img} frames 640x480; P/R at score >= {operating_threshold}; "

@@ -126,13 +126,15 @@ class LabeledImage:
     visible_fraction: NDArray[np.float64] | None = None
 
 
-def room_seeds(split: str, n_rooms: int) -> list[int]:
-    """The room seeds of the first ``n_rooms`` rooms of ``split``."""
+def room_seeds(split: str, n_rooms: int, start: int = 0) -> list[int]:
+    """The room seeds of ``n_rooms`` rooms of ``split`` from its room ``start``."""
     if split not in ROOM_SEED_START:
         raise SimulationError(f"dataset split must be one of {sorted(ROOM_SEED_START)} (got {split!r})")
-    if n_rooms > MAX_ROOMS_PER_SPLIT:
-        raise SimulationError(f"a split has at most {MAX_ROOMS_PER_SPLIT} rooms (asked for {n_rooms})")
-    return [ROOM_SEED_START[split] + i for i in range(n_rooms)]
+    if start < 0:
+        raise SimulationError(f"room start must be >= 0 (got {start})")
+    if start + n_rooms > MAX_ROOMS_PER_SPLIT:
+        raise SimulationError(f"a split has at most {MAX_ROOMS_PER_SPLIT} rooms (asked for {start + n_rooms})")
+    return [ROOM_SEED_START[split] + start + i for i in range(n_rooms)]
 
 
 def _random_color(rng: np.random.Generator) -> tuple[int, int, int]:
@@ -276,7 +278,7 @@ def generate(spec: DatasetSpec, room_start: int = 0) -> Iterator[LabeledImage]:
     """Render ``spec.n_rooms`` rooms of the split (from room ``room_start``) and yield their
     labelled images, ``spec.images_per_room`` each. Deterministic in the spec."""
     intr = spec.intrinsics
-    for i, room_seed in enumerate(room_seeds(spec.split, room_start + spec.n_rooms)[room_start:]):
+    for i, room_seed in enumerate(room_seeds(spec.split, spec.n_rooms, start=room_start)):
         rng = np.random.default_rng([spec.seed, room_seed])
         room = varied_room(room_seed, rng, spec.class_names, spec.class_weights)
         renderer = RoomRenderer(
