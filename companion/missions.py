@@ -167,9 +167,24 @@ def plan_to_items(plan: MissionPlan) -> ItemMap:
     """MAVLink mission items (frame GLOBAL_RELATIVE_ALT_INT) for a resolved (global) plan.
 
     A DO_CHANGE_SPEED item precedes each waypoint whose speed differs from the one before.
+    A take-off or land step without a position gets one, as QGroundControl gives it: take-off
+    the plan's home, land the position of the step before it (home when there is none). An
+    INT item cannot say "here" (PX4 flies latitude/longitude 0/0 literally), so a step that
+    cannot be given a position is an error, never encoded as 0/0.
     """
     out = ItemMap()
     speed: float | None = None
+    home_ll = (plan.home.lat_deg, plan.home.lon_deg) if plan.home is not None else None
+    last_ll = home_ll
+
+    def position_of(i: int, w: Waypoint, fallback: tuple[float, float] | None) -> tuple[float, float]:
+        if math.isfinite(w.lat_deg) and math.isfinite(w.lon_deg):
+            return w.lat_deg, w.lon_deg
+        if fallback is None:
+            raise MissionError(f"{plan.source}: waypoint {i} ({w.action}) has no position and the plan "
+                               "has no home to take one from: give 'home' in the file, a position "
+                               "for the step, or upload to a vehicle that reports its home")
+        return fallback
 
     def add(idx: int, frame: int, cmd: int, p1: float, p2: float, p3: float, p4: float,
             lat: float, lon: float, alt: float) -> None:
@@ -190,14 +205,19 @@ def plan_to_items(plan: MissionPlan) -> ItemMap:
         if w.action == "rtl":
             add(i, FRAME_MISSION, CMD_RTL, 0, 0, 0, 0, _NAN, _NAN, 0.0)
         elif w.action == "takeoff":
-            add(i, FRAME_GLOBAL_REL_INT, CMD_TAKEOFF, 0, 0, 0, yaw, w.lat_deg, w.lon_deg,
-                w.rel_alt_m)
+            lat, lon = position_of(i, w, home_ll if home_ll is not None else last_ll)
+            add(i, FRAME_GLOBAL_REL_INT, CMD_TAKEOFF, 0, 0, 0, yaw, lat, lon, w.rel_alt_m)
+            last_ll = (lat, lon)
         elif w.action == "land":
-            add(i, FRAME_GLOBAL_REL_INT, CMD_LAND, 0, 0, 0, yaw, w.lat_deg, w.lon_deg, 0.0)
+            lat, lon = position_of(i, w, last_ll)
+            add(i, FRAME_GLOBAL_REL_INT, CMD_LAND, 0, 0, 0, yaw, lat, lon, 0.0)
+            last_ll = (lat, lon)
         else:
+            lat, lon = position_of(i, w, None)
             accept = w.acceptance_radius_m if w.acceptance_radius_m is not None else 0.0
-            add(i, FRAME_GLOBAL_REL_INT, CMD_WAYPOINT, w.hold_s, accept, 0.0, yaw, w.lat_deg,
-                w.lon_deg, w.rel_alt_m)
+            add(i, FRAME_GLOBAL_REL_INT, CMD_WAYPOINT, w.hold_s, accept, 0.0, yaw, lat, lon,
+                w.rel_alt_m)
+            last_ll = (lat, lon)
     return out
 
 
