@@ -36,6 +36,7 @@ from companion.service.demo import (
     feasible_seed,
     local_broker,
 )
+from companion.sim.px4_probes import FlightTimeline, engage_check
 from companion.sim.px4_sitl import Px4Sitl, Px4SitlError
 from companion.sim.px4_world import Px4World, vehicle_start_map_xy
 from semmap.errors import LinkError
@@ -61,6 +62,16 @@ class Px4Flight:
     report: ServiceReport | None = None
     #: ``uorb top`` samples taken while the vehicle was in OFFBOARD: topic -> Hz per sample.
     uorb_hz: dict[str, list[float]] = field(default_factory=dict)
+    #: Mode, arming and landed-state changes as PX4 reported them on the service's link.
+    timeline: FlightTimeline = field(default_factory=FlightTimeline)
+
+
+async def upload_crossing(gcs_url: str, waypoints_map_xy: list[tuple[float, float]], altitude_m: float) -> None:
+    """Upload the demo's waypoints (map frame, at ``altitude_m``) with MAVSDK on ``gcs_url``."""
+    plan = MissionPlan(tuple(Waypoint(xyz_map_m=(x, y, altitude_m), acceptance_radius_m=0.3)
+                             for x, y in waypoints_map_xy), None, "demo crossing")
+    async with MavsdkClient(gcs_url, connect_timeout_s=30.0) as client:
+        await client.upload_mission(plan.resolved(await client.home(timeout_s=20.0)))
 
 
 async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | None = None,
@@ -89,23 +100,19 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
             # A demo flies a fresh room: an earlier run's map must not be restored into it.
             checkpoint_path(cfg).unlink()
         start = await vehicle_start_map_xy(cfg.link)
-        async with MavsdkClient(gcs_url, connect_timeout_s=30.0) as client:
-            home = await client.home(timeout_s=20.0)
-            world = Px4World(cfg, start, target_system=cfg.link.target_system,
-                             target_component=cfg.link.target_component)
-            placement = world.placement
-            if cfg.planner.geofence_xy_m is None:
-                # The mission author knows the room's walls (not its furniture): the room is the geofence.
-                x0, y0 = placement.room_to_map_xy((0.0, 0.0))
-                x1, y1 = placement.room_to_map_xy((placement.room.width_m, placement.room.depth_m))
-                cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(
-                    update={"geofence_xy_m": (x0, y0, x1, y1)})})
-            flight.files["config"] = write_effective_config(cfg, out)
-            wps_room = await asyncio.to_thread(crossing_waypoints_room, placement, cfg)
-            wps_map = [placement.room_to_map_xy(w) for w in wps_room]
-            plan = MissionPlan(tuple(Waypoint(xyz_map_m=(x, y, cfg.planner.flight_altitude_m), acceptance_radius_m=0.3)
-                                     for x, y in wps_map), None, "demo crossing")
-            await client.upload_mission(plan.resolved(home))
+        world = Px4World(cfg, start, target_system=cfg.link.target_system,
+                         target_component=cfg.link.target_component)
+        placement = world.placement
+        if cfg.planner.geofence_xy_m is None:
+            # The mission author knows the room's walls (not its furniture): the room is the geofence.
+            x0, y0 = placement.room_to_map_xy((0.0, 0.0))
+            x1, y1 = placement.room_to_map_xy((placement.room.width_m, placement.room.depth_m))
+            cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(
+                update={"geofence_xy_m": (x0, y0, x1, y1)})})
+        flight.files["config"] = write_effective_config(cfg, out)
+        wps_room = await asyncio.to_thread(crossing_waypoints_room, placement, cfg)
+        wps_map = [placement.room_to_map_xy(w) for w in wps_room]
+        await upload_crossing(gcs_url, wps_map, cfg.planner.flight_altitude_m)
         log.info("PX4 demo: room seed %d placed around the vehicle at (%.2f, %.2f) m; %d waypoints uploaded",
                  placement.room.seed, start[0], start[1], len(wps_map))
         service = CompanionService(cfg, world.frame_source(), out_dir=out, fly_mission=True,
@@ -116,6 +123,7 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
             # The service opens its link when it activates: the world rides on the same telemetry.
             assert svc.vehicle is not None
             world.follow(svc.vehicle.link)
+            flight.timeline.attach(svc.vehicle.link)
 
         service.on_active = follow
         async def stopper() -> None:
@@ -161,6 +169,10 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
     s["mqtt"] = broker is not None
     s["start_map_xy_m"] = [round(v, 3) for v in start]
     s["camera_poses"] = world.poses_published
+    engaged_ok, engaged = engage_check(flight.timeline.events, cfg.planner.flight_altitude_m)
+    s["engage"] = {"ok": engaged_ok, "detail": engaged}
+    s["modes"] = [f"{e.mode} {'armed' if e.armed else 'disarmed'} {e.landed}" +
+                  ("" if e.xyz_map_m is None else f" z={e.xyz_map_m[2]:.2f}") for e in flight.timeline.events]
     s["px4_uorb_hz"] = {t: {"median": round(float(np.median(v)), 1), "min": round(float(np.min(v)), 1),
                             "samples": len(v)} for t, v in flight.uorb_hz.items() if v}
     if sitl is not None:
