@@ -199,10 +199,9 @@ def report(flights: list[Px4Flight], probes: dict[str, ProbeResult], wanted: tup
             for line in f.summary.get("px4_log_events", [])[-15:]:
                 print(f"  {line}")
     for name, r in probes.items():
-        if not r.passed:
-            print(f"\nPX4 log, {name}:")
-            for line in r.px4_log[-15:]:
-                print(f"  {line}")
+        print(f"\nPX4 log, {name} ({'pass' if r.passed else 'FAIL'}):")
+        for line in r.px4_log[-12:]:
+            print(f"  {line}")
     clear = [f.summary["min_clearance_m"] for f in flights if f.summary["min_clearance_m"] is not None]
     figures = {
         "rooms": len(flights),

@@ -42,7 +42,7 @@ from companion.config import CompanionConfig, LinkConfig
 from companion.errors import LinkError
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.state import LandedState
-from companion.px4 import decode_heartbeat
+from companion.px4 import FlightMode, decode_heartbeat, set_mode_params
 from companion.sim.px4_sitl import Px4Sitl
 
 log = logging.getLogger(__name__)
@@ -85,6 +85,7 @@ class FlightTimeline:
         self.landed = LandedState.UNDEFINED.name
         self.home_down_m: float | None = None
         self.xyz_map_m: tuple[float, float, float] | None = None
+        self.ned_m: tuple[float, float, float] | None = None
 
     def attach(self, link: MavlinkLink) -> Callable[[], None]:
         return link.add_listener(self.handle, self.MESSAGES)
@@ -103,6 +104,7 @@ class FlightTimeline:
         elif mtype == "HOME_POSITION" and math.isfinite(msg.z):
             self.home_down_m = float(msg.z)
         elif mtype == "LOCAL_POSITION_NED" and self.home_down_m is not None:
+            self.ned_m = (float(msg.x), float(msg.y), float(msg.z))
             self.xyz_map_m = (float(msg.y), float(msg.x), -(float(msg.z) - self.home_down_m))
             now = time.monotonic()
             if not self.path or now - self.path[-1][0] >= self.path_period_s:
@@ -302,33 +304,54 @@ def _kill_group(proc: subprocess.Popen[bytes]) -> None:
 
 
 async def land_in_offboard(sitl: Px4Sitl, altitude_m: float = 1.0, timeout_s: float = 60.0) -> str:
-    """Take off with MAVSDK, switch to OFFBOARD and descend with setpoints below the floor until
-    PX4 detects the landing and disarms (it stays in OFFBOARD); returns the mode it reports then."""
-    from mavsdk.plugins.offboard import PositionNedYaw
-
+    """Take off (MAVSDK, GCS link), switch to OFFBOARD with raw setpoints at 20 Hz on the
+    onboard link and descend to a setpoint under the floor until PX4 detects the landing and
+    disarms; returns the mode PX4 reports then (it keeps OFFBOARD)."""
     from companion.mavsdk_client import MavsdkClient
 
-    async with MavsdkClient(sitl.gcs_url, connect_timeout_s=30.0) as client:
-        pv = await anext(client.telemetry.subscribe_position_velocity_ned())
-        n, e, d_ground = pv.position.north_m, pv.position.east_m, pv.position.down_m
-        await client.action.set_takeoff_altitude(altitude_m)
-        await client.arm()
-        await client.action.takeoff()
-        async with asyncio.timeout(timeout_s):
-            async for p in client.telemetry.subscribe_position_velocity_ned():
-                if p.position.down_m <= d_ground - (altitude_m - 0.2):
-                    break
-        await client.offboard.set_position_ned(PositionNedYaw(n, e, d_ground - altitude_m, 0.0))
-        await client.offboard.start()
-        await asyncio.sleep(2.0)
-        # A setpoint 0.5 m under the floor: PX4 descends, detects the landing and disarms.
-        await client.offboard.set_position_ned(PositionNedYaw(n, e, d_ground + 0.5, 0.0))
-        async with asyncio.timeout(timeout_s):
-            async for armed in client.telemetry.subscribe_armed():
-                if not armed:
-                    break
-        mode = await anext(client.telemetry.subscribe_flight_mode())
-    return str(getattr(mode, "name", mode))
+    tl = FlightTimeline()
+    async with MavlinkLink.from_config(LinkConfig(url=sitl.onboard_url)) as link:
+        tl.attach(link)
+        await tl.wait_for(lambda t: t.ned_m is not None, 15.0, "a local position")
+        async with MavsdkClient(sitl.gcs_url, connect_timeout_s=30.0) as client:
+            await client.action.set_takeoff_altitude(altitude_m)
+            await client.arm()
+            await client.action.takeoff()
+        await tl.wait_for(lambda t: t.mode == "HOLD" and t.in_air, timeout_s, f"the take-off to {altitude_m:.1f} m")
+        assert tl.ned_m is not None
+        target = list(tl.ned_m)
+
+        descend = [False]
+
+        async def stream() -> None:
+            position_only, velocity_only = 0b0000_1111_1111_1000, 0b0000_1111_1100_0111
+            while True:
+                if descend[0]:
+                    # Down at 0.7 m/s: PX4's land detector needs a descending velocity setpoint.
+                    msg = link.mav.set_position_target_local_ned_encode(
+                        link.time_boot_ms(), 1, 1, mavlink.MAV_FRAME_LOCAL_NED, velocity_only, 0, 0, 0,
+                        0, 0, 0.7, 0, 0, 0, 0, 0)
+                else:
+                    msg = link.mav.set_position_target_local_ned_encode(
+                        link.time_boot_ms(), 1, 1, mavlink.MAV_FRAME_LOCAL_NED, position_only, *target,
+                        0, 0, 0, 0, 0, 0, 0, 0)
+                link.send(msg)
+                await asyncio.sleep(0.05)
+
+        task = asyncio.create_task(stream())
+        try:
+            await asyncio.sleep(1.0)
+            p1, p2, p3 = set_mode_params(FlightMode.OFFBOARD)
+            link.send(link.mav.command_long_encode(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, p1, p2, p3, 0, 0, 0, 0))
+            await tl.wait_for(lambda t: t.mode == "OFFBOARD", 10.0, "OFFBOARD")
+            descend[0] = True
+            await tl.wait_for(lambda t: not t.armed, timeout_s, "the landing and disarm in OFFBOARD")
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        await asyncio.sleep(HEARTBEAT_LAG_S)
+        return tl.mode
 
 
 async def probe_landing_rearm(sitl: Px4Sitl, cfg: CompanionConfig, out_dir: Path,
