@@ -161,7 +161,8 @@ def altitude(mav: mavlink.MAVLink, s: Snapshot) -> Any:
     d = s.vehicle.position_ned_m[2]
     amsl = s.home.alt_m - d
     rel = s.home_ned_m[2] - d
-    return mav.altitude_encode(s.time_usec, amsl, amsl, -d, rel, -d, -d)
+    # Terrain and bottom clearance: the height above the floor, which home stands on.
+    return mav.altitude_encode(s.time_usec, amsl, amsl, -d, rel, rel, rel)
 
 
 def vfr_hud(mav: mavlink.MAVLink, s: Snapshot) -> Any:
