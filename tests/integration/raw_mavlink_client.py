@@ -87,3 +87,20 @@ class RawClient:
         passing (PX4 says "Ready for takeoff!" then)."""
         await self.recv("SYS_STATUS", timeout_s, since=0, pred=lambda m: bool(
             m.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK))
+
+    def status_texts(self) -> list[str]:
+        """Every STATUSTEXT received so far, chunked ones (MAVLink 2 ``id``) joined."""
+        self._drain()
+        texts: list[str] = []
+        open_chunks: dict[int, int] = {}  # id -> index in texts
+        for m in self.log:
+            if m.get_type() != "STATUSTEXT":
+                continue
+            if m.id == 0:
+                texts.append(m.text)
+            elif m.id in open_chunks:
+                texts[open_chunks[m.id]] += m.text
+            else:
+                open_chunks[m.id] = len(texts)
+                texts.append(m.text)
+        return texts

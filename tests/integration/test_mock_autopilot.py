@@ -40,6 +40,7 @@ async def link():
                 await asyncio.sleep(0.01)
 
         reader = asyncio.create_task(keep_reading())
+        await client.wait_ready()  # as a client of real PX4 must before arming
         yield ap, client
         reader.cancel()
     client.close()
@@ -83,9 +84,7 @@ async def test_arm_takeoff_land_disarms(link) -> None:
     await ap.wait_until(lambda: not ap.armed, 15.0, "land and auto-disarm")
     assert ap.position_ned_m[2] == pytest.approx(0.0, abs=0.02)
     # PX4-style STATUSTEXT reports the events a ground station shows.
-    c.mark()
-    texts = [m.text for m in c.log if m.get_type() == "STATUSTEXT"]
-    assert texts == ["Takeoff detected", "Disarming denied: not landed", "Landing detected",
+    assert c.status_texts() == ["Ready for takeoff!", "Takeoff detected", "Disarming denied: not landed", "Landing detected",
                      "Disarmed by landing"]
 
 

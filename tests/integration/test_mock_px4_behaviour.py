@@ -120,3 +120,25 @@ async def test_local_origin_below_the_floor() -> None:
     async with mock(replace(PX4, floor_z_ned_m=0.0)) as (ap, c):
         pos = await c.recv("LOCAL_POSITION_NED")
         assert pos.z == pytest.approx(0.0, abs=0.01)
+
+
+async def test_arming_waits_for_readiness() -> None:
+    async with mock() as (ap, c):
+        status = await c.recv("SYS_STATUS")
+        assert not status.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == \
+            mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        await c.recv("STATUSTEXT", since=0)
+        await asyncio.sleep(0.1)
+        assert c.status_texts() == ["Arming denied: Resolve system health failures first"]
+        assert await c.command(mavlink.MAV_CMD_REQUEST_MESSAGE,
+                               mavlink.MAVLINK_MSG_ID_HOME_POSITION) == mavlink.MAV_RESULT_FAILED
+        assert c.count("HOME_POSITION") == 0 and not ap.armed
+        ready = await c.recv("STATUSTEXT", 5.0, since=0, pred=lambda m: m.text == "Ready for takeoff!")
+        assert ready.severity == mavlink.MAV_SEVERITY_INFO
+        assert ap.now_s() >= PX4.ready_after_s
+        await c.recv("HOME_POSITION", timeout_s=3.0, since=0)
+        await c.wait_ready(1.0)
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+    async with mock(replace(PX4, ready_after_s=0.0)) as (ap, c):
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED

@@ -172,6 +172,8 @@ class MockAutopilot:
             n: [1.0 / r if r > 0 else 0.0, 0.0] for n, r in rates.items()}
         self._default_rates = dict(rates)
         self._battery_pct = 100.0
+        #: PX4's pre-flight checks pass (EKF and GPS converged): arming allowed, home valid.
+        self.ready = self.behaviour.ready_after_s <= 0.0
 
     # --- lifecycle -----------------------------------------------------------------------
 
@@ -305,7 +307,8 @@ class MockAutopilot:
         log.log(level, "%s", text)
         self.status_texts.append(text)
         if self._link.is_open:
-            self.send(self._mav.statustext_encode(severity, text.encode("ascii", "replace")[:50]))
+            for chunk in telemetry.statustext_chunks(self._mav, severity, text):
+                self.send(chunk)
 
     # --- mode and arming (used by the command handler and the navigator) ----------------
 
@@ -390,9 +393,16 @@ class MockAutopilot:
             self._reached_resend = None
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
+        if not self.ready and now >= self.behaviour.ready_after_s:
+            self._become_ready()
         self._stream(now)
         if self.peer_clock.request_due(now):
             self.send(self._mav.timesync_encode(0, int(now * 1e9)))
+
+    def _become_ready(self) -> None:
+        self.ready = True
+        self.announce(mavlink.MAV_SEVERITY_INFO, "Ready for takeoff!")
+        self._send_now("HOME_POSITION")
 
     def _check_offboard(self, now: float) -> None:
         if self._mode is not FlightMode.OFFBOARD:
@@ -457,7 +467,7 @@ class MockAutopilot:
     def snapshot(self) -> telemetry.Snapshot:
         now = self.now_s()
         health = telemetry.SENSORS_OK
-        if self.faults.prearm_fail:
+        if self.faults.prearm_fail or not self.ready:
             health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
         nav = self.navigator
         floor_z = self.behaviour.floor_z_ned_m
@@ -474,7 +484,7 @@ class MockAutopilot:
         snap: telemetry.Snapshot | None = None
         for name, sched in self._streams.items():
             interval, due = sched
-            if interval <= 0 or now < due:
+            if interval <= 0 or now < due or (name == "HOME_POSITION" and not self.ready):
                 continue
             sched[1] = due + interval if now - due < interval else now + interval
             snap = snap or self.snapshot()
