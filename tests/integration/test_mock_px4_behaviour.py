@@ -142,3 +142,30 @@ async def test_arming_waits_for_readiness() -> None:
         assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
     async with mock(replace(PX4, ready_after_s=0.0)) as (ap, c):
         assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+
+
+async def _offboard_during_takeoff(behaviour: Px4Behaviour) -> MockAutopilot:
+    async with mock(behaviour) as (ap, c):
+        await c.wait_ready()
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        async with streaming(c, 2.0, 0.0, home.z - 1.0):
+            assert await c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN,
+                                   ap.home.alt_m + 2.5) == ACCEPTED
+            await ap.wait_until(lambda: ap.position_ned_m[2] < -0.5, 5.0, "climbing")
+            assert ap.mode is FlightMode.TAKEOFF
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE,
+                                   *px4.set_mode_params(FlightMode.OFFBOARD)) == ACCEPTED
+            await asyncio.sleep(2.0)
+            return ap
+    raise AssertionError("unreachable")
+
+
+async def test_offboard_requested_during_takeoff_ends_in_hold() -> None:
+    ap = await _offboard_during_takeoff(PX4)
+    assert ap.mode is FlightMode.HOLD
+    assert [m for _t, m in ap.mode_changes] == [FlightMode.TAKEOFF, FlightMode.HOLD]
+    n, e, d = ap.position_ned_m
+    assert math.hypot(n, e) < 0.1 and d == pytest.approx(-2.5, abs=0.15)
+    ap = await _offboard_during_takeoff(replace(PX4, offboard_during_takeoff_dropped=False))
+    assert ap.mode is FlightMode.OFFBOARD

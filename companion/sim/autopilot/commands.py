@@ -194,6 +194,10 @@ class CommandHandler:
         if mode is FlightMode.OFFBOARD and not ap.offboard_available():
             ap.announce(CRITICAL, "Switching to Offboard is currently not available")
             return TEMPORARILY_REJECTED
+        if mode is FlightMode.OFFBOARD and ap.mode is FlightMode.TAKEOFF and \
+                ap.behaviour.offboard_during_takeoff_dropped:
+            log.info("Offboard requested during take-off: acknowledged, take-off continues")
+            return ACCEPTED
         if mode is FlightMode.MISSION and ap.navigator.mission_count == 0:
             ap.announce(CRITICAL, "Switching to Mission: no valid mission")
             return TEMPORARILY_REJECTED
