@@ -35,6 +35,9 @@ UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
 CRITICAL = mavlink.MAV_SEVERITY_CRITICAL
 FAILED = mavlink.MAV_RESULT_FAILED
 
+#: What PX4 says when its health and arming checks refuse to arm (not ready, mode not armable).
+HEALTH_DENIAL = "Arming denied: Resolve system health failures first"
+
 #: Modes PX4 lets you arm in (without RC; POSCTL etc. hold position in the mock).
 ARMABLE_MODES = frozenset({
     FlightMode.HOLD, FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.MANUAL,
@@ -132,6 +135,9 @@ class CommandHandler:
             if ap.faults.prearm_fail:
                 ap.announce(CRITICAL, "Arming denied: pre-arm checks failed")
                 return DENIED
+            if not ap.ready:
+                ap.announce(CRITICAL, HEALTH_DENIAL)
+                return TEMPORARILY_REJECTED
             if ap.mode not in ARMABLE_MODES:
                 ap.announce(CRITICAL, f"Arming denied: not armable in {ap.mode.name.title()}")
                 return DENIED
@@ -188,6 +194,10 @@ class CommandHandler:
         if mode is FlightMode.OFFBOARD and not ap.offboard_available():
             ap.announce(CRITICAL, "Switching to Offboard is currently not available")
             return TEMPORARILY_REJECTED
+        if mode is FlightMode.OFFBOARD and ap.mode is FlightMode.TAKEOFF and \
+                ap.behaviour.offboard_during_takeoff_dropped:
+            log.info("Offboard requested during take-off: acknowledged, take-off continues")
+            return ACCEPTED
         if mode is FlightMode.MISSION and ap.navigator.mission_count == 0:
             ap.announce(CRITICAL, "Switching to Mission: no valid mission")
             return TEMPORARILY_REJECTED
@@ -212,6 +222,8 @@ class CommandHandler:
         return ACCEPTED if self._ap.navigator.set_current(int(p[0])) else DENIED
 
     def _request_message(self, p: tuple[float, ...], is_int: bool) -> int:
+        if int(p[0]) == mavlink.MAVLINK_MSG_ID_HOME_POSITION and not self._ap.ready:
+            return FAILED  # PX4 has no home before its pre-flight checks pass
         return ACCEPTED if self._ap.send_message_by_id(int(p[0])) else UNSUPPORTED
 
     def _request_capabilities(self, p: tuple[float, ...], is_int: bool) -> int:

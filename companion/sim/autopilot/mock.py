@@ -32,6 +32,13 @@ from companion.errors import SimulationError
 from companion.geo import GeoOrigin
 from companion.px4 import FlightMode
 from companion.sim.autopilot import offboard, telemetry
+from companion.sim.autopilot.behaviour import (
+    Px4Behaviour,
+    accept_target,
+    ekf_origin,
+    report_ned,
+    report_state,
+)
 from companion.sim.autopilot.commands import CommandHandler
 from companion.sim.autopilot.estimator import SimEstimator, T_map_body_of
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
@@ -81,6 +88,7 @@ class MockAutopilot:
     vehicle starts on the floor facing ``start_yaw_rad`` (NED yaw, from north, clockwise).
     ``odometry_drift``: the reported pose drifts (None = it is the truth); ``vision_gain``:
     how strongly external vision corrects it (0 = received vision is recorded only).
+    ``behaviour``: which of PX4's ways to follow (default: all, see :class:`Px4Behaviour`).
     """
 
     def __init__(
@@ -99,6 +107,7 @@ class MockAutopilot:
         start_yaw_rad: float = 0.0,
         odometry_drift: OdometryDriftModel | None = None,
         vision_gain: float = 0.0,
+        behaviour: Px4Behaviour | None = None,
     ) -> None:
         if physics_rate_hz <= 0:
             raise SimulationError(f"physics_rate_hz must be > 0 (got {physics_rate_hz})")
@@ -107,7 +116,10 @@ class MockAutopilot:
             raise SimulationError(f"unknown telemetry streams {sorted(unknown)} "
                                   f"(known: {sorted(telemetry.STREAMS)})")
         self.host = host
+        self.behaviour = behaviour or Px4Behaviour()
         self.home = home or GeoOrigin()
+        #: The origin of the local frame the mock reports (PX4's EKF origin, below the floor).
+        self.ekf_origin = ekf_origin(self.home, self.behaviour.floor_z_ned_m)
         self.system_id = system_id
         self.params = ParamStore({"MAV_SYS_ID": system_id, **(params or {})})
         self.faults = Faults()
@@ -160,6 +172,8 @@ class MockAutopilot:
             n: [1.0 / r if r > 0 else 0.0, 0.0] for n, r in rates.items()}
         self._default_rates = dict(rates)
         self._battery_pct = 100.0
+        #: PX4's pre-flight checks pass (EKF and GPS converged): arming allowed, home valid.
+        self.ready = self.behaviour.ready_after_s <= 0.0
 
     # --- lifecycle -----------------------------------------------------------------------
 
@@ -293,7 +307,8 @@ class MockAutopilot:
         log.log(level, "%s", text)
         self.status_texts.append(text)
         if self._link.is_open:
-            self.send(self._mav.statustext_encode(severity, text.encode("ascii", "replace")[:50]))
+            for chunk in telemetry.statustext_chunks(self._mav, severity, text):
+                self.send(chunk)
 
     # --- mode and arming (used by the command handler and the navigator) ----------------
 
@@ -378,9 +393,16 @@ class MockAutopilot:
             self._reached_resend = None
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
+        if not self.ready and now >= self.behaviour.ready_after_s:
+            self._become_ready()
         self._stream(now)
         if self.peer_clock.request_due(now):
             self.send(self._mav.timesync_encode(0, int(now * 1e9)))
+
+    def _become_ready(self) -> None:
+        self.ready = True
+        self.announce(mavlink.MAV_SEVERITY_INFO, "Ready for takeoff!")
+        self._send_now("HOME_POSITION")
 
     def _check_offboard(self, now: float) -> None:
         if self._mode is not FlightMode.OFFBOARD:
@@ -445,12 +467,15 @@ class MockAutopilot:
     def snapshot(self) -> telemetry.Snapshot:
         now = self.now_s()
         health = telemetry.SENSORS_OK
-        if self.faults.prearm_fail:
+        if self.faults.prearm_fail or not self.ready:
             health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
         nav = self.navigator
+        floor_z = self.behaviour.floor_z_ned_m
         return telemetry.Snapshot(
-            time_boot_ms=int(now * 1000), time_usec=int(now * 1e6), vehicle=self.estimated_state(),
-            home=self.home, home_ned_m=self.navigator.home_ned_m, mode=self._mode, armed=self._armed, landed_state=self.landed_state,
+            time_boot_ms=int(now * 1000), time_usec=int(now * 1e6),
+            vehicle=report_state(self.estimated_state(), floor_z), home=self.ekf_origin,
+            home_ned_m=report_ned(self.navigator.home_ned_m, floor_z), mode=self._mode,
+            armed=self._armed, landed_state=self.landed_state,
             sensors_health=health, mission_seq=nav.mission_seq, mission_total=nav.mission_count,
             mission_state=int(nav.mission_state), battery_remaining_pct=int(self._battery_pct),
             system_id=self.system_id)
@@ -459,7 +484,7 @@ class MockAutopilot:
         snap: telemetry.Snapshot | None = None
         for name, sched in self._streams.items():
             interval, due = sched
-            if interval <= 0 or now < due:
+            if interval <= 0 or now < due or (name == "HOME_POSITION" and not self.ready):
                 continue
             sched[1] = due + interval if now - due < interval else now + interval
             snap = snap or self.snapshot()
@@ -596,8 +621,10 @@ class MockAutopilot:
         mtype = msg.get_type()
         try:
             if mtype == "SET_POSITION_TARGET_LOCAL_NED":
-                est = self.estimated_state()
-                target = offboard.target_from_local_ned(msg, est.position_ned_m, est.yaw_rad)
+                floor_z = self.behaviour.floor_z_ned_m
+                est = report_state(self.estimated_state(), floor_z)
+                target = accept_target(
+                    offboard.target_from_local_ned(msg, est.position_ned_m, est.yaw_rad), floor_z)
             elif mtype == "SET_POSITION_TARGET_GLOBAL_INT":
                 target = offboard.target_from_global_int(msg, self.home)
             else:

@@ -1,0 +1,171 @@
+"""The mock autopilot behaves like real PX4 where a naive autopilot would not.
+
+One test per behaviour of :class:`~companion.sim.autopilot.behaviour.Px4Behaviour`, each also
+checking that its switch turns it off. Measured PX4 SITL behaviour is listed in
+``../shared/px4-sitl/README.md``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+from collections.abc import AsyncIterator
+from dataclasses import replace
+from typing import Any
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+from raw_mavlink_client import RawClient
+
+from companion import px4
+from companion.px4 import FlightMode
+from companion.sim.autopilot import MockAutopilot
+from companion.sim.autopilot.behaviour import Px4Behaviour
+
+pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(60)]
+
+NAN = math.nan
+ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
+#: Brisk take-off and landing keep these short; the behaviours under test are unchanged.
+PARAMS = {"MPC_TKO_SPEED": 3.0, "MPC_LAND_SPEED": 1.5}
+PX4 = Px4Behaviour()
+
+
+@contextlib.asynccontextmanager
+async def mock(behaviour: Px4Behaviour = PX4, **params: float) -> AsyncIterator[tuple[MockAutopilot, RawClient]]:
+    """The mock with ``behaviour`` and a raw client reading everything it sends."""
+    client = RawClient()
+    async with MockAutopilot(local_port=0, remote_ports=[client.port], params={**PARAMS, **params},
+                             behaviour=behaviour) as ap:
+        client.ap_addr = ("127.0.0.1", ap.local_port)
+
+        async def keep_reading() -> None:
+            while True:
+                client._drain()
+                await asyncio.sleep(0.01)
+
+        reader = asyncio.create_task(keep_reading())
+        try:
+            yield ap, client
+        finally:
+            reader.cancel()
+    client.close()
+
+
+def _position_setpoint(c: RawClient, n: float, e: float, d: float, yaw: float = 0.0) -> Any:
+    mask = (mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
+            | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE
+            | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+            | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE)
+    return c.mav.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, mask,
+                                                      n, e, d, 0, 0, 0, 0, 0, 0, yaw, 0)
+
+
+async def _take_off(ap: MockAutopilot, c: RawClient, alt_m: float = 2.5) -> None:
+    await c.wait_ready()
+    assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+    assert await c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN,
+                           ap.home.alt_m + alt_m) == ACCEPTED
+    await ap.wait_until(lambda: ap.mode is FlightMode.HOLD and ap.position_ned_m[2] < -(alt_m - 0.2),
+                        15.0, "take-off")
+
+
+@contextlib.asynccontextmanager
+async def streaming(c: RawClient, n: float, e: float, d: float, period_s: float = 0.05) -> AsyncIterator[None]:
+    """Stream one position setpoint (reported frame) while the block runs."""
+
+    async def stream() -> None:
+        while True:
+            c.send(_position_setpoint(c, n, e, d))
+            await asyncio.sleep(period_s)
+
+    task = asyncio.create_task(stream())
+    try:
+        yield
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+async def test_local_origin_below_the_floor() -> None:
+    async with mock() as (ap, c):
+        await c.wait_ready()
+        pos = await c.recv("LOCAL_POSITION_NED")
+        assert pos.z == pytest.approx(-0.86, abs=0.01)
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        assert home.z == pytest.approx(-0.86, abs=0.01)
+        assert home.altitude == pytest.approx(ap.home.alt_m * 1000, abs=10)  # the floor, AMSL
+        origin_since = c.mark()
+        assert await c.command(mavlink.MAV_CMD_REQUEST_MESSAGE,
+                               mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN) == ACCEPTED
+        origin = await c.recv("GPS_GLOBAL_ORIGIN", since=origin_since)
+        assert origin.altitude == pytest.approx((ap.home.alt_m - 0.86) * 1000, abs=10)
+        # The truth stays on the floor.
+        assert ap.position_ned_m[2] == 0.0 and ap.state().position_ned_m[2] == 0.0
+        await _take_off(ap, c)
+        # A setpoint at local z -2.86 is 2 m above the floor.
+        async with streaming(c, 1.0, 0.0, -2.86):
+            await asyncio.sleep(0.3)
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE,
+                                   *px4.set_mode_params(FlightMode.OFFBOARD)) == ACCEPTED
+            await ap.wait_until(lambda: math.dist(ap.position_ned_m, (1.0, 0.0, -2.0)) < 0.15, 10.0,
+                                "setpoint reached")
+            now = c.mark()
+            pos = await c.recv("LOCAL_POSITION_NED", since=now)
+            assert pos.z == pytest.approx(-2.86, abs=0.15)
+            rel = await c.recv("GLOBAL_POSITION_INT", since=now)
+            assert rel.relative_alt == pytest.approx(2000, abs=150)
+    async with mock(replace(PX4, floor_z_ned_m=0.0)) as (ap, c):
+        pos = await c.recv("LOCAL_POSITION_NED")
+        assert pos.z == pytest.approx(0.0, abs=0.01)
+
+
+async def test_arming_waits_for_readiness() -> None:
+    async with mock() as (ap, c):
+        status = await c.recv("SYS_STATUS")
+        assert not status.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == \
+            mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        await c.recv("STATUSTEXT", since=0)
+        await asyncio.sleep(0.1)
+        assert c.status_texts() == ["Arming denied: Resolve system health failures first"]
+        assert await c.command(mavlink.MAV_CMD_REQUEST_MESSAGE,
+                               mavlink.MAVLINK_MSG_ID_HOME_POSITION) == mavlink.MAV_RESULT_FAILED
+        assert c.count("HOME_POSITION") == 0 and not ap.armed
+        ready = await c.recv("STATUSTEXT", 5.0, since=0, pred=lambda m: m.text == "Ready for takeoff!")
+        assert ready.severity == mavlink.MAV_SEVERITY_INFO
+        assert ap.now_s() >= PX4.ready_after_s
+        await c.recv("HOME_POSITION", timeout_s=3.0, since=0)
+        await c.wait_ready(1.0)
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+    async with mock(replace(PX4, ready_after_s=0.0)) as (ap, c):
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+
+
+async def _offboard_during_takeoff(behaviour: Px4Behaviour) -> MockAutopilot:
+    async with mock(behaviour) as (ap, c):
+        await c.wait_ready()
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        async with streaming(c, 2.0, 0.0, home.z - 1.0):
+            assert await c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN,
+                                   ap.home.alt_m + 2.5) == ACCEPTED
+            await ap.wait_until(lambda: ap.position_ned_m[2] < -0.5, 5.0, "climbing")
+            assert ap.mode is FlightMode.TAKEOFF
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE,
+                                   *px4.set_mode_params(FlightMode.OFFBOARD)) == ACCEPTED
+            await asyncio.sleep(2.0)
+            return ap
+    raise AssertionError("unreachable")
+
+
+async def test_offboard_requested_during_takeoff_ends_in_hold() -> None:
+    ap = await _offboard_during_takeoff(PX4)
+    assert ap.mode is FlightMode.HOLD
+    assert [m for _t, m in ap.mode_changes] == [FlightMode.TAKEOFF, FlightMode.HOLD]
+    n, e, d = ap.position_ned_m
+    assert math.hypot(n, e) < 0.1 and d == pytest.approx(-2.5, abs=0.15)
+    ap = await _offboard_during_takeoff(replace(PX4, offboard_during_takeoff_dropped=False))
+    assert ap.mode is FlightMode.OFFBOARD
