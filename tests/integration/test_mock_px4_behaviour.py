@@ -81,6 +81,7 @@ async def streaming(c: RawClient, n: float, e: float, d: float, period_s: float 
             await asyncio.sleep(period_s)
 
     task = asyncio.create_task(stream())
+    await asyncio.sleep(0.2)  # PX4 needs the stream before it accepts Offboard
     try:
         yield
     finally:
@@ -169,3 +170,49 @@ async def test_offboard_requested_during_takeoff_ends_in_hold() -> None:
     assert math.hypot(n, e) < 0.1 and d == pytest.approx(-2.5, abs=0.15)
     ap = await _offboard_during_takeoff(replace(PX4, offboard_during_takeoff_dropped=False))
     assert ap.mode is FlightMode.OFFBOARD
+
+
+async def test_mode_kept_after_landing_and_rearm_refused_until_changed() -> None:
+    denial = "Arming denied: Resolve system health failures first"
+    async with mock(COM_DISARM_LAND=0.5) as (ap, c):
+        await c.wait_ready()
+        # Offboard while disarmed, without setpoints: accepted; the next arm is refused.
+        offboard = px4.set_mode_params(FlightMode.OFFBOARD)
+        assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == ACCEPTED
+        hb = await c.recv("HEARTBEAT", timeout_s=2.0)
+        assert px4.decode_heartbeat(hb.base_mode, hb.custom_mode).mode is FlightMode.OFFBOARD
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == \
+            mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert c.status_texts()[-1] == denial
+        hold = px4.set_mode_params(FlightMode.HOLD)
+        assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *hold) == ACCEPTED
+        await _take_off(ap, c)
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        # Land in offboard: the vehicle disarms and stays in Offboard.
+        async with streaming(c, 0.0, 0.0, home.z + 0.5):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == ACCEPTED
+            await ap.wait_until(lambda: not ap.armed, 15.0, "offboard landing and disarm")
+        assert ap.mode is FlightMode.OFFBOARD
+        assert c.status_texts()[-2:] == ["Landing detected", "Disarmed by landing"]
+        await asyncio.sleep(1.2)  # the setpoint stream is gone
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == \
+            mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *hold) == ACCEPTED
+        # Land mode after Offboard: back in Offboard after the disarm, not Hold.
+        await _take_off(ap, c)
+        async with streaming(c, 0.0, 0.0, home.z - 2.5):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == ACCEPTED
+            assert await c.command(mavlink.MAV_CMD_NAV_LAND) == ACCEPTED
+            await ap.wait_until(lambda: not ap.armed, 15.0, "land and disarm")
+            assert ap.mode is FlightMode.OFFBOARD
+    async with mock(replace(PX4, mode_after_disarm=False), COM_DISARM_LAND=0.5) as (ap, c):
+        await c.wait_ready()
+        assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == \
+            mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        await _take_off(ap, c)
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        async with streaming(c, 0.0, 0.0, home.z - 2.5):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == ACCEPTED
+            assert await c.command(mavlink.MAV_CMD_NAV_LAND) == ACCEPTED
+            await ap.wait_until(lambda: not ap.armed, 15.0, "land and disarm")
+            await ap.wait_until(lambda: ap.mode is FlightMode.HOLD, 1.0, "naive Hold after landing")

@@ -39,7 +39,7 @@ from companion.sim.autopilot.behaviour import (
     report_ned,
     report_state,
 )
-from companion.sim.autopilot.commands import CommandHandler
+from companion.sim.autopilot.commands import PREVENTS_ARMING, CommandHandler
 from companion.sim.autopilot.estimator import SimEstimator, T_map_body_of
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
@@ -136,6 +136,7 @@ class MockAutopilot:
         #: by external vision (see :mod:`.estimator`).
         self.estimator = SimEstimator(odometry_drift, vision_gain)
         self._mode = FlightMode.HOLD
+        self._mode_after_disarm = FlightMode.HOLD
         self._armed = False
         self._armed_at_s = 0.0
         self._has_flown = False
@@ -313,12 +314,16 @@ class MockAutopilot:
     # --- mode and arming (used by the command handler and the navigator) ----------------
 
     def set_mode(self, mode: FlightMode, *, takeoff_alt_m: float | None = None,
-                 hold_at_ned_m: tuple[float, float, float] | None = None) -> None:
-        """Switch mode unconditionally (checks live in the command handler)."""
+                 hold_at_ned_m: tuple[float, float, float] | None = None,
+                 failsafe: bool = False) -> None:
+        """Switch mode unconditionally (checks live in the command handler); ``failsafe``: a
+        failsafe action, which PX4 does not take as the user's choice of mode."""
         if mode is not self._mode:
             log.info("mode %s -> %s", self._mode.name, mode.name)
             self.mode_changes.append((self.now_s(), mode))
         self._mode = mode
+        if not failsafe and mode not in PREVENTS_ARMING and mode is not FlightMode.TAKEOFF:
+            self._mode_after_disarm = mode
         self.navigator.enter(mode, takeoff_alt_m=takeoff_alt_m, hold_at_ned_m=hold_at_ned_m)
         if mode is FlightMode.OFFBOARD:
             if self._offboard_target is not None:
@@ -350,6 +355,9 @@ class MockAutopilot:
             log.info("disarmed")
         self._armed = False
         self.vehicle.motors_on = False
+        if self.behaviour.mode_after_disarm and self._mode is not self._mode_after_disarm:
+            # PX4 goes back to the last mode chosen that allows arming (UserModeIntention).
+            self.set_mode(self._mode_after_disarm)
         self._send_now("HEARTBEAT")
 
     def offboard_available(self) -> bool:
@@ -405,8 +413,8 @@ class MockAutopilot:
         self._send_now("HOME_POSITION")
 
     def _check_offboard(self, now: float) -> None:
-        if self._mode is not FlightMode.OFFBOARD:
-            return
+        if self._mode is not FlightMode.OFFBOARD or not self._armed:
+            return  # PX4's failsafes act only while armed
         if now - self._last_setpoint_s > self.params.get("COM_OF_LOSS_T"):
             action = {3: FlightMode.RTL, 4: FlightMode.LAND}.get(
                 int(self.params.get("COM_OBL_RC_ACT")), FlightMode.HOLD)
@@ -415,7 +423,7 @@ class MockAutopilot:
             self.announce(mavlink.MAV_SEVERITY_WARNING,
                           f"Failsafe: offboard signal lost, {action.name.title()}")
             self.failsafes.append(FailsafeEvent(now, "offboard setpoint loss", action))
-            self.set_mode(action)
+            self.set_mode(action, failsafe=True)
 
     def _wants_climb(self) -> bool:
         tgt = self.vehicle.target
@@ -455,7 +463,7 @@ class MockAutopilot:
                 self.announce(mavlink.MAV_SEVERITY_INFO, "Disarmed by landing")
                 self.disarm()
                 if self._mode in (FlightMode.LAND, FlightMode.RTL):
-                    self.set_mode(FlightMode.HOLD)
+                    self.set_mode(FlightMode.HOLD)  # the naive autopilot's way
         else:
             limit = self.params.get("COM_DISARM_PRFLT")
             if limit > 0 and now - self._armed_at_s >= limit:
