@@ -216,3 +216,29 @@ async def test_mode_kept_after_landing_and_rearm_refused_until_changed() -> None
             assert await c.command(mavlink.MAV_CMD_NAV_LAND) == ACCEPTED
             await ap.wait_until(lambda: not ap.armed, 15.0, "land and disarm")
             await ap.wait_until(lambda: ap.mode is FlightMode.HOLD, 1.0, "naive Hold after landing")
+
+
+async def _heartbeats_around_mode_changes(behaviour: Px4Behaviour) -> tuple[int, float]:
+    """(heartbeats in 1.5 s with 5 mode changes, seconds from the first change to a heartbeat
+    showing it)."""
+    async with mock(behaviour) as (ap, c):
+        await c.recv("HEARTBEAT")
+        await asyncio.sleep(0.1)
+        since = c.mark()
+        t0 = asyncio.get_running_loop().time()
+        modes = [FlightMode.POSCTL, FlightMode.HOLD, FlightMode.POSCTL, FlightMode.HOLD, FlightMode.POSCTL]
+        for mode in modes:
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(mode)) == ACCEPTED
+        await c.recv("HEARTBEAT", 2.0, since=since, pred=lambda m: px4.decode_heartbeat(
+            m.base_mode, m.custom_mode).mode is FlightMode.POSCTL)
+        seen_s = asyncio.get_running_loop().time() - t0
+        await asyncio.sleep(1.5 - (asyncio.get_running_loop().time() - t0))
+        c._drain()
+        return sum(1 for m in c.log[since:] if m.get_type() == "HEARTBEAT"), seen_s
+
+
+async def test_heartbeat_only_at_1_hz() -> None:
+    count, _ = await _heartbeats_around_mode_changes(PX4)
+    assert count <= 2  # 1 Hz: a change waits for the next one
+    count, seen_s = await _heartbeats_around_mode_changes(replace(PX4, heartbeat_on_change=True))
+    assert count >= 6 and seen_s < 0.5

@@ -330,7 +330,7 @@ class MockAutopilot:
                 self.vehicle.set_target(self._offboard_target)
         elif not mode.is_auto:
             self.vehicle.hold_here()
-        self._send_now("HEARTBEAT")
+        self._heartbeat_on_change()
 
     def arm(self) -> None:
         if not self._armed:
@@ -348,7 +348,7 @@ class MockAutopilot:
             self.navigator.enter(self._mode)
         elif self._mode is not FlightMode.OFFBOARD:
             self.vehicle.hold_here()
-        self._send_now("HEARTBEAT")
+        self._heartbeat_on_change()
 
     def disarm(self) -> None:
         if self._armed:
@@ -358,7 +358,12 @@ class MockAutopilot:
         if self.behaviour.mode_after_disarm and self._mode is not self._mode_after_disarm:
             # PX4 goes back to the last mode chosen that allows arming (UserModeIntention).
             self.set_mode(self._mode_after_disarm)
-        self._send_now("HEARTBEAT")
+        self._heartbeat_on_change()
+
+    def _heartbeat_on_change(self) -> None:
+        # PX4 sends HEARTBEAT on its 1 Hz schedule only: a change is seen up to 1 s late.
+        if self.behaviour.heartbeat_on_change:
+            self._send_now("HEARTBEAT")
 
     def offboard_available(self) -> bool:
         """True when setpoints arrived within COM_OF_LOSS_T (PX4's offboard signal check)."""
