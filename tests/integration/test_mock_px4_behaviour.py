@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import time
 from collections.abc import AsyncIterator
 from dataclasses import replace
 from typing import Any
@@ -242,3 +243,31 @@ async def test_heartbeat_only_at_1_hz() -> None:
     assert count <= 2  # 1 Hz: a change waits for the next one
     count, seen_s = await _heartbeats_around_mode_changes(replace(PX4, heartbeat_on_change=True))
     assert count >= 6 and seen_s < 0.5
+
+
+async def _clock_rate(behaviour: Px4Behaviour) -> tuple[float, float]:
+    """(rate of the mock's TIMESYNC answers, rate of its own TIMESYNC requests) against
+    ``time.monotonic`` over 3 s."""
+
+    async with mock(behaviour) as (ap, c):
+        samples = []
+        for _ in range(2):
+            since = c.mark()
+            t_send = time.monotonic()
+            c.send(c.mav.timesync_encode(0, 12345))
+            answer = await c.recv("TIMESYNC", since=since, pred=lambda m: m.ts1 == 12345 and m.tc1 != 0)
+            t_answer = 0.5 * (t_send + time.monotonic())
+            request = await c.recv("TIMESYNC", since=since, pred=lambda m: m.tc1 == 0)
+            samples.append((t_answer, answer.tc1 * 1e-9, request.ts1 * 1e-9))
+            if len(samples) == 1:
+                await asyncio.sleep(3.0)
+        (w0, a0, r0), (w1, a1, r1) = samples
+        return (a1 - a0) / (w1 - w0), (r1 - r0) / (w1 - w0)
+
+
+async def test_clock_drift() -> None:
+    answers, requests = await _clock_rate(replace(PX4, clock_rate=1.01))
+    assert answers == pytest.approx(1.01, abs=0.004)
+    assert requests == pytest.approx(1.01, abs=0.04)  # stamped at a 10 Hz tick
+    answers, _ = await _clock_rate(PX4)
+    assert answers == pytest.approx(1.0, abs=0.004)

@@ -223,12 +223,13 @@ class MockAutopilot:
     # --- state for tests and the simulator -----------------------------------------------
 
     def now_s(self) -> float:
-        """Seconds since the mock started (its clock for every recorded stamp)."""
-        return time.monotonic() - self._t0
+        """Seconds since the mock started on its own clock (``clock_rate`` x wall clock), the
+        clock of every stamp it sends or records."""
+        return (time.monotonic() - self._t0) * self.behaviour.clock_rate
 
     def stamp_of_monotonic(self, monotonic_s: float) -> float:
         """A ``time.monotonic`` instant on the mock's clock (what TIMESYNC estimates)."""
-        return monotonic_s - self._t0
+        return (monotonic_s - self._t0) * self.behaviour.clock_rate
 
     @property
     def tick_monotonic_s(self) -> float:
@@ -392,7 +393,7 @@ class MockAutopilot:
 
     def _tick(self, dt_s: float) -> None:
         now = self.now_s()
-        self._tick_monotonic_s = now + self._t0
+        self._tick_monotonic_s = self._t0 + now / self.behaviour.clock_rate
         # Physics steps at most 0.1 s after a stall; the state's stamp stays on our clock
         # (what TIMESYNC and the telemetry's time_boot_ms report).
         self.vehicle.step(dt_s, clock_s=now)
