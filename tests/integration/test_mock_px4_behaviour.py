@@ -271,3 +271,31 @@ async def test_clock_drift() -> None:
     assert requests == pytest.approx(1.01, abs=0.04)  # stamped at a 10 Hz tick
     answers, _ = await _clock_rate(PX4)
     assert answers == pytest.approx(1.0, abs=0.004)
+
+
+async def _offboard_loss(behaviour: Px4Behaviour) -> tuple[MockAutopilot, list[str]]:
+    async with mock(behaviour, COM_DISARM_LAND=0.5) as (ap, c):
+        await _take_off(ap, c)
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        async with streaming(c, 0.0, 0.0, home.z - 2.5):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE,
+                                   *px4.set_mode_params(FlightMode.OFFBOARD)) == ACCEPTED
+            await asyncio.sleep(0.5)
+        await ap.wait_until(lambda: bool(ap.failsafes), 2.0, "offboard loss failsafe")
+        if behaviour.offboard_loss_px4_actions:
+            await ap.wait_until(lambda: not ap.armed, 8.0, "landed and disarmed")
+        else:
+            await asyncio.sleep(1.0)
+        return ap, c.status_texts()
+
+
+async def test_offboard_loss_ends_in_position_mode_landing() -> None:
+    ap, texts = await _offboard_loss(PX4)
+    assert ap.failsafes[-1].action is FlightMode.POSCTL
+    assert FlightMode.POSCTL in [m for _t, m in ap.mode_changes]
+    assert texts[-3:] == ["Failsafe: offboard signal lost, Position", "Landing detected", "Disarmed by landing"]
+    assert not ap.armed and ap.position_ned_m[2] == 0.0
+    assert ap.mode is FlightMode.OFFBOARD  # disarmed: back to the mode the user chose
+    ap, texts = await _offboard_loss(replace(PX4, offboard_loss_px4_actions=False))
+    assert ap.failsafes[-1].action is FlightMode.HOLD and ap.mode is FlightMode.HOLD
+    assert ap.armed and ap.in_air

@@ -58,6 +58,12 @@ from semmap.frames import Transform
 log = logging.getLogger(__name__)
 
 _LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
+#: PX4's ``COM_OBL_RC_ACT`` values (6 terminate and 7 disarm stop the motors).
+OFFBOARD_LOSS_ACTIONS = {0: FlightMode.POSCTL, 1: FlightMode.ALTCTL, 2: FlightMode.MANUAL,
+                         3: FlightMode.RTL, 4: FlightMode.LAND, 5: FlightMode.HOLD}
+MANUAL_MODES = frozenset({FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.MANUAL})
+#: Mode names as PX4 words them in messages.
+MODE_NAMES = {FlightMode.POSCTL: "Position", FlightMode.ALTCTL: "Altitude", FlightMode.RTL: "Return"}
 #: MISSION_ITEM_REACHED is sent again this long after the first time.
 REACHED_RESEND_S = 0.5
 
@@ -422,14 +428,25 @@ class MockAutopilot:
         if self._mode is not FlightMode.OFFBOARD or not self._armed:
             return  # PX4's failsafes act only while armed
         if now - self._last_setpoint_s > self.params.get("COM_OF_LOSS_T"):
-            action = {3: FlightMode.RTL, 4: FlightMode.LAND}.get(
-                int(self.params.get("COM_OBL_RC_ACT")), FlightMode.HOLD)
+            act = int(self.params.get("COM_OBL_RC_ACT"))
+            if self.behaviour.offboard_loss_px4_actions:
+                action = OFFBOARD_LOSS_ACTIONS.get(act, FlightMode.HOLD)
+            else:
+                action = {3: FlightMode.RTL, 4: FlightMode.LAND}.get(act, FlightMode.HOLD)
             if action is FlightMode.RTL and not self.in_air:
                 action = FlightMode.HOLD
-            self.announce(mavlink.MAV_SEVERITY_WARNING,
-                          f"Failsafe: offboard signal lost, {action.name.title()}")
+            disarm = self.behaviour.offboard_loss_px4_actions and act in (6, 7)  # terminate, disarm
+            self.announce(mavlink.MAV_SEVERITY_WARNING, "Failsafe: offboard signal lost, "
+                          + ("Disarm" if disarm else MODE_NAMES.get(action, action.name.title())))
             self.failsafes.append(FailsafeEvent(now, "offboard setpoint loss", action))
             self.set_mode(action, failsafe=True)
+            if disarm:
+                self.disarm()
+            elif action in MANUAL_MODES:
+                # No RC: nothing holds the sticks, PX4 descends until it detects the landing.
+                n, e, _d = self.vehicle.position_ned_m
+                self.vehicle.set_target(Target(position_ned_m=(n, e, math.nan),
+                                               velocity_ned_m_s=(0.0, 0.0, self.params.get("MPC_LAND_SPEED"))))
 
     def _wants_climb(self) -> bool:
         tgt = self.vehicle.target
