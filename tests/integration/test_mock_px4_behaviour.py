@@ -299,3 +299,23 @@ async def test_offboard_loss_ends_in_position_mode_landing() -> None:
     ap, texts = await _offboard_loss(replace(PX4, offboard_loss_px4_actions=False))
     assert ap.failsafes[-1].action is FlightMode.HOLD and ap.mode is FlightMode.HOLD
     assert ap.armed and ap.in_air
+
+
+async def _armed_on_the_ground(**params: float) -> tuple[float | None, list[str]]:
+    """Seconds from arming to the auto-disarm (None: still armed after 11 s), the texts."""
+    async with mock(**params) as (ap, c):
+        await c.wait_ready()
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+        armed_at = ap.now_s()
+        with contextlib.suppress(TimeoutError):
+            await ap.wait_until(lambda: not ap.armed, 11.0, "preflight auto-disarm")
+        return (None if ap.armed else ap.now_s() - armed_at), c.status_texts()
+
+
+async def test_preflight_auto_disarm_after_10_s() -> None:
+    (default_s, texts), (off_s, _) = await asyncio.gather(_armed_on_the_ground(),
+                                                          _armed_on_the_ground(COM_DISARM_PRFLT=-1.0))
+    assert MockAutopilot(local_port=0).params.get("COM_DISARM_PRFLT") == 10.0  # PX4's default
+    assert default_s == pytest.approx(10.0, abs=0.3)
+    assert texts[-1] == "Disarmed by auto preflight disarming"
+    assert off_s is None
