@@ -244,9 +244,11 @@ def _position_setpoint(c: RawClient, n: float, e: float, d: float, yaw: float = 
 async def test_offboard_refused_without_setpoints_then_failsafe_to_hold(link) -> None:
     ap, c = link
     offboard = px4.set_mode_params(FlightMode.OFFBOARD)
+    ap.params.set("COM_OBL_RC_ACT", 5)  # Hold on offboard loss (PX4's default: Position mode)
+    await _fly_to_hold(ap, c)
+    # Flying, Offboard needs the setpoint stream first (disarmed, PX4 accepts any mode).
     assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == \
         mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-    await _fly_to_hold(ap, c)
     home = await c.recv("HOME_POSITION", timeout_s=5.0)  # setpoints 2 m above home
 
     stop = asyncio.Event()

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import time
 from collections.abc import AsyncIterator
 from dataclasses import replace
 from typing import Any
@@ -81,6 +82,7 @@ async def streaming(c: RawClient, n: float, e: float, d: float, period_s: float 
             await asyncio.sleep(period_s)
 
     task = asyncio.create_task(stream())
+    await asyncio.sleep(0.2)  # PX4 needs the stream before it accepts Offboard
     try:
         yield
     finally:
@@ -169,3 +171,151 @@ async def test_offboard_requested_during_takeoff_ends_in_hold() -> None:
     assert math.hypot(n, e) < 0.1 and d == pytest.approx(-2.5, abs=0.15)
     ap = await _offboard_during_takeoff(replace(PX4, offboard_during_takeoff_dropped=False))
     assert ap.mode is FlightMode.OFFBOARD
+
+
+async def test_mode_kept_after_landing_and_rearm_refused_until_changed() -> None:
+    denial = "Arming denied: Resolve system health failures first"
+    async with mock(COM_DISARM_LAND=0.5) as (ap, c):
+        await c.wait_ready()
+        # Offboard while disarmed, without setpoints: accepted; the next arm is refused.
+        offboard = px4.set_mode_params(FlightMode.OFFBOARD)
+        assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == ACCEPTED
+        hb = await c.recv("HEARTBEAT", timeout_s=2.0)
+        assert px4.decode_heartbeat(hb.base_mode, hb.custom_mode).mode is FlightMode.OFFBOARD
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == \
+            mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert c.status_texts()[-1] == denial
+        hold = px4.set_mode_params(FlightMode.HOLD)
+        assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *hold) == ACCEPTED
+        await _take_off(ap, c)
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        # Land in offboard: the vehicle disarms and stays in Offboard.
+        async with streaming(c, 0.0, 0.0, home.z + 0.5):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == ACCEPTED
+            await ap.wait_until(lambda: not ap.armed, 15.0, "offboard landing and disarm")
+        assert ap.mode is FlightMode.OFFBOARD
+        assert c.status_texts()[-2:] == ["Landing detected", "Disarmed by landing"]
+        await asyncio.sleep(1.2)  # the setpoint stream is gone
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == \
+            mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *hold) == ACCEPTED
+        # Land mode after Offboard: back in Offboard after the disarm, not Hold.
+        await _take_off(ap, c)
+        async with streaming(c, 0.0, 0.0, home.z - 2.5):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == ACCEPTED
+            assert await c.command(mavlink.MAV_CMD_NAV_LAND) == ACCEPTED
+            await ap.wait_until(lambda: not ap.armed, 15.0, "land and disarm")
+            assert ap.mode is FlightMode.OFFBOARD
+    async with mock(replace(PX4, mode_after_disarm=False), COM_DISARM_LAND=0.5) as (ap, c):
+        await c.wait_ready()
+        assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == \
+            mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        await _take_off(ap, c)
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        async with streaming(c, 0.0, 0.0, home.z - 2.5):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == ACCEPTED
+            assert await c.command(mavlink.MAV_CMD_NAV_LAND) == ACCEPTED
+            await ap.wait_until(lambda: not ap.armed, 15.0, "land and disarm")
+            await ap.wait_until(lambda: ap.mode is FlightMode.HOLD, 1.0, "naive Hold after landing")
+
+
+async def _heartbeats_around_mode_changes(behaviour: Px4Behaviour) -> tuple[int, float]:
+    """(heartbeats in 1.5 s with 5 mode changes, seconds from the first change to a heartbeat
+    showing it)."""
+    async with mock(behaviour) as (ap, c):
+        await c.recv("HEARTBEAT")
+        await asyncio.sleep(0.1)
+        since = c.mark()
+        t0 = asyncio.get_running_loop().time()
+        modes = [FlightMode.POSCTL, FlightMode.HOLD, FlightMode.POSCTL, FlightMode.HOLD, FlightMode.POSCTL]
+        for mode in modes:
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *px4.set_mode_params(mode)) == ACCEPTED
+        await c.recv("HEARTBEAT", 2.0, since=since, pred=lambda m: px4.decode_heartbeat(
+            m.base_mode, m.custom_mode).mode is FlightMode.POSCTL)
+        seen_s = asyncio.get_running_loop().time() - t0
+        await asyncio.sleep(1.5 - (asyncio.get_running_loop().time() - t0))
+        c._drain()
+        return sum(1 for m in c.log[since:] if m.get_type() == "HEARTBEAT"), seen_s
+
+
+async def test_heartbeat_only_at_1_hz() -> None:
+    count, _ = await _heartbeats_around_mode_changes(PX4)
+    assert count <= 2  # 1 Hz: a change waits for the next one
+    count, seen_s = await _heartbeats_around_mode_changes(replace(PX4, heartbeat_on_change=True))
+    assert count >= 6 and seen_s < 0.5
+
+
+async def _clock_rate(behaviour: Px4Behaviour) -> tuple[float, float]:
+    """(rate of the mock's TIMESYNC answers, rate of its own TIMESYNC requests) against
+    ``time.monotonic`` over 3 s."""
+
+    async with mock(behaviour) as (ap, c):
+        samples = []
+        for _ in range(2):
+            since = c.mark()
+            t_send = time.monotonic()
+            c.send(c.mav.timesync_encode(0, 12345))
+            answer = await c.recv("TIMESYNC", since=since, pred=lambda m: m.ts1 == 12345 and m.tc1 != 0)
+            t_answer = 0.5 * (t_send + time.monotonic())
+            request = await c.recv("TIMESYNC", since=since, pred=lambda m: m.tc1 == 0)
+            samples.append((t_answer, answer.tc1 * 1e-9, request.ts1 * 1e-9))
+            if len(samples) == 1:
+                await asyncio.sleep(3.0)
+        (w0, a0, r0), (w1, a1, r1) = samples
+        return (a1 - a0) / (w1 - w0), (r1 - r0) / (w1 - w0)
+
+
+async def test_clock_drift() -> None:
+    answers, requests = await _clock_rate(replace(PX4, clock_rate=1.01))
+    assert answers == pytest.approx(1.01, abs=0.004)
+    assert requests == pytest.approx(1.01, abs=0.04)  # stamped at a 10 Hz tick
+    answers, _ = await _clock_rate(PX4)
+    assert answers == pytest.approx(1.0, abs=0.004)
+
+
+async def _offboard_loss(behaviour: Px4Behaviour) -> tuple[MockAutopilot, list[str]]:
+    async with mock(behaviour, COM_DISARM_LAND=0.5) as (ap, c):
+        await _take_off(ap, c)
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        async with streaming(c, 0.0, 0.0, home.z - 2.5):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE,
+                                   *px4.set_mode_params(FlightMode.OFFBOARD)) == ACCEPTED
+            await asyncio.sleep(0.5)
+        await ap.wait_until(lambda: bool(ap.failsafes), 2.0, "offboard loss failsafe")
+        if behaviour.offboard_loss_px4_actions:
+            await ap.wait_until(lambda: not ap.armed, 8.0, "landed and disarmed")
+        else:
+            await asyncio.sleep(1.0)
+        return ap, c.status_texts()
+
+
+async def test_offboard_loss_ends_in_position_mode_landing() -> None:
+    ap, texts = await _offboard_loss(PX4)
+    assert ap.failsafes[-1].action is FlightMode.POSCTL
+    assert FlightMode.POSCTL in [m for _t, m in ap.mode_changes]
+    assert texts[-3:] == ["Failsafe: offboard signal lost, Position", "Landing detected", "Disarmed by landing"]
+    assert not ap.armed and ap.position_ned_m[2] == 0.0
+    assert ap.mode is FlightMode.OFFBOARD  # disarmed: back to the mode the user chose
+    ap, texts = await _offboard_loss(replace(PX4, offboard_loss_px4_actions=False))
+    assert ap.failsafes[-1].action is FlightMode.HOLD and ap.mode is FlightMode.HOLD
+    assert ap.armed and ap.in_air
+
+
+async def _armed_on_the_ground(**params: float) -> tuple[float | None, list[str]]:
+    """Seconds from arming to the auto-disarm (None: still armed after 11 s), the texts."""
+    async with mock(**params) as (ap, c):
+        await c.wait_ready()
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+        armed_at = ap.now_s()
+        with contextlib.suppress(TimeoutError):
+            await ap.wait_until(lambda: not ap.armed, 11.0, "preflight auto-disarm")
+        return (None if ap.armed else ap.now_s() - armed_at), c.status_texts()
+
+
+async def test_preflight_auto_disarm_after_10_s() -> None:
+    (default_s, texts), (off_s, _) = await asyncio.gather(_armed_on_the_ground(),
+                                                          _armed_on_the_ground(COM_DISARM_PRFLT=-1.0))
+    assert MockAutopilot(local_port=0).params.get("COM_DISARM_PRFLT") == 10.0  # PX4's default
+    assert default_s == pytest.approx(10.0, abs=0.3)
+    assert texts[-1] == "Disarmed by auto preflight disarming"
+    assert off_s is None

@@ -24,6 +24,9 @@ from companion.px4 import FlightMode
 if TYPE_CHECKING:
     from companion.sim.autopilot.mock import MockAutopilot
 
+#: Modes PX4 refuses to arm in (``mode_req_prevent_arming``).
+PREVENTS_ARMING = frozenset({FlightMode.LAND, FlightMode.RTL, FlightMode.PRECLAND})
+
 log = logging.getLogger(__name__)
 
 DUPLICATE_WINDOW_S = 1.5
@@ -138,6 +141,10 @@ class CommandHandler:
             if not ap.ready:
                 ap.announce(CRITICAL, HEALTH_DENIAL)
                 return TEMPORARILY_REJECTED
+            if ap.behaviour.mode_after_disarm and (ap.mode in PREVENTS_ARMING or (
+                    ap.mode is FlightMode.OFFBOARD and not ap.offboard_available())):
+                ap.announce(CRITICAL, HEALTH_DENIAL)
+                return TEMPORARILY_REJECTED
             if ap.mode not in ARMABLE_MODES:
                 ap.announce(CRITICAL, f"Arming denied: not armable in {ap.mode.name.title()}")
                 return DENIED
@@ -191,7 +198,9 @@ class CommandHandler:
         ap = self._ap
         if mode is ap.mode:
             return ACCEPTED
-        if mode is FlightMode.OFFBOARD and not ap.offboard_available():
+        # PX4 accepts any mode while disarmed and checks it when arming.
+        disarmed_choice = ap.behaviour.mode_after_disarm and not ap.armed
+        if mode is FlightMode.OFFBOARD and not ap.offboard_available() and not disarmed_choice:
             ap.announce(CRITICAL, "Switching to Offboard is currently not available")
             return TEMPORARILY_REJECTED
         if mode is FlightMode.OFFBOARD and ap.mode is FlightMode.TAKEOFF and \

@@ -39,7 +39,7 @@ from companion.sim.autopilot.behaviour import (
     report_ned,
     report_state,
 )
-from companion.sim.autopilot.commands import CommandHandler
+from companion.sim.autopilot.commands import PREVENTS_ARMING, CommandHandler
 from companion.sim.autopilot.estimator import SimEstimator, T_map_body_of
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
@@ -58,6 +58,12 @@ from semmap.frames import Transform
 log = logging.getLogger(__name__)
 
 _LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
+#: PX4's ``COM_OBL_RC_ACT`` values (6 terminate and 7 disarm stop the motors).
+OFFBOARD_LOSS_ACTIONS = {0: FlightMode.POSCTL, 1: FlightMode.ALTCTL, 2: FlightMode.MANUAL,
+                         3: FlightMode.RTL, 4: FlightMode.LAND, 5: FlightMode.HOLD}
+MANUAL_MODES = frozenset({FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.MANUAL})
+#: Mode names as PX4 words them in messages.
+MODE_NAMES = {FlightMode.POSCTL: "Position", FlightMode.ALTCTL: "Altitude", FlightMode.RTL: "Return"}
 #: MISSION_ITEM_REACHED is sent again this long after the first time.
 REACHED_RESEND_S = 0.5
 
@@ -136,6 +142,7 @@ class MockAutopilot:
         #: by external vision (see :mod:`.estimator`).
         self.estimator = SimEstimator(odometry_drift, vision_gain)
         self._mode = FlightMode.HOLD
+        self._mode_after_disarm = FlightMode.HOLD
         self._armed = False
         self._armed_at_s = 0.0
         self._has_flown = False
@@ -222,12 +229,13 @@ class MockAutopilot:
     # --- state for tests and the simulator -----------------------------------------------
 
     def now_s(self) -> float:
-        """Seconds since the mock started (its clock for every recorded stamp)."""
-        return time.monotonic() - self._t0
+        """Seconds since the mock started on its own clock (``clock_rate`` x wall clock), the
+        clock of every stamp it sends or records."""
+        return (time.monotonic() - self._t0) * self.behaviour.clock_rate
 
     def stamp_of_monotonic(self, monotonic_s: float) -> float:
         """A ``time.monotonic`` instant on the mock's clock (what TIMESYNC estimates)."""
-        return monotonic_s - self._t0
+        return (monotonic_s - self._t0) * self.behaviour.clock_rate
 
     @property
     def tick_monotonic_s(self) -> float:
@@ -313,19 +321,23 @@ class MockAutopilot:
     # --- mode and arming (used by the command handler and the navigator) ----------------
 
     def set_mode(self, mode: FlightMode, *, takeoff_alt_m: float | None = None,
-                 hold_at_ned_m: tuple[float, float, float] | None = None) -> None:
-        """Switch mode unconditionally (checks live in the command handler)."""
+                 hold_at_ned_m: tuple[float, float, float] | None = None,
+                 failsafe: bool = False) -> None:
+        """Switch mode unconditionally (checks live in the command handler); ``failsafe``: a
+        failsafe action, which PX4 does not take as the user's choice of mode."""
         if mode is not self._mode:
             log.info("mode %s -> %s", self._mode.name, mode.name)
             self.mode_changes.append((self.now_s(), mode))
         self._mode = mode
+        if not failsafe and mode not in PREVENTS_ARMING and mode is not FlightMode.TAKEOFF:
+            self._mode_after_disarm = mode
         self.navigator.enter(mode, takeoff_alt_m=takeoff_alt_m, hold_at_ned_m=hold_at_ned_m)
         if mode is FlightMode.OFFBOARD:
             if self._offboard_target is not None:
                 self.vehicle.set_target(self._offboard_target)
         elif not mode.is_auto:
             self.vehicle.hold_here()
-        self._send_now("HEARTBEAT")
+        self._heartbeat_on_change()
 
     def arm(self) -> None:
         if not self._armed:
@@ -343,14 +355,22 @@ class MockAutopilot:
             self.navigator.enter(self._mode)
         elif self._mode is not FlightMode.OFFBOARD:
             self.vehicle.hold_here()
-        self._send_now("HEARTBEAT")
+        self._heartbeat_on_change()
 
     def disarm(self) -> None:
         if self._armed:
             log.info("disarmed")
         self._armed = False
         self.vehicle.motors_on = False
-        self._send_now("HEARTBEAT")
+        if self.behaviour.mode_after_disarm and self._mode is not self._mode_after_disarm:
+            # PX4 goes back to the last mode chosen that allows arming (UserModeIntention).
+            self.set_mode(self._mode_after_disarm)
+        self._heartbeat_on_change()
+
+    def _heartbeat_on_change(self) -> None:
+        # PX4 sends HEARTBEAT on its 1 Hz schedule only: a change is seen up to 1 s late.
+        if self.behaviour.heartbeat_on_change:
+            self._send_now("HEARTBEAT")
 
     def offboard_available(self) -> bool:
         """True when setpoints arrived within COM_OF_LOSS_T (PX4's offboard signal check)."""
@@ -379,7 +399,7 @@ class MockAutopilot:
 
     def _tick(self, dt_s: float) -> None:
         now = self.now_s()
-        self._tick_monotonic_s = now + self._t0
+        self._tick_monotonic_s = self._t0 + now / self.behaviour.clock_rate
         # Physics steps at most 0.1 s after a stall; the state's stamp stays on our clock
         # (what TIMESYNC and the telemetry's time_boot_ms report).
         self.vehicle.step(dt_s, clock_s=now)
@@ -405,17 +425,28 @@ class MockAutopilot:
         self._send_now("HOME_POSITION")
 
     def _check_offboard(self, now: float) -> None:
-        if self._mode is not FlightMode.OFFBOARD:
-            return
+        if self._mode is not FlightMode.OFFBOARD or not self._armed:
+            return  # PX4's failsafes act only while armed
         if now - self._last_setpoint_s > self.params.get("COM_OF_LOSS_T"):
-            action = {3: FlightMode.RTL, 4: FlightMode.LAND}.get(
-                int(self.params.get("COM_OBL_RC_ACT")), FlightMode.HOLD)
+            act = int(self.params.get("COM_OBL_RC_ACT"))
+            if self.behaviour.offboard_loss_px4_actions:
+                action = OFFBOARD_LOSS_ACTIONS.get(act, FlightMode.HOLD)
+            else:
+                action = {3: FlightMode.RTL, 4: FlightMode.LAND}.get(act, FlightMode.HOLD)
             if action is FlightMode.RTL and not self.in_air:
                 action = FlightMode.HOLD
-            self.announce(mavlink.MAV_SEVERITY_WARNING,
-                          f"Failsafe: offboard signal lost, {action.name.title()}")
+            disarm = self.behaviour.offboard_loss_px4_actions and act in (6, 7)  # terminate, disarm
+            self.announce(mavlink.MAV_SEVERITY_WARNING, "Failsafe: offboard signal lost, "
+                          + ("Disarm" if disarm else MODE_NAMES.get(action, action.name.title())))
             self.failsafes.append(FailsafeEvent(now, "offboard setpoint loss", action))
-            self.set_mode(action)
+            self.set_mode(action, failsafe=True)
+            if disarm:
+                self.disarm()
+            elif action in MANUAL_MODES:
+                # No RC: nothing holds the sticks, PX4 descends until it detects the landing.
+                n, e, _d = self.vehicle.position_ned_m
+                self.vehicle.set_target(Target(position_ned_m=(n, e, math.nan),
+                                               velocity_ned_m_s=(0.0, 0.0, self.params.get("MPC_LAND_SPEED"))))
 
     def _wants_climb(self) -> bool:
         tgt = self.vehicle.target
@@ -455,7 +486,7 @@ class MockAutopilot:
                 self.announce(mavlink.MAV_SEVERITY_INFO, "Disarmed by landing")
                 self.disarm()
                 if self._mode in (FlightMode.LAND, FlightMode.RTL):
-                    self.set_mode(FlightMode.HOLD)
+                    self.set_mode(FlightMode.HOLD)  # the naive autopilot's way
         else:
             limit = self.params.get("COM_DISARM_PRFLT")
             if limit > 0 and now - self._armed_at_s >= limit:
