@@ -61,6 +61,14 @@ class LinkConfig(StageConfig):
     obstacle_distance_max_m: float = Field(default=8.0, gt=0.0, le=600.0)
     #: Seconds to wait for the vehicle to report OFFBOARD after requesting it.
     offboard_engage_timeout_s: float = Field(default=3.0, gt=0.0)
+    #: Tracking monitor: the vehicle farther than this from the setpoint we send, for longer
+    #: than ``tracking_timeout_s``, is held where it is and the path re-planned from there.
+    tracking_error_m: float = Field(default=1.0, gt=0.0)
+    tracking_timeout_s: float = Field(default=2.0, gt=0.0)
+    #: Arming waits up to this long for PX4's readiness (pre-arm checks, home, estimator:
+    #: 15-70 s after boot), then retries a refused arm ``arm_retries`` times.
+    ready_timeout_s: float = Field(default=120.0, gt=0.0)
+    arm_retries: int = Field(default=3, ge=0, le=20)
     #: Scheduler slice (ms) the event-loop thread asks Linux for, so the setpoint task wakes
     #: on time under CPU load (EEVDF, Linux >= 6.12; ignored before); 0 = leave it alone.
     scheduler_slice_ms: float = Field(default=0.5, ge=0.0, le=100.0)

@@ -7,7 +7,9 @@ returns a :class:`VehicleState` with ages computed against the tracker's clock
 (``time.monotonic`` unless a test injects one).
 
 Frames: PX4 local NED (x north, y east, z down, metres), attitude as roll/pitch/yaw in
-radians with yaw measured from north, clockwise.
+radians with yaw measured from north, clockwise. The service's map frame (:class:`MapFrame`)
+is that frame in ENU with heights above home: PX4's local origin is where its estimator
+started, not the floor (z reads -0.86 m on the ground with GPS height, +1.1 m with baro).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import LinkError
 from companion.px4 import FlightMode, decode_heartbeat
+from semmap.frames import enu_to_ned, ned_to_enu
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +62,22 @@ class HomePosition:
 
 
 @dataclass(frozen=True)
+class MapFrame:
+    """The map frame: PX4's local frame in ENU (x east, y north) with z the height above
+    home, where the vehicle stood on the floor when PX4 set it. The map's heights (objects,
+    the flight band) are heights above the floor, so every local position goes through here."""
+
+    home_down_m: float
+
+    def from_ned(self, north_m: float, east_m: float, down_m: float) -> Vec3:
+        return ned_to_enu(north_m, east_m, down_m - self.home_down_m)
+
+    def to_ned(self, x_m: float, y_m: float, z_m: float) -> Vec3:
+        n, e, d = enu_to_ned(x_m, y_m, z_m)
+        return n, e, d + self.home_down_m
+
+
+@dataclass(frozen=True)
 class GlobalPosition:
     """GLOBAL_POSITION_INT: WGS84 position, AMSL and relative-to-home altitude."""
 
@@ -88,6 +107,9 @@ class VehicleState:
     home: HomePosition | None
     global_position: GlobalPosition | None
     autopilot_system_status: int | None  # MAV_STATE
+    #: PX4's pre-arm checks (SYS_STATUS ``MAV_SYS_STATUS_PREARM_CHECK``): None when the
+    #: autopilot does not report them.
+    prearm_ok: bool | None = None
 
     def heartbeat_fresh(self, timeout_s: float) -> bool:
         """True if the autopilot's heartbeat is younger than ``timeout_s``."""
@@ -105,6 +127,30 @@ class VehicleState:
     @property
     def in_air(self) -> bool:
         return self.landed_state in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
+
+    @property
+    def ready_to_arm(self) -> bool:
+        """PX4's "Ready for takeoff": pre-arm checks pass (where reported), home is set and
+        the estimator gives a local position."""
+        return self.prearm_ok is not False and self.home is not None and self.position_ned_m is not None
+
+    @property
+    def map_frame(self) -> MapFrame | None:
+        """The map frame, or None before the first HOME_POSITION (no height is known then)."""
+        return None if self.home is None else MapFrame(self.home.position_ned_m[2])
+
+    @property
+    def position_map_m(self) -> Vec3 | None:
+        """The vehicle's position in the map frame (z above home), or None."""
+        frame = self.map_frame
+        if frame is None or self.position_ned_m is None:
+            return None
+        return frame.from_ned(*self.position_ned_m)
+
+    @property
+    def height_above_home_m(self) -> float | None:
+        pos = self.position_map_m
+        return None if pos is None else pos[2]
 
 
 class StateTimeoutError(LinkError):
@@ -139,6 +185,7 @@ class VehicleStateTracker:
         self._armed = False
         self._mode: FlightMode | None = None
         self._system_status: int | None = None
+        self._prearm_ok: bool | None = None
         self._landed = LandedState.UNDEFINED
         self._pos: Vec3 | None = None
         self._vel: Vec3 | None = None
@@ -198,6 +245,9 @@ class VehicleStateTracker:
         self._landed = LandedState.from_mavlink(msg.landed_state)
 
     def _on_sys_status(self, msg: mavlink.MAVLink_message) -> None:
+        bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        if msg.onboard_control_sensors_present & bit:
+            self._prearm_ok = bool(msg.onboard_control_sensors_health & bit)
         if msg.voltage_battery != _UINT16_MAX:
             self._battery_v = msg.voltage_battery / 1000.0
         if msg.battery_remaining >= 0:
@@ -248,6 +298,7 @@ class VehicleStateTracker:
             home=self._home,
             global_position=self._global,
             autopilot_system_status=self._system_status,
+            prearm_ok=self._prearm_ok,
         )
 
     async def wait_for(

@@ -49,6 +49,8 @@ def test_mission_flown_without_collisions_and_outputs_written(tmp_path: Path, ca
     # (the issue's requirement for this test; the streamer's period is 33 ms).
     assert s["autopilot_failsafes"] == []
     assert s["setpoints_received"] > 100
+    # The map reaches PX4's collision prevention too (it was never sent by the service).
+    assert s["autopilot_received"]["OBSTACLE_DISTANCE"] > 10
     assert s["setpoint_gaps"]["max_ms"] <= 100.0, s["setpoint_gaps"]
     # End-to-end latencies are measured and reported (their figures belong to bench/).
     assert s["latency_ms"]["frame_to_map"]["count"] > 10

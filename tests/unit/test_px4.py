@@ -53,3 +53,22 @@ def test_disarmed_heartbeat() -> None:
 def test_out_of_range_rejected() -> None:
     with pytest.raises(ValueError, match="out of range"):
         px4.encode_custom_mode(256, 0)
+
+
+def test_map_frame_heights_are_above_home_not_the_local_origin() -> None:
+    """PX4's local z is -0.86 m on the ground with GPS height: the map's z is above home."""
+    import dataclasses
+
+    from companion.mavlink.state import HomePosition, LandedState, MapFrame, VehicleState
+
+    frame = MapFrame(home_down_m=-0.86)
+    assert frame.from_ned(1.0, 2.0, -0.86) == pytest.approx((2.0, 1.0, 0.0))
+    assert frame.to_ned(2.0, 1.0, 1.0) == pytest.approx((1.0, 2.0, -1.86))
+    state = VehicleState(heartbeat_age_s=0.1, armed=False, flight_mode=None, landed_state=LandedState.ON_GROUND,
+                         position_ned_m=(0.0, 0.0, -0.86), velocity_ned_m_s=None, position_age_s=0.0,
+                         attitude_rpy_rad=None, battery_v=None, battery_remaining=None, home=None,
+                         global_position=None, autopilot_system_status=None)
+    assert state.position_map_m is None and not state.ready_to_arm  # no home yet
+    state = dataclasses.replace(state, home=HomePosition(47.0, 8.0, 488.0, (0.0, 0.0, -0.86)))
+    assert state.height_above_home_m == pytest.approx(0.0) and state.ready_to_arm
+    assert not dataclasses.replace(state, prearm_ok=False).ready_to_arm

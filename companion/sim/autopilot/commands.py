@@ -24,6 +24,9 @@ from companion.px4 import FlightMode
 if TYPE_CHECKING:
     from companion.sim.autopilot.mock import MockAutopilot
 
+#: Modes PX4 refuses to arm in (``mode_req_prevent_arming``).
+PREVENTS_ARMING = frozenset({FlightMode.LAND, FlightMode.RTL, FlightMode.PRECLAND})
+
 log = logging.getLogger(__name__)
 
 DUPLICATE_WINDOW_S = 1.5
@@ -34,6 +37,9 @@ TEMPORARILY_REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
 UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
 CRITICAL = mavlink.MAV_SEVERITY_CRITICAL
 FAILED = mavlink.MAV_RESULT_FAILED
+
+#: What PX4 says when its health and arming checks refuse to arm (not ready, mode not armable).
+HEALTH_DENIAL = "Arming denied: Resolve system health failures first"
 
 #: Modes PX4 lets you arm in (without RC; POSCTL etc. hold position in the mock).
 ARMABLE_MODES = frozenset({
@@ -132,6 +138,13 @@ class CommandHandler:
             if ap.faults.prearm_fail:
                 ap.announce(CRITICAL, "Arming denied: pre-arm checks failed")
                 return DENIED
+            if not ap.ready:
+                ap.announce(CRITICAL, HEALTH_DENIAL)
+                return TEMPORARILY_REJECTED
+            if ap.behaviour.mode_after_disarm and (ap.mode in PREVENTS_ARMING or (
+                    ap.mode is FlightMode.OFFBOARD and not ap.offboard_available())):
+                ap.announce(CRITICAL, HEALTH_DENIAL)
+                return TEMPORARILY_REJECTED
             if ap.mode not in ARMABLE_MODES:
                 ap.announce(CRITICAL, f"Arming denied: not armable in {ap.mode.name.title()}")
                 return DENIED
@@ -185,9 +198,15 @@ class CommandHandler:
         ap = self._ap
         if mode is ap.mode:
             return ACCEPTED
-        if mode is FlightMode.OFFBOARD and not ap.offboard_available():
+        # PX4 accepts any mode while disarmed and checks it when arming.
+        disarmed_choice = ap.behaviour.mode_after_disarm and not ap.armed
+        if mode is FlightMode.OFFBOARD and not ap.offboard_available() and not disarmed_choice:
             ap.announce(CRITICAL, "Switching to Offboard is currently not available")
             return TEMPORARILY_REJECTED
+        if mode is FlightMode.OFFBOARD and ap.mode is FlightMode.TAKEOFF and \
+                ap.behaviour.offboard_during_takeoff_dropped:
+            log.info("Offboard requested during take-off: acknowledged, take-off continues")
+            return ACCEPTED
         if mode is FlightMode.MISSION and ap.navigator.mission_count == 0:
             ap.announce(CRITICAL, "Switching to Mission: no valid mission")
             return TEMPORARILY_REJECTED
@@ -212,6 +231,8 @@ class CommandHandler:
         return ACCEPTED if self._ap.navigator.set_current(int(p[0])) else DENIED
 
     def _request_message(self, p: tuple[float, ...], is_int: bool) -> int:
+        if int(p[0]) == mavlink.MAVLINK_MSG_ID_HOME_POSITION and not self._ap.ready:
+            return FAILED  # PX4 has no home before its pre-flight checks pass
         return ACCEPTED if self._ap.send_message_by_id(int(p[0])) else UNSUPPORTED
 
     def _request_capabilities(self, p: tuple[float, ...], is_int: bool) -> int:

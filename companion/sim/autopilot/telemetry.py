@@ -9,6 +9,7 @@ stream would only load a test machine: ATTITUDE_QUATERNION, GLOBAL_POSITION_INT)
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -161,7 +162,8 @@ def altitude(mav: mavlink.MAVLink, s: Snapshot) -> Any:
     d = s.vehicle.position_ned_m[2]
     amsl = s.home.alt_m - d
     rel = s.home_ned_m[2] - d
-    return mav.altitude_encode(s.time_usec, amsl, amsl, -d, rel, -d, -d)
+    # Terrain and bottom clearance: the height above the floor, which home stands on.
+    return mav.altitude_encode(s.time_usec, amsl, amsl, -d, rel, rel, rel)
 
 
 def vfr_hud(mav: mavlink.MAVLink, s: Snapshot) -> Any:
@@ -204,6 +206,22 @@ def autopilot_version(mav: mavlink.MAVLink, s: Snapshot) -> Any:
     return mav.autopilot_version_encode(
         CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x0011,
         0x4D4F434B00000000 + s.system_id)
+
+
+_statustext_ids = itertools.count(1)
+
+
+def statustext_chunks(mav: mavlink.MAVLink, severity: int, text: str) -> list[Any]:
+    """STATUSTEXT for ``text``: one message, or for more than 50 characters numbered chunks
+    sharing an ``id`` (MAVLink 2; PX4 sends up to 127 characters this way)."""
+    data = text.encode("ascii", "replace")[:127]
+    if len(data) <= 50:
+        return [mav.statustext_encode(severity, data)]
+    msg_id = next(_statustext_ids) % 65535 + 1
+    chunks = [data[i:i + 50] for i in range(0, len(data), 50)]
+    if len(data) % 50 == 0:
+        chunks.append(b"")  # the terminating chunk a multiple of 50 characters needs
+    return [mav.statustext_encode(severity, c, msg_id, seq) for seq, c in enumerate(chunks)]
 
 
 Encoder = Callable[[mavlink.MAVLink, Snapshot], Any]
