@@ -39,9 +39,9 @@ import yaml
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import CompanionConfig, LinkConfig
-from companion.errors import LinkError
+from companion.errors import CommandError, LinkError
 from companion.mavlink.link import MavlinkLink
-from companion.mavlink.state import LandedState
+from companion.mavlink.state import LandedState, MapFrame
 from companion.px4 import FlightMode, decode_heartbeat, set_mode_params
 from companion.sim.px4_sitl import Px4Sitl
 
@@ -49,6 +49,8 @@ log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parents[2]
 SQUARE_MISSION = REPO / "config" / "missions" / "square.yaml"
+#: Arming attempts, a second apart, while PX4 clears a health failure.
+ARM_ATTEMPTS = 15
 #: PX4 reports mode changes in its 1 Hz heartbeat: a change is seen up to this late.
 HEARTBEAT_LAG_S = 1.2
 
@@ -105,7 +107,7 @@ class FlightTimeline:
             self.home_down_m = float(msg.z)
         elif mtype == "LOCAL_POSITION_NED" and self.home_down_m is not None:
             self.ned_m = (float(msg.x), float(msg.y), float(msg.z))
-            self.xyz_map_m = (float(msg.y), float(msg.x), -(float(msg.z) - self.home_down_m))
+            self.xyz_map_m = MapFrame(self.home_down_m).from_ned(*self.ned_m)
             now = time.monotonic()
             if not self.path or now - self.path[-1][0] >= self.path_period_s:
                 self.path.append((now, *self.xyz_map_m))
@@ -222,7 +224,7 @@ def _count_steps(mission: Path) -> int:
 
 async def probe_offboard_loss(sitl: Px4Sitl, cfg: CompanionConfig, workdir: Path,
                               in_offboard_s: float = 3.0, timeout_s: float = 150.0) -> ProbeResult:
-    """``companion run --fly-mission`` (simulated camera, PX4's link) flies the demo crossing;
+    """From HOLD on the ground, ``companion run --fly-mission`` (simulated camera, PX4's link) flies the demo crossing;
     once PX4 reports OFFBOARD in the air for ``in_offboard_s`` the companion (its whole process
     group) is killed. PX4 must leave OFFBOARD within ``COM_OF_LOSS_T`` (plus the heartbeat's
     lag), stay within 1 m of where the setpoints stopped, land and disarm."""
@@ -239,6 +241,7 @@ async def probe_offboard_loss(sitl: Px4Sitl, cfg: CompanionConfig, workdir: Path
     wps_room = await asyncio.to_thread(crossing_waypoints_room, world.placement, cfg)
     await upload_crossing(sitl.gcs_url, [world.placement.room_to_map_xy(w) for w in wps_room],
                           cfg.planner.flight_altitude_m)
+    await hold_on_ground(sitl)
     conf = workdir / "offboard-loss.yaml"
     conf.write_text(yaml.safe_dump({
         "sim": {"autopilot": "external", "seed": cfg.sim.seed}, "link": {"url": sitl.onboard_url},
@@ -288,6 +291,15 @@ async def probe_offboard_loss(sitl: Px4Sitl, cfg: CompanionConfig, workdir: Path
     return ProbeResult(name, ok, detail, figures, lines[-25:])
 
 
+async def hold_on_ground(sitl: Px4Sitl) -> None:
+    """Put the landed vehicle in HOLD (as a pilot leaves it): a vehicle left in MISSION mode
+    starts flying the uploaded mission by itself as soon as anyone arms it."""
+    from companion.mavsdk_client import MavsdkClient
+
+    async with MavsdkClient(sitl.gcs_url, connect_timeout_s=30.0) as client:
+        await client.action.hold()
+
+
 def _start_companion_run(conf: Path, log_path: Path) -> subprocess.Popen[bytes]:
     """``companion run --fly-mission`` in its own session (so a kill takes its children too)."""
     with log_path.open("w") as out:
@@ -315,7 +327,16 @@ async def land_in_offboard(sitl: Px4Sitl, altitude_m: float = 1.0, timeout_s: fl
         await tl.wait_for(lambda t: t.ned_m is not None, 15.0, "a local position")
         async with MavsdkClient(sitl.gcs_url, connect_timeout_s=30.0) as client:
             await client.action.set_takeoff_altitude(altitude_m)
-            await client.arm()
+            # After a companion left, PX4 refuses to arm ("Connection to mission computer
+            # lost") until our link's heartbeat has been seen for a moment.
+            for attempt in range(ARM_ATTEMPTS):
+                try:
+                    await client.arm()
+                    break
+                except CommandError:
+                    if attempt == ARM_ATTEMPTS - 1:
+                        raise
+                    await asyncio.sleep(1.0)
             await client.action.takeoff()
         await tl.wait_for(lambda t: t.mode == "HOLD" and t.in_air, timeout_s, f"the take-off to {altitude_m:.1f} m")
         assert tl.ned_m is not None

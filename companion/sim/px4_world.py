@@ -28,7 +28,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.config import CompanionConfig, LinkConfig
 from companion.errors import LinkError
 from companion.mavlink.link import MavlinkLink
-from companion.mavlink.state import LinkLike
+from companion.mavlink.state import LinkLike, MapFrame
 from companion.service.sim_world import (
     SharedSimState,
     SimCameraSource,
@@ -105,8 +105,10 @@ class Px4World:
             rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
             if abs(dt) > MAX_POSITION_AGE_S or not all(math.isfinite(v) for v in rpy):
                 return
+            ned = (n + vn * dt, e + ve * dt, d + vd * dt)
+            T_map_body = map_pose_from_ned(ned, rpy)
             # Height above home: PX4's local origin is where the EKF started, not the floor.
-            T_map_body = map_pose_from_ned((n + vn * dt, e + ve * dt, d + vd * dt - self._home_down_m), rpy)
+            T_map_body[:3, 3] = MapFrame(self._home_down_m).from_ned(*ned)
             now = time.monotonic()
             self.shared.set_pose(now, T_map_body)
             self.poses_published += 1
