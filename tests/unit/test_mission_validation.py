@@ -155,3 +155,13 @@ def test_resolved_plan_is_checked_before_upload() -> None:
         check_plan(plan)
     ok = MissionPlan((Waypoint("takeoff", rel_alt_m=2.0), Waypoint("land", rel_alt_m=0.0)))
     assert check_plan(ok) is ok
+
+
+def test_mission_check_checks_local_waypoints_resolved_like_upload(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    # 9 km north of a home at 89.95 deg is past the pole: upload would send latitude > 90.
+    path = tmp_path / "polar.yaml"
+    path.write_text("home: {lat_deg: 89.95, lon_deg: 0.0, alt_m: 10.0}\n"
+                    "waypoints:\n  - {action: takeoff, z_m: 2}\n  - {x_m: 0, y_m: 9000, z_m: 2}\n",
+                    encoding="utf-8")
+    assert main(["mission", "check", str(path)]) == 2
+    assert "polar.yaml: waypoint 1 (waypoint): latitude 90.03" in capsys.readouterr().err
