@@ -40,6 +40,16 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import MissionError
 from companion.geo import GeoOrigin
+from companion.mission_validation import (
+    HOME_ALT_RANGE_M,
+    LOCAL_RANGE_M,
+    REL_ALT_RANGE_M,
+    SPEED_MAX_M_S,
+    YAW_RANGE_DEG,
+    check_plan,
+    plan_home,
+    plan_item_params,
+)
 from semmap.frames import enu_to_ned, ned_to_enu
 
 Action = Literal["waypoint", "takeoff", "land", "rtl"]
@@ -281,14 +291,7 @@ def parse_plan_json(data: Any, source: str) -> MissionPlan:
     mission = data.get("mission")
     if not isinstance(mission, dict) or not isinstance(mission.get("items"), list):
         raise MissionError(f"{source}: mission.items: missing or not a list")
-    home = None
-    php = mission.get("plannedHomePosition")
-    if php is not None:
-        try:
-            home = GeoOrigin(float(php[0]), float(php[1]), float(php[2]))
-        except (TypeError, ValueError, IndexError) as exc:
-            raise MissionError(f"{source}: mission.plannedHomePosition: expected "
-                               f"[lat, lon, alt_amsl] ({exc})") from exc
+    home = plan_home(mission.get("plannedHomePosition"), source)
     items: list[MissionItemInt] = []
     for i, raw in enumerate(mission["items"]):
         where = f"{source}: mission.items[{i}]"
@@ -301,22 +304,18 @@ def parse_plan_json(data: Any, source: str) -> MissionPlan:
         try:
             cmd = int(raw["command"])
             frame = int(raw["frame"])
-            params = [(_NAN if p is None else float(p)) for p in raw["params"]]
+            params = plan_item_params(raw["params"], cmd, frame, home, where)
         except (KeyError, TypeError, ValueError) as exc:
             raise MissionError(f"{where}: needs integer 'command', 'frame' and 7 numeric "
                                f"'params' ({exc!r})") from exc
         if len(params) != 7:
             raise MissionError(f"{where}: params must have 7 entries (got {len(params)})")
         lat, lon = params[4], params[5]
-        if math.isfinite(lat) and not -90 <= lat <= 90:
-            raise MissionError(f"{where}: latitude {lat} out of range")
-        if math.isfinite(lon) and not -180 <= lon <= 180:
-            raise MissionError(f"{where}: longitude {lon} out of range")
         x = int(round(lat * 1e7)) if math.isfinite(lat) else 0
         y = int(round(lon * 1e7)) if math.isfinite(lon) else 0
         items.append(MissionItemInt(i, frame, cmd, 0, int(bool(raw.get("autoContinue", True))),
                                     params[0], params[1], params[2], params[3], x, y, params[6]))
-    return items_to_plan(items, home, source, label="mission.items[{i}]")
+    return check_plan(items_to_plan(items, home, source, label="mission.items[{i}]"))
 
 
 def plan_to_json(plan: MissionPlan) -> dict[str, Any]:
@@ -349,27 +348,28 @@ def plan_to_json(plan: MissionPlan) -> dict[str, Any]:
 # --- YAML waypoint list -----------------------------------------------------------------------
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # strict: `true` is not 1.0 and "1.5" is not a number; NaN and infinity are refused
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 class _YamlHome(_Strict):
     lat_deg: float = Field(ge=-90, le=90)
     lon_deg: float = Field(ge=-180, le=180)
-    alt_m: float
+    alt_m: float = Field(ge=HOME_ALT_RANGE_M[0], le=HOME_ALT_RANGE_M[1])
 
 
 class _YamlWaypoint(_Strict):
     action: Action = "waypoint"
-    x_m: float | None = None
-    y_m: float | None = None
-    z_m: float | None = None
+    x_m: float | None = Field(default=None, ge=-LOCAL_RANGE_M, le=LOCAL_RANGE_M)
+    y_m: float | None = Field(default=None, ge=-LOCAL_RANGE_M, le=LOCAL_RANGE_M)
+    z_m: float | None = Field(default=None, ge=REL_ALT_RANGE_M[0], le=REL_ALT_RANGE_M[1])
     lat_deg: float | None = Field(default=None, ge=-90, le=90)
     lon_deg: float | None = Field(default=None, ge=-180, le=180)
-    alt_m: float | None = None
-    speed_m_s: float | None = Field(default=None, gt=0)
+    alt_m: float | None = Field(default=None, ge=REL_ALT_RANGE_M[0], le=REL_ALT_RANGE_M[1])
+    speed_m_s: float | None = Field(default=None, gt=0, le=SPEED_MAX_M_S)
     hold_s: float = Field(default=0.0, ge=0)
     acceptance_radius_m: float | None = Field(default=None, gt=0)
-    yaw_deg: float | None = None
+    yaw_deg: float | None = Field(default=None, ge=YAW_RANGE_DEG[0], le=YAW_RANGE_DEG[1])
 
     @model_validator(mode="after")
     def _position(self) -> _YamlWaypoint:
@@ -397,7 +397,7 @@ class _YamlWaypoint(_Strict):
 
 class _YamlMission(_Strict):
     home: _YamlHome | None = None
-    speed_m_s: float | None = Field(default=None, gt=0)
+    speed_m_s: float | None = Field(default=None, gt=0, le=SPEED_MAX_M_S)
     waypoints: list[_YamlWaypoint] = Field(min_length=1)
 
 
@@ -433,7 +433,7 @@ def parse_yaml_mission(data: Any, source: str) -> MissionPlan:
             wps.append(Waypoint(lat_deg=w.lat_deg, lon_deg=w.lon_deg, rel_alt_m=alt, **common))
         else:
             wps.append(Waypoint(rel_alt_m=alt, **common))
-    return MissionPlan(tuple(wps), home, source)
+    return check_plan(MissionPlan(tuple(wps), home, source))
 
 
 def plan_to_yaml_doc(plan: MissionPlan) -> dict[str, Any]:

@@ -110,6 +110,10 @@ class VehicleState:
     #: PX4's pre-arm checks (SYS_STATUS ``MAV_SYS_STATUS_PREARM_CHECK``): None when the
     #: autopilot does not report them.
     prearm_ok: bool | None = None
+    #: A downward range sensor's distance to what is below (DISTANCE_SENSOR, PITCH_270), and
+    #: its age; None without one.
+    range_down_m: float | None = None
+    range_down_age_s: float | None = None
 
     def heartbeat_fresh(self, timeout_s: float) -> bool:
         """True if the autopilot's heartbeat is younger than ``timeout_s``."""
@@ -152,6 +156,17 @@ class VehicleState:
         pos = self.position_map_m
         return None if pos is None else pos[2]
 
+    def clearance_below_m(self, max_age_s: float = 0.5) -> float | None:
+        """How high the vehicle is by every height it has: above home, and the downward
+        range sensor's reading where a fresh one exists (the lower of the two)."""
+        height = self.height_above_home_m
+        fresh_range = (self.range_down_m is not None and self.range_down_age_s is not None
+                       and self.range_down_age_s <= max_age_s)
+        if height is None or not fresh_range:
+            return height
+        assert self.range_down_m is not None
+        return min(height, self.range_down_m)
+
 
 class StateTimeoutError(LinkError):
     """The vehicle did not reach the awaited state in time; the message says which."""
@@ -160,7 +175,7 @@ class StateTimeoutError(LinkError):
 #: Everything the tracker reads.
 TRACKED_MESSAGES: frozenset[str] = frozenset({
     "HEARTBEAT", "LOCAL_POSITION_NED", "ATTITUDE", "EXTENDED_SYS_STATE", "SYS_STATUS",
-    "BATTERY_STATUS", "HOME_POSITION", "GLOBAL_POSITION_INT",
+    "BATTERY_STATUS", "HOME_POSITION", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR",
 })
 
 _UINT16_MAX = 0xFFFF
@@ -186,6 +201,8 @@ class VehicleStateTracker:
         self._mode: FlightMode | None = None
         self._system_status: int | None = None
         self._prearm_ok: bool | None = None
+        self._range_down: float | None = None
+        self._range_s: float | None = None
         self._landed = LandedState.UNDEFINED
         self._pos: Vec3 | None = None
         self._vel: Vec3 | None = None
@@ -263,6 +280,14 @@ class VehicleStateTracker:
         if msg.battery_remaining >= 0:
             self._battery_remaining = msg.battery_remaining / 100.0
 
+    def _on_distance_sensor(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.orientation != mavlink.MAV_SENSOR_ROTATION_PITCH_270:
+            return  # not looking down
+        d_cm = msg.current_distance
+        if msg.min_distance <= d_cm <= msg.max_distance:
+            self._range_down = d_cm / 100.0
+            self._range_s = self._clock()
+
     def _on_home(self, msg: mavlink.MAVLink_message) -> None:
         self._home = HomePosition(
             latitude_deg=msg.latitude * 1e-7,
@@ -299,6 +324,8 @@ class VehicleStateTracker:
             global_position=self._global,
             autopilot_system_status=self._system_status,
             prearm_ok=self._prearm_ok,
+            range_down_m=self._range_down,
+            range_down_age_s=None if self._range_s is None else now - self._range_s,
         )
 
     async def wait_for(
@@ -346,5 +373,6 @@ _HANDLERS: dict[str, Callable[[VehicleStateTracker, mavlink.MAVLink_message], No
     "SYS_STATUS": VehicleStateTracker._on_sys_status,
     "BATTERY_STATUS": VehicleStateTracker._on_battery_status,
     "HOME_POSITION": VehicleStateTracker._on_home,
+    "DISTANCE_SENSOR": VehicleStateTracker._on_distance_sensor,
     "GLOBAL_POSITION_INT": VehicleStateTracker._on_global_position,
 }

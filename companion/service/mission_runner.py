@@ -39,7 +39,7 @@ from planner.trajectory import Trajectory, TrajectoryLimits, time_parametrize
 from planner.types import PlanResult, PlanStatus
 from planner.worker import PlanningService
 from semmap.costmap import Costmap
-from semmap.errors import MissionError
+from semmap.errors import CompanionError, MissionError
 from semmap.frames import enu_to_ned, ned_to_enu, yaw_enu_to_ned, yaw_ned_to_enu
 
 log = logging.getLogger(__name__)
@@ -122,8 +122,9 @@ def map_frame_of(state: VehicleState) -> MapFrame:
 
 def took_off(state: VehicleState, altitude_m: float) -> bool:
     """PX4's take-off has finished at ``altitude_m`` above home: in the air, out of TAKEOFF
-    (PX4 ends it in Hold, and drops an OFFBOARD request made before), high enough."""
-    height = state.height_above_home_m
+    (PX4 ends it in Hold, and drops an OFFBOARD request made before), high enough by the
+    estimate and by a downward range sensor where there is one."""
+    height = state.clearance_below_m()
     return (state.in_air and state.flight_mode is not FlightMode.TAKEOFF and height is not None
             and height >= altitude_m - TAKEOFF_TOLERANCE_M)
 
@@ -330,10 +331,13 @@ class MissionRunner:
         pos = position_enu(state)
         if pos is None:
             raise MissionError("no vehicle position (or no home) to engage offboard from")
-        if not state.in_air or pos[2] < altitude_m - TAKEOFF_TOLERANCE_M:
+        height = state.clearance_below_m()
+        if not state.in_air or height is None or height < altitude_m - TAKEOFF_TOLERANCE_M:
             raise MissionError(f"not engaging offboard: the vehicle is not airborne at the take-off "
                                f"height ({'in the air' if state.in_air else 'on the ground'}, "
-                               f"{pos[2]:.2f} m above home, {altitude_m:.2f} m needed)")
+                               f"{pos[2]:.2f} m above home, range below "
+                               f"{'none' if state.range_down_m is None else f'{state.range_down_m:.2f} m'}, "
+                               f"{altitude_m:.2f} m needed)")
         self.hold_at(pos[:2], altitude_m)
         sp = self.vehicle.offboard.status().setpoint
         assert sp is not None
@@ -518,11 +522,8 @@ class MissionRunner:
                 elif st is OffboardState.HOLDING and ctl.failsafe.tracking_fault:
                     return "tracking"
                 elif st is OffboardState.LINK_LOST and self.vehicle.connected:
-                    log.warning("autopilot link back: re-engaging offboard")
-                    try:
-                        await ctl.engage()
-                    except Exception as exc:  # noqa: BLE001 - retried on the next tick
-                        log.warning("re-engaging offboard failed: %s", exc)
+                    await self._reengage(leg)
+                    return "invalid"  # PX4's failsafe moved the vehicle: re-plan from where it is
                 else:
                     self._check_offboard()
                 last = now
@@ -586,6 +587,25 @@ class MissionRunner:
             for task in (checking, replan):
                 if task is not None and not task.done():
                     task.cancel()
+
+    async def _reengage(self, leg: Leg) -> None:
+        """The link is back after a loss: PX4's offboard-loss failsafe has flown the vehicle
+        meanwhile (Position mode descends and lands without RC). Engage again only if it is
+        still airborne, with a hold where it is at the leg's altitude; a landed vehicle ends
+        the mission (PX4 would accept OFFBOARD on the ground, disarmed)."""
+        state = self.vehicle.snapshot()
+        pos = position_enu(state)
+        if not (state.in_air and state.armed) or pos is None:
+            raise MissionError(f"leg {leg.seq}: the vehicle landed during the link loss "
+                               f"({state.flight_mode.name if state.flight_mode else 'unknown mode'}, "
+                               f"{'armed' if state.armed else 'disarmed'}); not re-engaging offboard")
+        log.warning("autopilot link back with the vehicle in the air: holding at (%.2f, %.2f) m and "
+                    "re-engaging offboard", pos[0], pos[1])
+        self.hold_at(pos[:2], leg.altitude_m)
+        try:
+            await self.vehicle.offboard.engage()
+        except CompanionError as exc:
+            log.warning("re-engaging offboard failed: %s; retrying", exc)
 
     async def _check_ahead(self, traj: Trajectory, t_s: float) -> tuple[bool, float | None]:
         """Is the rest of ``traj`` from ``t_s`` free on the newest costmap? If not, also the
