@@ -153,11 +153,12 @@ PX4_EVENT_PATTERN = (r"WARN|ERROR|[Ff]ailsafe|[Aa]rm|[Dd]isarm|[Ll]and|[Tt]akeof
 
 
 def engage_check(events: list[FlightEvent], altitude_m: float, tolerance_m: float = 0.15) -> tuple[bool, str]:
-    """Whether the vehicle was first reported in OFFBOARD while in the air at no less than
-    ``altitude_m - tolerance_m`` above home (False also when it never was in OFFBOARD)."""
-    first = next((e for e in events if e.mode == "OFFBOARD"), None)
+    """Whether the vehicle was first reported armed in OFFBOARD while in the air at no less
+    than ``altitude_m - tolerance_m`` above home (False also when it never was). OFFBOARD
+    while disarmed (PX4 keeps the mode a landing left) is not an engagement."""
+    first = next((e for e in events if e.mode == "OFFBOARD" and e.armed), None)
     if first is None:
-        return False, "never in OFFBOARD"
+        return False, "never armed in OFFBOARD"
     z = None if first.xyz_map_m is None else first.xyz_map_m[2]
     where = "unknown height" if z is None else f"{z:.2f} m above home"
     ok = first.landed == "IN_AIR" and first.armed and z is not None and z >= altitude_m - tolerance_m
@@ -396,4 +397,5 @@ async def probe_landing_rearm(sitl: Px4Sitl, cfg: CompanionConfig, out_dir: Path
     err = flight.summary.get("mission_error")
     detail = (f"landed in {mode}, disarmed; the service then {'took off again' if took_off else 'did not take off'}"
               + (f" ({err})" if err and not took_off else ""))
-    return ProbeResult(name, took_off, detail, {"mode_after_landing": mode}, lines[-25:]), flight
+    return ProbeResult(name, took_off, detail, {"mode_after_landing": mode, "modes": flight.summary["modes"]},
+                       lines[-25:]), flight
