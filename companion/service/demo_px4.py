@@ -36,9 +36,9 @@ from companion.service.demo import (
     feasible_seed,
     local_broker,
 )
-from companion.sim.px4_probes import FlightTimeline, engage_check
+from companion.sim.px4_probes import engage_check
 from companion.sim.px4_sitl import Px4Sitl, Px4SitlError
-from companion.sim.px4_world import Px4World, vehicle_start_map_xy
+from companion.sim.px4_world import FlightTimeline, Px4World, vehicle_start_map_xy
 from semmap.errors import LinkError
 from semmap.export import export_all
 
@@ -103,6 +103,7 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
         world = Px4World(cfg, start, target_system=cfg.link.target_system,
                          target_component=cfg.link.target_component)
         placement = world.placement
+        flight.timeline = world.timeline
         if cfg.planner.geofence_xy_m is None:
             # The mission author knows the room's walls (not its furniture): the room is the geofence.
             x0, y0 = placement.room_to_map_xy((0.0, 0.0))
@@ -123,7 +124,6 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
             # The service opens its link when it activates: the world rides on the same telemetry.
             assert svc.vehicle is not None
             world.follow(svc.vehicle.link)
-            flight.timeline.attach(svc.vehicle.link)
 
         service.on_active = follow
         async def stopper() -> None:

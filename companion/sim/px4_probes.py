@@ -14,8 +14,7 @@ them:
 * :func:`probe_landing_rearm`: after a landing in OFFBOARD (PX4 disarms and keeps the mode) the
   service takes off again.
 
-:class:`FlightTimeline` records a flight from any MAVLink link: mode, arming and landed-state
-changes with the map-frame position (height above home) at each, and the path.
+:class:`~companion.sim.px4_world.FlightTimeline` records the flights.
 """
 
 from __future__ import annotations
@@ -30,7 +29,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,9 +39,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.config import CompanionConfig, LinkConfig
 from companion.errors import CommandError, LinkError
 from companion.mavlink.link import MavlinkLink
-from companion.mavlink.state import LandedState, MapFrame
-from companion.px4 import FlightMode, decode_heartbeat, set_mode_params
+from companion.px4 import FlightMode, set_mode_params
 from companion.sim.px4_sitl import Px4Sitl
+from companion.sim.px4_world import FlightEvent, FlightTimeline
 
 log = logging.getLogger(__name__)
 
@@ -53,87 +51,6 @@ SQUARE_MISSION = REPO / "config" / "missions" / "square.yaml"
 ARM_ATTEMPTS = 15
 #: PX4 reports mode changes in its 1 Hz heartbeat: a change is seen up to this late.
 HEARTBEAT_LAG_S = 1.2
-
-
-@dataclass(frozen=True)
-class FlightEvent:
-    """A change of mode, arming or landed state, and where the vehicle was (map frame, z
-    above home; None before HOME_POSITION)."""
-
-    t_s: float
-    mode: str
-    armed: bool
-    landed: str
-    xyz_map_m: tuple[float, float, float] | None
-
-
-class FlightTimeline:
-    """Records the autopilot's mode, arming, landed state and map-frame position from a link
-    (``attach``), as the vehicle reports them. Positions: x east, y north of PX4's local
-    origin, z the height above home."""
-
-    MESSAGES = ("HEARTBEAT", "EXTENDED_SYS_STATE", "LOCAL_POSITION_NED", "HOME_POSITION")
-
-    def __init__(self, target_system: int = 1, target_component: int = mavlink.MAV_COMP_ID_AUTOPILOT1,
-                 path_period_s: float = 0.05) -> None:
-        self.target_system = target_system
-        self.target_component = target_component
-        self.path_period_s = path_period_s
-        self.events: list[FlightEvent] = []
-        #: (t_s, x, y, z) map frame, at most every ``path_period_s``.
-        self.path: list[tuple[float, float, float, float]] = []
-        self.mode = "UNKNOWN"
-        self.armed = False
-        self.landed = LandedState.UNDEFINED.name
-        self.home_down_m: float | None = None
-        self.xyz_map_m: tuple[float, float, float] | None = None
-        self.ned_m: tuple[float, float, float] | None = None
-
-    def attach(self, link: MavlinkLink) -> Callable[[], None]:
-        return link.add_listener(self.handle, self.MESSAGES)
-
-    def handle(self, msg: mavlink.MAVLink_message) -> None:
-        if msg.get_srcSystem() != self.target_system or msg.get_srcComponent() != self.target_component:
-            return
-        mtype = msg.get_type()
-        if mtype == "HEARTBEAT":
-            if msg.type == mavlink.MAV_TYPE_GCS:
-                return
-            d = decode_heartbeat(msg.base_mode, msg.custom_mode)
-            self._update(d.mode.name if d.mode else f"main{d.main_mode}/sub{d.sub_mode}", d.armed, self.landed)
-        elif mtype == "EXTENDED_SYS_STATE":
-            self._update(self.mode, self.armed, LandedState.from_mavlink(msg.landed_state).name)
-        elif mtype == "HOME_POSITION" and math.isfinite(msg.z):
-            self.home_down_m = float(msg.z)
-        elif mtype == "LOCAL_POSITION_NED" and self.home_down_m is not None:
-            self.ned_m = (float(msg.x), float(msg.y), float(msg.z))
-            self.xyz_map_m = MapFrame(self.home_down_m).from_ned(*self.ned_m)
-            now = time.monotonic()
-            if not self.path or now - self.path[-1][0] >= self.path_period_s:
-                self.path.append((now, *self.xyz_map_m))
-
-    def _update(self, mode: str, armed: bool, landed: str) -> None:
-        if (mode, armed, landed) != (self.mode, self.armed, self.landed):
-            self.mode, self.armed, self.landed = mode, armed, landed
-            self.events.append(FlightEvent(time.monotonic(), mode, armed, landed, self.xyz_map_m))
-            log.info("timeline: %s, %s, %s at %s", mode, "armed" if armed else "disarmed", landed,
-                     "?" if self.xyz_map_m is None else "({:.2f}, {:.2f}, {:.2f}) m".format(*self.xyz_map_m))
-
-    @property
-    def in_air(self) -> bool:
-        return self.landed in ("IN_AIR", "TAKEOFF", "LANDING")
-
-    async def wait_for(self, predicate: Callable[[FlightTimeline], bool], timeout_s: float, what: str) -> None:
-        """Poll until ``predicate(self)``; raises :class:`LinkError` naming ``what`` on timeout."""
-        deadline = time.monotonic() + timeout_s
-        while not predicate(self):
-            if time.monotonic() > deadline:
-                raise LinkError(f"timed out after {timeout_s:.0f} s waiting for {what} "
-                                f"(now {self.mode}, {'armed' if self.armed else 'disarmed'}, {self.landed})")
-            await asyncio.sleep(0.05)
-
-    def max_distance_from_m(self, xy: tuple[float, float]) -> float:
-        return max((math.hypot(p[1] - xy[0], p[2] - xy[1]) for p in self.path), default=0.0)
 
 
 @dataclass

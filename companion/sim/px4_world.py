@@ -7,9 +7,9 @@ just inside its first doorway, follows the autopilot's telemetry on a MAVLink li
 service's own) and publishes each pose to the camera, which may render in the perception
 process (:class:`~companion.service.sim_world.SharedSimState`).
 
-Frames: the map frame is PX4's local frame in ENU with the height above home as z (PX4's
-local z is not the floor); the room floor is at z = 0 of the map frame, since the vehicle
-boots on the floor at home.
+Frames: the map frame is PX4's local frame in ENU (x east, y north); the world's z is the
+height above the floor, the local z the vehicle had while it last stood landed and disarmed
+(:class:`FlightTimeline`): PX4's local z is not the floor, and home's z moves in flight.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,7 +29,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.config import CompanionConfig, LinkConfig
 from companion.errors import LinkError
 from companion.mavlink.link import MavlinkLink
-from companion.mavlink.state import LinkLike, MapFrame
+from companion.mavlink.state import LandedState, LinkLike, MapFrame
+from companion.px4 import decode_heartbeat
 from companion.service.sim_world import (
     SharedSimState,
     SimCameraSource,
@@ -47,6 +49,97 @@ PATH_PERIOD_S = 0.05
 MAX_POSITION_AGE_S = 0.2
 
 
+@dataclass(frozen=True)
+class FlightEvent:
+    """A change of mode, arming or landed state, where the vehicle was (map frame, z above
+    the floor; None before the first position) and its height above home as PX4 reports it."""
+
+    t_s: float
+    mode: str
+    armed: bool
+    landed: str
+    xyz_map_m: tuple[float, float, float] | None
+    height_above_home_m: float | None = None
+
+
+class FlightTimeline:
+    """Records the autopilot's mode, arming, landed state and position from a link
+    (``attach``), as the vehicle reports them. Positions: x east, y north of PX4's local
+    origin, z the height above the floor: the local z the vehicle had while it last stood
+    landed and disarmed (home's z until then). Home's z is no floor in flight: PX4 (GPS
+    height) recomputes it from the GNSS altitude, and it moves by up to a metre."""
+
+    MESSAGES = ("HEARTBEAT", "EXTENDED_SYS_STATE", "LOCAL_POSITION_NED", "HOME_POSITION")
+
+    def __init__(self, target_system: int = 1, target_component: int = mavlink.MAV_COMP_ID_AUTOPILOT1,
+                 path_period_s: float = 0.05) -> None:
+        self.target_system = target_system
+        self.target_component = target_component
+        self.path_period_s = path_period_s
+        self.events: list[FlightEvent] = []
+        #: (t_s, x, y, z) map frame, at most every ``path_period_s``.
+        self.path: list[tuple[float, float, float, float]] = []
+        self.mode = "UNKNOWN"
+        self.armed = False
+        self.landed = LandedState.UNDEFINED.name
+        self.home_down_m: float | None = None
+        self.floor_down_m: float | None = None
+        self.xyz_map_m: tuple[float, float, float] | None = None
+        self.ned_m: tuple[float, float, float] | None = None
+
+    def attach(self, link: LinkLike) -> Callable[[], None]:
+        return link.add_listener(self.handle, self.MESSAGES)
+
+    def handle(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.get_srcSystem() != self.target_system or msg.get_srcComponent() != self.target_component:
+            return
+        mtype = msg.get_type()
+        if mtype == "HEARTBEAT":
+            if msg.type == mavlink.MAV_TYPE_GCS:
+                return
+            d = decode_heartbeat(msg.base_mode, msg.custom_mode)
+            self._update(d.mode.name if d.mode else f"main{d.main_mode}/sub{d.sub_mode}", d.armed, self.landed)
+        elif mtype == "EXTENDED_SYS_STATE":
+            self._update(self.mode, self.armed, LandedState.from_mavlink(msg.landed_state).name)
+        elif mtype == "HOME_POSITION" and math.isfinite(msg.z):
+            self.home_down_m = float(msg.z)
+        elif mtype == "LOCAL_POSITION_NED":
+            self.ned_m = (float(msg.x), float(msg.y), float(msg.z))
+            if not self.armed and self.landed == LandedState.ON_GROUND.name:
+                self.floor_down_m = self.ned_m[2]
+            floor = self.floor_down_m if self.floor_down_m is not None else self.home_down_m
+            if floor is None:
+                return
+            self.xyz_map_m = MapFrame(floor).from_ned(*self.ned_m)
+            now = time.monotonic()
+            if not self.path or now - self.path[-1][0] >= self.path_period_s:
+                self.path.append((now, *self.xyz_map_m))
+
+    def _update(self, mode: str, armed: bool, landed: str) -> None:
+        if (mode, armed, landed) != (self.mode, self.armed, self.landed):
+            self.mode, self.armed, self.landed = mode, armed, landed
+            above_home = None if self.ned_m is None or self.home_down_m is None else self.home_down_m - self.ned_m[2]
+            self.events.append(FlightEvent(time.monotonic(), mode, armed, landed, self.xyz_map_m, above_home))
+            log.info("timeline: %s, %s, %s at %s", mode, "armed" if armed else "disarmed", landed,
+                     "?" if self.xyz_map_m is None else "({:.2f}, {:.2f}, {:.2f}) m".format(*self.xyz_map_m))
+
+    @property
+    def in_air(self) -> bool:
+        return self.landed in ("IN_AIR", "TAKEOFF", "LANDING")
+
+    async def wait_for(self, predicate: Callable[[FlightTimeline], bool], timeout_s: float, what: str) -> None:
+        """Poll until ``predicate(self)``; raises :class:`LinkError` naming ``what`` on timeout."""
+        deadline = time.monotonic() + timeout_s
+        while not predicate(self):
+            if time.monotonic() > deadline:
+                raise LinkError(f"timed out after {timeout_s:.0f} s waiting for {what} "
+                                f"(now {self.mode}, {'armed' if self.armed else 'disarmed'}, {self.landed})")
+            await asyncio.sleep(0.05)
+
+    def max_distance_from_m(self, xy: tuple[float, float]) -> float:
+        return max((math.hypot(p[1] - xy[0], p[2] - xy[1]) for p in self.path), default=0.0)
+
+
 class Px4World:
     """The seeded room of ``cfg`` around a vehicle that stands at ``start_map_xy_m`` (map
     frame) on the floor: the room is placed so that point is just inside the first doorway.
@@ -54,8 +147,7 @@ class Px4World:
     :meth:`follow` attaches it to a MAVLink link; from then on every ATTITUDE of the autopilot
     (``target_system``/``target_component``) with its latest LOCAL_POSITION_NED, moved on by
     its velocity to the attitude's time, is one camera pose and, every ``PATH_PERIOD_S``, a
-    point of :attr:`path_map_m`. Nothing is published before HOME_POSITION (the height
-    reference) has arrived."""
+    point of :attr:`path_map_m`. Nothing is published before the floor is known."""
 
     def __init__(self, cfg: CompanionConfig, start_map_xy_m: tuple[float, float], *, target_system: int = 1,
                  target_component: int = mavlink.MAV_COMP_ID_AUTOPILOT1) -> None:
@@ -66,7 +158,8 @@ class Px4World:
         self.shared = SharedSimState()
         self.target_system = target_system
         self.target_component = target_component
-        self._home_down_m: float | None = None
+        #: Mode, arming, landed state and the floor's local z, from the same telemetry.
+        self.timeline = FlightTimeline(target_system, target_component)
         self._pos: tuple[float, ...] | None = None  # boot_s, n, e, d, vn, ve, vd
         self._lock = threading.Lock()
         self._path: list[tuple[float, float, float, float]] = []  # monotonic_s, x, y, z
@@ -83,38 +176,43 @@ class Px4World:
 
     def follow(self, link: LinkLike) -> Callable[[], None]:
         """Follow the autopilot's telemetry on ``link``; returns the function that stops it."""
-        return link.add_listener(self.handle, ("HOME_POSITION", "LOCAL_POSITION_NED", "ATTITUDE"))
+        detach = self.timeline.attach(link)
+        remove = link.add_listener(self.handle, ("LOCAL_POSITION_NED", "ATTITUDE"))
+
+        def stop() -> None:
+            detach()
+            remove()
+
+        return stop
 
     def handle(self, msg: mavlink.MAVLink_message) -> None:
         """One telemetry message (others' and other types are ignored)."""
         if msg.get_srcSystem() != self.target_system or msg.get_srcComponent() != self.target_component:
             return
         mtype = msg.get_type()
-        if mtype == "HOME_POSITION":
-            if math.isfinite(msg.z):
-                if self._home_down_m is None:
-                    log.info("simulated world: home at local z %.2f m (NED); the room floor is there", msg.z)
-                self._home_down_m = float(msg.z)
-        elif mtype == "LOCAL_POSITION_NED":
+        if mtype == "LOCAL_POSITION_NED":
             vals = (msg.time_boot_ms * 1e-3, msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
             if all(math.isfinite(v) for v in vals):
                 self._pos = tuple(float(v) for v in vals)
-        elif mtype == "ATTITUDE" and self._pos is not None and self._home_down_m is not None:
-            boot_s, n, e, d, vn, ve, vd = self._pos
-            dt = msg.time_boot_ms * 1e-3 - boot_s
-            rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
-            if abs(dt) > MAX_POSITION_AGE_S or not all(math.isfinite(v) for v in rpy):
-                return
-            ned = (n + vn * dt, e + ve * dt, d + vd * dt)
-            T_map_body = map_pose_from_ned(ned, rpy)
-            # Height above home: PX4's local origin is where the EKF started, not the floor.
-            T_map_body[:3, 3] = MapFrame(self._home_down_m).from_ned(*ned)
-            now = time.monotonic()
-            self.shared.set_pose(now, T_map_body)
-            self.poses_published += 1
-            with self._lock:
-                if not self._path or now - self._path[-1][0] >= PATH_PERIOD_S:
-                    self._path.append((now, *(float(v) for v in T_map_body[:3, 3])))
+            return
+        floor = self.timeline.floor_down_m if self.timeline.floor_down_m is not None else self.timeline.home_down_m
+        if mtype != "ATTITUDE" or self._pos is None or floor is None:
+            return
+        boot_s, n, e, d, vn, ve, vd = self._pos
+        dt = msg.time_boot_ms * 1e-3 - boot_s
+        rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
+        if abs(dt) > MAX_POSITION_AGE_S or not all(math.isfinite(v) for v in rpy):
+            return
+        ned = (n + vn * dt, e + ve * dt, d + vd * dt)
+        T_map_body = map_pose_from_ned(ned, rpy)
+        # The room's floor is where the vehicle stood: PX4's local origin is not the floor.
+        T_map_body[:3, 3] = MapFrame(floor).from_ned(*ned)
+        now = time.monotonic()
+        self.shared.set_pose(now, T_map_body)
+        self.poses_published += 1
+        with self._lock:
+            if not self._path or now - self._path[-1][0] >= PATH_PERIOD_S:
+                self._path.append((now, *(float(v) for v in T_map_body[:3, 3])))
 
     @property
     def path_map_m(self) -> NDArray[np.float64]:
