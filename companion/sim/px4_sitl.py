@@ -219,7 +219,8 @@ class Px4Sitl:
     # --- life cycle ------------------------------------------------------------------
 
     def __enter__(self) -> Px4Sitl:
-        self.start()
+        if self._proc is None:  # entering a SITL started already only takes charge of stopping it
+            self.start()
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
