@@ -71,13 +71,15 @@ PX4_EVENT_PATTERN = (r"WARN|ERROR|[Ff]ailsafe|[Aa]rm|[Dd]isarm|[Ll]and|[Tt]akeof
 
 def engage_check(events: list[FlightEvent], altitude_m: float, tolerance_m: float = 0.15) -> tuple[bool, str]:
     """Whether the vehicle was first reported armed in OFFBOARD while in the air at no less
-    than ``altitude_m - tolerance_m`` above home (False also when it never was). OFFBOARD
+    than ``altitude_m - tolerance_m`` above the floor (False also when it never was). OFFBOARD
     while disarmed (PX4 keeps the mode a landing left) is not an engagement."""
     first = next((e for e in events if e.mode == "OFFBOARD" and e.armed), None)
     if first is None:
         return False, "never armed in OFFBOARD"
     z = None if first.xyz_map_m is None else first.xyz_map_m[2]
-    where = "unknown height" if z is None else f"{z:.2f} m above home"
+    where = "unknown height" if z is None else f"{z:.2f} m above the floor"
+    if first.height_above_home_m is not None:
+        where += f" ({first.height_above_home_m:.2f} m above home)"
     ok = first.landed == "IN_AIR" and first.armed and z is not None and z >= altitude_m - tolerance_m
     return ok, (f"first OFFBOARD {'armed' if first.armed else 'disarmed'}, {first.landed}, at {where} "
                 f"(take-off height {altitude_m:.2f} m)")

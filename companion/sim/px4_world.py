@@ -8,8 +8,9 @@ service's own) and publishes each pose to the camera, which may render in the pe
 process (:class:`~companion.service.sim_world.SharedSimState`).
 
 Frames: the map frame is PX4's local frame in ENU (x east, y north); the world's z is the
-height above the floor, the local z the vehicle had while it last stood landed and disarmed
-(:class:`FlightTimeline`): PX4's local z is not the floor, and home's z moves in flight.
+height above the floor as the downward range finder measures it (SIH simulates one), else
+the local z the vehicle had while it last stood landed and disarmed (:class:`FlightTimeline`):
+PX4's local z is not the floor, and home's z moves in flight.
 """
 
 from __future__ import annotations
@@ -60,16 +61,19 @@ class FlightEvent:
     landed: str
     xyz_map_m: tuple[float, float, float] | None
     height_above_home_m: float | None = None
+    range_m: float | None = None
 
 
 class FlightTimeline:
     """Records the autopilot's mode, arming, landed state and position from a link
     (``attach``), as the vehicle reports them. Positions: x east, y north of PX4's local
-    origin, z the height above the floor: the local z the vehicle had while it last stood
-    landed and disarmed (home's z until then). Home's z is no floor in flight: PX4 (GPS
-    height) recomputes it from the GNSS altitude, and it moves by up to a metre."""
+    origin, z the height above the floor: the downward range finder's distance
+    (DISTANCE_SENSOR, orientation down) carried on by the local z between its samples, else
+    the local z the vehicle had while it last stood landed and disarmed, else home's z. Home's
+    z is no floor in flight: PX4 (GPS height) recomputes it from the GNSS altitude, and it
+    moves by up to a metre."""
 
-    MESSAGES = ("HEARTBEAT", "EXTENDED_SYS_STATE", "LOCAL_POSITION_NED", "HOME_POSITION")
+    MESSAGES = ("HEARTBEAT", "EXTENDED_SYS_STATE", "LOCAL_POSITION_NED", "HOME_POSITION", "DISTANCE_SENSOR")
 
     def __init__(self, target_system: int = 1, target_component: int = mavlink.MAV_COMP_ID_AUTOPILOT1,
                  path_period_s: float = 0.05) -> None:
@@ -84,6 +88,8 @@ class FlightTimeline:
         self.landed = LandedState.UNDEFINED.name
         self.home_down_m: float | None = None
         self.floor_down_m: float | None = None
+        #: The latest downward range (metres), None before the first.
+        self.range_m: float | None = None
         self.xyz_map_m: tuple[float, float, float] | None = None
         self.ned_m: tuple[float, float, float] | None = None
 
@@ -103,9 +109,15 @@ class FlightTimeline:
             self._update(self.mode, self.armed, LandedState.from_mavlink(msg.landed_state).name)
         elif mtype == "HOME_POSITION" and math.isfinite(msg.z):
             self.home_down_m = float(msg.z)
+        elif mtype == "DISTANCE_SENSOR":
+            cm = int(msg.current_distance)
+            if msg.orientation == mavlink.MAV_SENSOR_ROTATION_PITCH_270 and self.ned_m is not None \
+                    and msg.min_distance <= cm <= msg.max_distance:
+                self.range_m = cm / 100.0
+                self.floor_down_m = self.ned_m[2] + self.range_m
         elif mtype == "LOCAL_POSITION_NED":
             self.ned_m = (float(msg.x), float(msg.y), float(msg.z))
-            if not self.armed and self.landed == LandedState.ON_GROUND.name:
+            if self.range_m is None and not self.armed and self.landed == LandedState.ON_GROUND.name:
                 self.floor_down_m = self.ned_m[2]
             floor = self.floor_down_m if self.floor_down_m is not None else self.home_down_m
             if floor is None:
@@ -119,7 +131,8 @@ class FlightTimeline:
         if (mode, armed, landed) != (self.mode, self.armed, self.landed):
             self.mode, self.armed, self.landed = mode, armed, landed
             above_home = None if self.ned_m is None or self.home_down_m is None else self.home_down_m - self.ned_m[2]
-            self.events.append(FlightEvent(time.monotonic(), mode, armed, landed, self.xyz_map_m, above_home))
+            self.events.append(FlightEvent(time.monotonic(), mode, armed, landed, self.xyz_map_m, above_home,
+                                           self.range_m))
             log.info("timeline: %s, %s, %s at %s", mode, "armed" if armed else "disarmed", landed,
                      "?" if self.xyz_map_m is None else "({:.2f}, {:.2f}, {:.2f}) m".format(*self.xyz_map_m))
 
