@@ -21,6 +21,9 @@ from companion.sources.poses import SharedPoseHistory, TelemetryPoseRecorder
 from planner.worker import PlanningService
 from semmap.costmap import Costmap
 
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
+
 ALTITUDE_M = 1.0
 
 
