@@ -114,6 +114,9 @@ class VehicleState:
     #: its age; None without one.
     range_down_m: float | None = None
     range_down_age_s: float | None = None
+    #: Home's local z (NED) as it was on the ground: PX4 moves home's z in flight (its height
+    #: estimate drifts), the floor does not. None before the first HOME_POSITION.
+    home_down_on_ground_m: float | None = None
 
     def heartbeat_fresh(self, timeout_s: float) -> bool:
         """True if the autopilot's heartbeat is younger than ``timeout_s``."""
@@ -141,7 +144,7 @@ class VehicleState:
     @property
     def map_frame(self) -> MapFrame | None:
         """The map frame, or None before the first HOME_POSITION (no height is known then)."""
-        return None if self.home is None else MapFrame(self.home.position_ned_m[2])
+        return None if self.home_down_on_ground_m is None else MapFrame(self.home_down_on_ground_m)
 
     @property
     def position_map_m(self) -> Vec3 | None:
@@ -211,6 +214,7 @@ class VehicleStateTracker:
         self._battery_v: float | None = None
         self._battery_remaining: float | None = None
         self._home: HomePosition | None = None
+        self._home_down_on_ground: float | None = None
         self._global: GlobalPosition | None = None
         self._changed = asyncio.Event()
         self._unknown_mode_logged: set[int] = set()
@@ -260,6 +264,7 @@ class VehicleStateTracker:
 
     def _on_extended_sys_state(self, msg: mavlink.MAVLink_message) -> None:
         self._landed = LandedState.from_mavlink(msg.landed_state)
+        self._latch_home_down()
 
     def _on_sys_status(self, msg: mavlink.MAVLink_message) -> None:
         bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
@@ -295,6 +300,14 @@ class VehicleStateTracker:
             altitude_amsl_m=msg.altitude / 1000.0,
             position_ned_m=(float(msg.x), float(msg.y), float(msg.z)),
         )
+        self._latch_home_down()
+
+    def _latch_home_down(self) -> None:
+        """Take home's z for the map frame while the vehicle stands on the ground (or before
+        it has ever said where it is); in the air keep the value it took off with."""
+        in_air = self._landed in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
+        if self._home is not None and (not in_air or self._home_down_on_ground is None):
+            self._home_down_on_ground = self._home.position_ned_m[2]
 
     def _on_global_position(self, msg: mavlink.MAVLink_message) -> None:
         self._global = GlobalPosition(
@@ -321,6 +334,7 @@ class VehicleStateTracker:
             battery_v=self._battery_v,
             battery_remaining=self._battery_remaining,
             home=self._home,
+            home_down_on_ground_m=self._home_down_on_ground,
             global_position=self._global,
             autopilot_system_status=self._system_status,
             prearm_ok=self._prearm_ok,

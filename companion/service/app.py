@@ -218,7 +218,8 @@ class CompanionService:
             self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh,
                                                                    obstacle_source=self._obstacle_input))
             recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component,
-                                             remote_to_local=self.vehicle.autopilot_clock.to_local)
+                                             remote_to_local=self.vehicle.autopilot_clock.to_local,
+                                             map_frame=lambda: self.vehicle.snapshot().map_frame if self.vehicle else None)
             stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
             await stack.enter_async_context(loc.vision_stream(self.vehicle.link))
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
