@@ -319,3 +319,41 @@ async def test_preflight_auto_disarm_after_10_s() -> None:
     assert default_s == pytest.approx(10.0, abs=0.3)
     assert texts[-1] == "Disarmed by auto preflight disarming"
     assert off_s is None
+
+
+async def _hover(behaviour: Px4Behaviour) -> tuple[float, float, float]:
+    """(seconds from receiving a setpoint to the controller flying it, max and std of the
+    horizontal distance from the setpoint over 3 s of hover)."""
+    async with mock(behaviour) as (ap, c):
+        await _take_off(ap, c)
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        async with streaming(c, 0.0, 0.0, home.z - 2.5, period_s=0.1):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE,
+                                   *px4.set_mode_params(FlightMode.OFFBOARD)) == ACCEPTED
+            await asyncio.sleep(0.5)
+        c.send(_position_setpoint(c, 1.0, 0.0, home.z - 2.5))
+        for _ in range(1000):  # poll finely: the lag is the measurement
+            if ap.vehicle.target.position_ned_m[0] == 1.0:
+                break
+            await asyncio.sleep(0.002)
+        lag_s = ap.now_s() - ap.setpoints[-1].stamp_s
+        async with streaming(c, 1.0, 0.0, home.z - 2.5, period_s=0.1):
+            await ap.wait_until(lambda: math.hypot(ap.position_ned_m[0] - 1.0, ap.position_ned_m[1]) < 0.1,
+                                10.0, "setpoint reached")
+            await asyncio.sleep(3.0)  # the approach has settled
+            errors = []
+            for _ in range(60):
+                n, e, _d = ap.position_ned_m
+                errors.append(math.hypot(n - 1.0, e))
+                await asyncio.sleep(0.05)
+        mean = sum(errors) / len(errors)
+        std = math.sqrt(sum((x - mean) ** 2 for x in errors) / len(errors))
+        return lag_s, max(errors), std
+
+
+async def test_tracking_lags_and_wobbles() -> None:
+    lag_s, worst_m, std_m = await _hover(PX4)
+    assert lag_s >= PX4.tracking_delay_s - 0.011  # one physics tick
+    assert 0.003 < worst_m < 0.1 and std_m > 0.001
+    lag_s, worst_m, _ = await _hover(replace(PX4, tracking_delay_s=0.0, wobble_m=0.0))
+    assert lag_s < 0.05 and worst_m < 0.002

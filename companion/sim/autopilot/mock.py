@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import SimulationError
@@ -34,6 +35,7 @@ from companion.px4 import FlightMode
 from companion.sim.autopilot import offboard, telemetry
 from companion.sim.autopilot.behaviour import (
     Px4Behaviour,
+    Wobble,
     accept_target,
     ekf_origin,
     report_ned,
@@ -179,6 +181,9 @@ class MockAutopilot:
             n: [1.0 / r if r > 0 else 0.0, 0.0] for n, r in rates.items()}
         self._default_rates = dict(rates)
         self._battery_pct = 100.0
+        self._wobble = Wobble(self.behaviour.wobble_m, seed)
+        #: Received offboard targets waiting out ``tracking_delay_s``: (apply at s, target).
+        self._delayed_targets: deque[tuple[float, Target]] = deque()
         #: PX4's pre-flight checks pass (EKF and GPS converged): arming allowed, home valid.
         self.ready = self.behaviour.ready_after_s <= 0.0
 
@@ -402,6 +407,7 @@ class MockAutopilot:
         self._tick_monotonic_s = self._t0 + now / self.behaviour.clock_rate
         # Physics steps at most 0.1 s after a stall; the state's stamp stays on our clock
         # (what TIMESYNC and the telemetry's time_boot_ms report).
+        self._track(now)
         self.vehicle.step(dt_s, clock_s=now)
         self.estimator.update(self.vehicle.state(), armed=self._armed)
         self.navigator.tick(self.vehicle.stamp_s)
@@ -669,9 +675,22 @@ class MockAutopilot:
         self.setpoints.append(offboard.ReceivedSetpoint(now, mtype, frame, int(msg.type_mask),
                                                         target))
         self._last_setpoint_s = now
+        if self.behaviour.tracking_delay_s > 0.0:
+            self._delayed_targets.append((now + self.behaviour.tracking_delay_s, target))
+        else:
+            self._apply_offboard_target(target)
+
+    def _apply_offboard_target(self, target: Target) -> None:
         self._offboard_target = target
         if self._mode is FlightMode.OFFBOARD:
             self.vehicle.set_target(target)
+
+    def _track(self, now: float) -> None:
+        """PX4's tracking: offboard setpoints take effect late, the vehicle wobbles in the air."""
+        while self._delayed_targets and self._delayed_targets[0][0] <= now:
+            self._apply_offboard_target(self._delayed_targets.popleft()[1])
+        flying = self.vehicle.motors_on and not self.vehicle.on_ground
+        self.vehicle.target_offset_ned_m = self._wobble.offset_ned_m(now) if flying else np.zeros(3)
 
     def _on_vision(self, msg: Any, now: float) -> None:
         if msg.get_type() == "ODOMETRY":
