@@ -154,7 +154,8 @@ class MockAutopilot:
                                       self._on_set_current)
         self.missions.reject_seq = lambda: self.faults.reject_mission_seq
         self.navigator = Navigator(self.vehicle, self.params, self.home, self.set_mode,
-                                   self._on_item_reached, self._on_current_changed)
+                                   self._on_item_reached, self._on_current_changed,
+                                   null_island_items=self.behaviour.null_island_items)
         self.navigator.enter(FlightMode.HOLD)
         self.commands = CommandHandler(self)
         # offboard
@@ -725,6 +726,11 @@ class MockAutopilot:
         if mission_type == mavlink.MAV_MISSION_TYPE_MISSION:
             self.navigator.set_mission(self.missions.items(mission_type))
             self.reached_items.clear()
+            first_m = self.navigator.first_waypoint_distance_m()
+            if first_m is not None and first_m > self.params.get("MIS_DIST_1WP") > 0:
+                # PX4's feasibility check warns and still accepts the mission.
+                self.announce(mavlink.MAV_SEVERITY_WARNING, f"First waypoint far away from home: "
+                              f"{first_m:.0f}m. Correct mission loaded?")
 
     def _on_set_current(self, seq: int) -> bool:
         ok = self.navigator.set_current(seq)

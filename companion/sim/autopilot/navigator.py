@@ -29,6 +29,11 @@ from companion.sim.autopilot.vehicle import KinematicMulticopter, Target
 log = logging.getLogger(__name__)
 
 _NAN3 = (math.nan, math.nan, math.nan)
+#: Mission commands whose item holds a position (PX4's ``item_contains_position``).
+POSITION_COMMANDS = frozenset({
+    mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_LOITER_UNLIM, mavlink.MAV_CMD_NAV_LOITER_TIME,
+    mavlink.MAV_CMD_NAV_LOITER_TURNS, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
+})
 
 
 class MissionState(enum.IntEnum):
@@ -77,8 +82,12 @@ class Navigator:
         set_mode: Callable[[FlightMode], None],
         item_reached: Callable[[int], None],
         current_changed: Callable[[int], None],
+        *,
+        null_island_items: bool = False,
     ) -> None:
         self._vehicle = vehicle
+        #: PX4 flies an item's lat/lon 0/0 as given (True) instead of taking it as "here".
+        self.null_island_items = null_island_items
         self._params = params
         self.home = home  # the local NED origin, for lat/lon conversions
         #: Home (where the vehicle last armed) in local NED: RTL target, relative altitudes.
@@ -206,7 +215,7 @@ class Navigator:
     # --- mission items -------------------------------------------------------------------
 
     def _item_ned(self, it: MissionItem) -> tuple[float, float, float]:
-        """Local NED of an item; lat/lon 0 means "here" (PX4 convention for takeoff/land)."""
+        """Local NED of an item; lat/lon 0/0 is "here" unless :attr:`null_island_items`."""
         n, e, d = self._pos()
         if it.frame not in GLOBAL_FRAMES:
             return (n, e, d)
@@ -214,10 +223,20 @@ class Navigator:
             alt_d = self.home.alt_m - it.z  # AMSL
         else:
             alt_d = self.home_ned_m[2] - it.z  # relative to home
-        if it.x != 0 or it.y != 0:
+        if it.x != 0 or it.y != 0 or self.null_island_items:
             tn, te, _ = self.home.to_ned(it.lat_deg, it.lon_deg, self.home.alt_m)
             return (tn, te, alt_d)
         return (n, e, alt_d)
+
+    def first_waypoint_distance_m(self) -> float | None:
+        """Horizontal distance from home to the mission's first item with a position (what
+        PX4's feasibility check compares with ``MIS_DIST_1WP``); None without one."""
+        for it in self._mission:
+            if it.command in POSITION_COMMANDS and it.frame in GLOBAL_FRAMES:
+                n, e, _ = (self.home.to_ned(it.lat_deg, it.lon_deg, self.home.alt_m)
+                           if it.x != 0 or it.y != 0 or self.null_island_items else self._pos())
+                return math.hypot(n - self.home_ned_m[0], e - self.home_ned_m[1])
+        return None
 
     def _accept_radius(self, it: MissionItem) -> float:
         return it.param2 if it.param2 > 0 else self._params.get("NAV_ACC_RAD")
@@ -259,10 +278,13 @@ class Navigator:
             return [_Leg(_Phase.GOTO, tgt, yaw, self._accept_radius(it), hold_s=max(0.0, hold))]
         if c == mavlink.MAV_CMD_NAV_TAKEOFF:
             # Straight up where the vehicle is; already higher = reached (PX4 does the same).
-            _tn, _te, td = self._item_ned(it)
+            tn, te, td = self._item_ned(it)
             n, e, d = self._pos()
-            return [_Leg(_Phase.CLIMB, (n, e, min(td, d)), self._vehicle.yaw_rad,
-                         accept_radius_m=0.2)]
+            legs = [_Leg(_Phase.CLIMB, (n, e, min(td, d)), self._vehicle.yaw_rad, accept_radius_m=0.2)]
+            if self.null_island_items and it.frame in GLOBAL_FRAMES:
+                # Then on to the item's position, as PX4 does (0/0 included).
+                legs.append(_Leg(_Phase.GOTO, (tn, te, min(td, d)), None, self._accept_radius(it)))
+            return legs
         if c == mavlink.MAV_CMD_NAV_LAND:
             n, e, d = self._item_ned(it)
             cur_d = self._pos()[2]
