@@ -43,6 +43,7 @@ from companion.sim.autopilot.behaviour import (
 )
 from companion.sim.autopilot.commands import PREVENTS_ARMING, CommandHandler
 from companion.sim.autopilot.estimator import SimEstimator, T_map_body_of
+from companion.sim.autopilot.guided import FollowTarget
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
@@ -66,6 +67,8 @@ OFFBOARD_LOSS_ACTIONS = {0: FlightMode.POSCTL, 1: FlightMode.ALTCTL, 2: FlightMo
 MANUAL_MODES = frozenset({FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.MANUAL})
 #: Mode names as PX4 words them in messages.
 MODE_NAMES = {FlightMode.POSCTL: "Position", FlightMode.ALTCTL: "Altitude", FlightMode.RTL: "Return"}
+#: A changed parameter is broadcast again this long after the set (PX4: at least 5 ms).
+PARAM_CHANGE_BROADCAST_S = 0.02
 #: MISSION_ITEM_REACHED is sent again this long after the first time.
 REACHED_RESEND_S = 0.5
 
@@ -181,10 +184,14 @@ class MockAutopilot:
         self._streams: dict[str, list[float]] = {
             n: [1.0 / r if r > 0 else 0.0, 0.0] for n, r in rates.items()}
         self._default_rates = dict(rates)
+        #: Changed parameters to broadcast: (due on the mock clock, name).
+        self._params_changed: deque[tuple[float, str]] = deque()
         self._battery_pct = 100.0
         self._wobble = Wobble(self.behaviour.wobble_m, seed)
         #: Received offboard targets waiting out ``tracking_delay_s``: (apply at s, target).
         self._delayed_targets: deque[tuple[float, Target]] = deque()
+        #: Injected failures (MAV_CMD_INJECT_FAILURE): (FAILURE_UNIT, instance) -> FAILURE_TYPE.
+        self.failures: dict[tuple[int, int], int] = {}
         #: PX4's pre-flight checks pass (EKF and GPS converged): arming allowed, home valid.
         self.ready = self.behaviour.ready_after_s <= 0.0
 
@@ -420,6 +427,8 @@ class MockAutopilot:
             self._reached_resend = None
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
+        while self._params_changed and self._params_changed[0][0] <= now:
+            self._send_param(self._params_changed.popleft()[1])
         if not self.ready and now >= self.behaviour.ready_after_s:
             self._become_ready()
         self._stream(now)
@@ -507,6 +516,8 @@ class MockAutopilot:
         health = telemetry.SENSORS_OK
         if self.faults.prearm_fail or not self.ready:
             health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        for unit, _instance in self.failures:
+            health &= ~telemetry.FAILURE_UNIT_SENSOR_BITS[unit]
         nav = self.navigator
         floor_z = self.behaviour.floor_z_ned_m
         return telemetry.Snapshot(
@@ -516,7 +527,8 @@ class MockAutopilot:
             armed=self._armed, landed_state=self.landed_state,
             sensors_health=health, mission_seq=nav.mission_seq, mission_total=nav.mission_count,
             mission_state=int(nav.mission_state), battery_remaining_pct=int(self._battery_pct),
-            system_id=self.system_id)
+            system_id=self.system_id,
+            gps_fix=not any(u == mavlink.FAILURE_UNIT_SENSOR_GPS for u, _i in self.failures))
 
     def _stream(self, now: float) -> None:
         snap: telemetry.Snapshot | None = None
@@ -613,6 +625,8 @@ class MockAutopilot:
             self._on_param_set(msg)
         elif mtype == "TIMESYNC":
             self._on_timesync(msg, now)
+        elif mtype == "FOLLOW_TARGET":
+            self._on_follow_target(msg, now)
 
     def _on_timesync(self, msg: Any, now: float) -> None:
         """Answer a request on our clock; learn from an answer to ours (PX4's ``MavlinkTimesync``)."""
@@ -620,6 +634,17 @@ class MockAutopilot:
             self.send(self._mav.timesync_encode(int(now * 1e9), msg.ts1))
         else:
             self.peer_clock.add_answer(msg.ts1, msg.tc1, now)
+
+    def _on_follow_target(self, msg: Any, now: float) -> None:
+        """A target to follow (lat/lon degE7, alt AMSL, NED velocity), in Follow Target mode."""
+        pos = self.home.to_ned(msg.lat * 1e-7, msg.lon * 1e-7, float(msg.alt))
+        vel = tuple(float(v) for v in msg.vel)
+        if not all(math.isfinite(v) for v in pos):
+            log.warning("FOLLOW_TARGET with a non-finite position ignored")
+            return
+        if self.navigator.follow_target is None:
+            self.navigator.follow_target = FollowTarget(pos, vel, now)  # type: ignore[arg-type]
+        self.navigator.follow_target.update(pos, vel, now)  # type: ignore[arg-type]
 
     def _send_param(self, name: str) -> None:
         spec = self.params.spec(name)
@@ -641,7 +666,10 @@ class MockAutopilot:
         else:
             value = decode_value(msg.param_value, spec.param_type)
             if math.isfinite(value):
-                self.params.set(name, value)
+                old = self.params.get(name)
+                if self.params.set(name, value) != old:
+                    # PX4 broadcasts a changed parameter again shortly after (send_untransmitted).
+                    self._params_changed.append((self.now_s() + PARAM_CHANGE_BROADCAST_S, name))
                 self.vehicle.limits = self._limits_from_params()
             else:
                 log.warning("PARAM_SET %s: non-finite value ignored", name)

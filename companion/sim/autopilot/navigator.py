@@ -22,6 +22,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.geo import GeoOrigin
 from companion.px4 import FlightMode
+from companion.sim.autopilot.guided import FollowParams, FollowTarget, Orbit
 from companion.sim.autopilot.mission_server import GLOBAL_FRAMES, MissionItem
 from companion.sim.autopilot.params import ParamStore
 from companion.sim.autopilot.vehicle import KinematicMulticopter, Target
@@ -104,6 +105,10 @@ class Navigator:
         self._speed_xy_m_s: float | None = None
         self.landed_by_navigator = False
         self._last_goto_ned_m: tuple[float, float, float] | None = None
+        #: The orbit being flown in ORBIT mode (set by MAV_CMD_DO_ORBIT).
+        self.orbit: Orbit | None = None
+        #: The latest FOLLOW_TARGET (followed in FOLLOW_TARGET mode).
+        self.follow_target: FollowTarget | None = None
 
     # --- mission storage -----------------------------------------------------------------
 
@@ -169,6 +174,9 @@ class Navigator:
                 # altitude the vehicle happens to pass through.
                 target = (target[0], target[1], prev[2])
             self._legs = [_Leg(_Phase.WAIT, target, yaw, until_s=math.inf)]
+        elif mode is FlightMode.FOLLOW_TARGET:
+            # Holds until a FOLLOW_TARGET arrives, then follows it (see tick).
+            self._legs = [_Leg(_Phase.WAIT, (n, e, d), yaw, until_s=math.inf)]
         elif mode is FlightMode.LAND:
             self._legs = [_Leg(_Phase.LAND, (n, e, math.nan), yaw)]
         elif mode is FlightMode.RTL:
@@ -356,9 +364,17 @@ class Navigator:
 
     def tick(self, now_s: float) -> None:
         """Advance the active auto mode (call once per physics step, after the vehicle moved)."""
-        if self.mode is None or not self.mode.is_auto or not self._legs:
-            return
         if not self._vehicle.motors_on:
+            return
+        if self.mode is FlightMode.ORBIT and self.orbit is not None:
+            self._vehicle.set_target(self.orbit.target(self._pos()))
+            return
+        if self.mode is FlightMode.FOLLOW_TARGET and self.follow_target is not None:
+            p = self._params.get
+            params = FollowParams(p("FLW_TGT_HT"), p("FLW_TGT_DST"), p("FLW_TGT_FA"), int(p("FLW_TGT_ALT_M")))
+            self._vehicle.set_target(self.follow_target.setpoint(params, self.home_ned_m[2]))
+            return
+        if self.mode is None or not self.mode.is_auto or not self._legs:
             return
         leg = self._legs[0]
         n, e, d = self._pos()
