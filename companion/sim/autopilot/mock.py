@@ -4,12 +4,14 @@ One UDP socket bound to ``local_port`` (PX4: 14580) sends every message to the c
 remote ports (PX4: 14540 for the onboard/API link, 14550 for a ground station) and to any
 address that has sent it a packet, which is how PX4 learns a partner (see :mod:`.transport`).
 
-Behaviour follows PX4 v1.14/1.15 where clients can observe it: heartbeats with PX4 custom
+Behaviour follows PX4 v1.16 where clients can observe it: heartbeats with PX4 custom
 modes, the command protocol (acks within one physics tick, duplicates re-acked without
 re-executing), parameters with byte-wise encoding, the mission protocol, offboard that is
-refused without a setpoint stream and falls back to Hold when setpoints stop for
-``COM_OF_LOSS_T``, auto-disarm after landing (``COM_DISARM_LAND``) and when not taking off after
-arming (``COM_DISARM_PRFLT``).
+refused in the air without a setpoint stream and takes the ``COM_OBL_RC_ACT`` failsafe when
+setpoints stop for ``COM_OF_LOSS_T``, auto-disarm after landing (``COM_DISARM_LAND``) and when
+not taking off after arming (``COM_DISARM_PRFLT``). Where PX4 surprises a naive client (local
+origin below the floor, readiness delay, 1 Hz heartbeat, ...) the mock does the same, each
+behaviour switchable in :class:`~.behaviour.Px4Behaviour`.
 
 Faults for tests are set on :attr:`MockAutopilot.faults` while it runs.
 """
