@@ -53,3 +53,39 @@ def test_disarmed_heartbeat() -> None:
 def test_out_of_range_rejected() -> None:
     with pytest.raises(ValueError, match="out of range"):
         px4.encode_custom_mode(256, 0)
+
+
+def test_map_frame_heights_are_above_home_not_the_local_origin() -> None:
+    """PX4's local z is -0.86 m on the ground with GPS height: the map's z is above home."""
+    import dataclasses
+
+    from companion.mavlink.state import HomePosition, LandedState, MapFrame, VehicleState
+
+    frame = MapFrame(home_down_m=-0.86)
+    assert frame.from_ned(1.0, 2.0, -0.86) == pytest.approx((2.0, 1.0, 0.0))
+    assert frame.to_ned(2.0, 1.0, 1.0) == pytest.approx((1.0, 2.0, -1.86))
+    state = VehicleState(heartbeat_age_s=0.1, armed=False, flight_mode=None, landed_state=LandedState.ON_GROUND,
+                         position_ned_m=(0.0, 0.0, -0.86), velocity_ned_m_s=None, position_age_s=0.0,
+                         attitude_rpy_rad=None, battery_v=None, battery_remaining=None, home=None,
+                         global_position=None, autopilot_system_status=None)
+    assert state.position_map_m is None and not state.ready_to_arm  # no home yet
+    state = dataclasses.replace(state, home=HomePosition(47.0, 8.0, 488.0, (0.0, 0.0, -0.86)))
+    assert state.height_above_home_m == pytest.approx(0.0) and state.ready_to_arm
+    assert not dataclasses.replace(state, prearm_ok=False).ready_to_arm
+
+
+def test_a_downward_range_sensor_must_agree_that_the_vehicle_is_high_enough() -> None:
+    import dataclasses
+
+    from companion.mavlink.state import HomePosition, LandedState, VehicleState
+    from companion.service.mission_runner import took_off
+
+    state = VehicleState(heartbeat_age_s=0.1, armed=True, flight_mode=FlightMode.HOLD, landed_state=LandedState.IN_AIR,
+                         position_ned_m=(0.0, 0.0, -1.86), velocity_ned_m_s=None, position_age_s=0.0,
+                         attitude_rpy_rad=None, battery_v=None, battery_remaining=None,
+                         home=HomePosition(47.0, 8.0, 488.0, (0.0, 0.0, -0.86)), global_position=None,
+                         autopilot_system_status=None)
+    assert took_off(state, 1.0)
+    # The estimate says 1 m above home; the range finder sees 0.3 m: not airborne enough.
+    assert not took_off(dataclasses.replace(state, range_down_m=0.3, range_down_age_s=0.05), 1.0)
+    assert took_off(dataclasses.replace(state, range_down_m=0.3, range_down_age_s=5.0), 1.0)  # stale
