@@ -8,7 +8,11 @@ switch means for a client is in docs/mock-autopilot.md.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
 
 from companion.geo import GeoOrigin
 from companion.sim.autopilot.vehicle import Target, VehicleState
@@ -88,3 +92,19 @@ def accept_target(target: Target, floor_z_ned_m: float) -> Target:
 def ekf_origin(home: GeoOrigin, floor_z_ned_m: float) -> GeoOrigin:
     """The reported frame's origin (GPS_GLOBAL_ORIGIN): ``home`` is the floor below it."""
     return replace(home, alt_m=home.alt_m + floor_z_ned_m)
+
+
+class Wobble:
+    """A smooth seeded wobble about the setpoint: per axis three sinusoids of 0.1-0.7 Hz with
+    random phases, peak ``amplitude_m`` horizontally and half that vertically."""
+
+    def __init__(self, amplitude_m: float, seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        self._freq_hz = rng.uniform(0.1, 0.7, (3, 3))
+        self._phase_rad = rng.uniform(0.0, 2.0 * math.pi, (3, 3))
+        self._amp_m = amplitude_m / 3.0 * np.array([[1.0], [1.0], [0.5]])
+
+    def offset_ned_m(self, t_s: float) -> NDArray[np.float64]:
+        """(3,) NED offset at time ``t_s``."""
+        waves = np.sin(2.0 * math.pi * self._freq_hz * t_s + self._phase_rad)
+        return np.asarray((self._amp_m * waves).sum(axis=1), dtype=np.float64)
