@@ -9,7 +9,7 @@ switch means for a client is in docs/mock-autopilot.md.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,6 +66,30 @@ class Px4Behaviour:
                    mode_after_disarm=False, heartbeat_on_change=True, clock_rate=1.0,
                    offboard_loss_px4_actions=False, tracking_delay_s=0.0, wobble_m=0.0,
                    null_island_items=False)
+
+
+def behaviour_from_settings(settings: list[str], base: Px4Behaviour | None = None) -> Px4Behaviour:
+    """``base`` (default: PX4's) with ``NAME=VALUE`` settings applied, e.g. ``ready_after_s=0``
+    or ``heartbeat_on_change=true``. Raises ValueError naming the bad setting."""
+    out = base or Px4Behaviour()
+    types = {f.name: f.type for f in fields(Px4Behaviour)}
+    for item in settings:
+        name, sep, text = item.partition("=")
+        if not sep or name not in types:
+            raise ValueError(f"behaviour setting {item!r}: expected NAME=VALUE with NAME one of "
+                             f"{', '.join(sorted(types))}")
+        value: float | bool
+        if types[name] in (bool, "bool"):
+            if text.lower() not in ("true", "false", "1", "0", "on", "off"):
+                raise ValueError(f"behaviour setting {name}: {text!r} is not true/false")
+            value = text.lower() in ("true", "1", "on")
+        else:
+            try:
+                value = float(text)
+            except ValueError as exc:
+                raise ValueError(f"behaviour setting {name}: {text!r} is not a number") from exc
+        out = replace(out, **{name: value})
+    return out
 
 
 def report_ned(position_ned_m: tuple[float, float, float], floor_z_ned_m: float) -> tuple[float, float, float]:
