@@ -303,7 +303,7 @@ class TelemetryPoseRecorder:
         dt = t_msg - t
         if not all(math.isfinite(v) for v in rpy) or abs(dt) > self.max_position_age_s:
             return
-        T = map_pose_from_ned((x + vx * dt, y + vy * dt, z + vz * dt - frame.home_down_m), rpy)
+        T = map_pose_from_ned((x + vx * dt, y + vy * dt, z + vz * dt - frame.floor_down_m), rpy)
         yaw_rate = float(msg.yawspeed)
         odo = self._dead_reckon(t_msg, T, (vy, vx), -yaw_rate if math.isfinite(yaw_rate) else 0.0)
         if self.history.push(t_msg, T, odo):
