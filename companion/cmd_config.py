@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from companion.config import dump_config, load_config
+from companion.preflight import check_paths
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -20,7 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def _check(args: argparse.Namespace) -> int:
-    load_config(args.file)
+    check_paths(load_config(args.file), args.file)
     print(f"{args.file}: ok")
     return 0
 

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any, TypeAlias
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError, LinkError
+from companion.mavlink.signing import SIGNING_KEY_BYTES, read_key_file
 from companion.mavlink.tlog import TlogWriter
 from companion.mavlink.transport import Transport, make_transport
 from companion.mavlink.urls import parse_url
@@ -49,8 +50,6 @@ Listener = Callable[[Message], None]
 
 #: Seconds between 1970-01-01 and the MAVLink signing epoch (2015-01-01 00:00:00 UTC).
 _SIGNING_EPOCH_UNIX_S = 1420070400
-#: MAVLink 2 signing keys are 32 bytes.
-SIGNING_KEY_BYTES = 32
 DEFAULT_QUEUE_SIZE = 64
 
 
@@ -74,27 +73,12 @@ class SigningConfig:
 
 
 def load_signing_key(path: str | Path) -> bytes:
-    """Read a 32-byte signing key: the raw bytes, or 64 hex characters (whitespace ignored).
+    """Read a 32-byte signing key file (see :mod:`companion.mavlink.signing`).
 
-    Raises :class:`ConfigError` naming the file when it is missing or malformed.
+    Raises :class:`ConfigError` naming the file when it is missing, malformed or readable by
+    others than its owner.
     """
-    p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read MAVLink signing key: {exc.strerror or exc}") from exc
-    if len(raw) == SIGNING_KEY_BYTES:
-        return raw
-    text = raw.decode("ascii", errors="replace").strip()
-    if len(text) == 2 * SIGNING_KEY_BYTES:
-        try:
-            return bytes.fromhex(text)
-        except ValueError:
-            pass
-    raise ConfigError(
-        f"{p}: MAVLink signing key must be {SIGNING_KEY_BYTES} raw bytes or "
-        f"{2 * SIGNING_KEY_BYTES} hex characters (got {len(raw)} bytes)"
-    )
+    return read_key_file(path)
 
 
 def signing_timestamp_now() -> int:
