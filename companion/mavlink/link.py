@@ -37,7 +37,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.errors import ConfigError, LinkError
 from companion.mavlink.signing import SIGNING_KEY_BYTES, read_key_file
 from companion.mavlink.tlog import TlogWriter
-from companion.mavlink.transport import Transport, make_transport
+from companion.mavlink.transport import Transport, UdpTransport, make_transport
 from companion.mavlink.urls import parse_url
 
 if TYPE_CHECKING:
@@ -88,7 +88,13 @@ def signing_timestamp_now() -> int:
 
 @dataclass(frozen=True)
 class LinkStats:
-    """Counters since the link opened."""
+    """Counters since the link opened.
+
+    ``garbage_dropped``: datagrams from other addresses than the peer that were not MAVLink;
+    ``strangers_dropped``: MAVLink datagrams from other addresses (another system, or the
+    autopilot's ids while the peer is alive, or unsigned with signing on), ignored;
+    ``peer``: the address the link is locked to (UDP in), ``peer_changes``: how often it was set.
+    """
 
     messages_received: int
     messages_sent: int
@@ -96,6 +102,22 @@ class LinkStats:
     send_dropped: int
     queue_dropped: int
     signature_rejected: int
+    garbage_dropped: int = 0
+    strangers_dropped: int = 0
+    peer: str | None = None
+    peer_changes: int = 0
+
+
+def first_packet_ids(data: bytes) -> tuple[int, int] | None:
+    """``(system id, component id)`` of the MAVLink packet a datagram starts with, or None
+    when it cannot start with a whole one (a few byte reads: garbage is dropped this cheaply)."""
+    n = len(data)
+    if n >= 12 and data[0] == mavlink.PROTOCOL_MARKER_V2:
+        size = 12 + data[1] + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if data[2] & mavlink.MAVLINK_IFLAG_SIGNED else 0)
+        return (data[5], data[6]) if size <= n else None
+    if n >= 8 and data[0] == mavlink.PROTOCOL_MARKER_V1:
+        return (data[3], data[4]) if 8 + data[1] <= n else None
+    return None
 
 
 class _Writer:
@@ -206,6 +228,12 @@ class MavlinkLink:
     ``MAV_COMP_ID_ONBOARD_COMPUTER``). ``heartbeat_rate_hz``: our heartbeat (0 = none, for
     passive tools). ``signing``: MAVLink 2 signing, or None for off. ``record_path``: append
     every valid received packet to this ``.tlog`` (replay it later with ``tlog://``).
+
+    With ``udpin`` the link is locked to one peer: the first address that sends a valid
+    MAVLink packet from ``peer_system`` (any system when None) and ``peer_component`` (any
+    when 0), signed when signing is on. Datagrams from any other address are counted and
+    dropped; another address becomes the peer only after the peer was silent for
+    ``peer_timeout_s``.
     """
 
     def __init__(
@@ -218,8 +246,17 @@ class MavlinkLink:
         mav_type: int = mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
         signing: SigningConfig | None = None,
         record_path: str | Path | None = None,
+        peer_system: int | None = None,
+        peer_component: int = 0,
+        peer_timeout_s: float = 3.0,
     ) -> None:
         self.endpoint = parse_url(url)
+        self.peer_system = peer_system
+        self.peer_component = peer_component
+        self.peer_timeout_s = peer_timeout_s
+        self._garbage = 0
+        self._strangers = 0
+        self._stranger_log_s = 0.0
         self.record_path = Path(record_path) if record_path is not None else None
         self._recorder: TlogWriter | None = None
         self.system_id = system_id
@@ -259,6 +296,9 @@ class MavlinkLink:
             heartbeat_rate_hz=cfg.heartbeat_rate_hz,
             signing=signing,
             record_path=record_path,
+            peer_system=cfg.target_system,
+            peer_component=cfg.target_component,
+            peer_timeout_s=cfg.heartbeat_timeout_s,
         )
 
     # --- lifecycle -------------------------------------------------------------------
@@ -266,7 +306,7 @@ class MavlinkLink:
     async def __aenter__(self) -> "MavlinkLink":
         if self.record_path is not None:
             self._recorder = TlogWriter(self.record_path).__enter__()
-        transport = make_transport(self.endpoint, self._on_bytes)
+        transport = make_transport(self.endpoint, self._on_bytes, self._on_stranger)
         try:
             await transport.__aenter__()
         except BaseException:
@@ -354,24 +394,70 @@ class MavlinkLink:
     # --- receiving -------------------------------------------------------------------
 
     def _on_bytes(self, data: bytes) -> None:
+        for msg in self._parse(data):
+            self._dispatch(msg)
+
+    def _parse(self, data: bytes) -> list[Message]:
+        """The valid messages in ``data`` (malformed input counted and skipped)."""
         try:
             msgs = self.mav.parse_buffer(data) or []
         except Exception as exc:  # pymavlink raises plain exceptions on odd input
             self._count_bad(f"parser error: {exc}")
             self._reset_parser()
-            return
+            return []
+        good = []
         for msg in msgs:
             if isinstance(msg, mavlink.MAVLink_bad_data):
                 self._count_bad(getattr(msg, "reason", "bad data"))
-                continue
-            if isinstance(msg, mavlink.MAVLink_unknown):
-                continue
-            self._dispatch(msg)
+            elif not isinstance(msg, mavlink.MAVLink_unknown):
+                good.append(msg)
         if self._transport is not None and self._transport.datagram and self.mav.buf_len():
             # A datagram holds whole messages; a tail is garbage and must not swallow the
             # start of the next datagram.
             self._count_bad("truncated message at the end of a datagram")
             self._reset_parser()
+        return good
+
+    def _is_peer_ids(self, system_id: int, component_id: int) -> bool:
+        return ((self.peer_system is None or system_id == self.peer_system)
+                and (self.peer_component == 0 or component_id == self.peer_component))
+
+    def _on_stranger(self, data: bytes, addr: Any) -> None:
+        """A ``udpin`` datagram from another address than the peer: it becomes the peer when
+        it carries a valid (signed, with signing on) packet from the autopilot and the old
+        peer has been silent for ``peer_timeout_s``; else it is counted and dropped. The
+        checks run cheapest first, so a flood costs a few byte reads per datagram."""
+        transport = self._transport
+        assert isinstance(transport, UdpTransport)
+        ids = first_packet_ids(data)
+        if ids is None:
+            self._garbage += 1
+            self._log_stranger(addr, "not MAVLink")
+            return
+        if not self._is_peer_ids(*ids):
+            self._strangers += 1
+            self._log_stranger(addr, f"from system {ids[0]}/{ids[1]}, not the autopilot")
+            return
+        if transport.peer is not None and transport.peer_silent_s() < self.peer_timeout_s:
+            self._strangers += 1
+            self._log_stranger(addr, "the link is locked to its peer, which is alive")
+            return
+        msgs = self._parse(data)
+        if not any(self._is_peer_ids(m.get_srcSystem(), m.get_srcComponent())
+                   and (self.signing is None or m.get_signed()) for m in msgs):
+            self._strangers += 1
+            self._log_stranger(addr, "no valid packet from the autopilot" + (" (signed)" if self.signing else ""))
+            return
+        transport.set_peer(addr)
+        for msg in msgs:
+            self._dispatch(msg)
+
+    def _log_stranger(self, addr: Any, why: str) -> None:
+        now = time.monotonic()
+        if now - self._stranger_log_s > 5.0:
+            self._stranger_log_s = now
+            log.warning("%s: ignored a datagram from %s:%s (%s); %d strangers, %d garbage so far",
+                        self.endpoint.url, addr[0], addr[1], why, self._strangers, self._garbage)
 
     def _reset_parser(self) -> None:
         self.mav.buf = bytearray()
@@ -471,6 +557,10 @@ class MavlinkLink:
             send_dropped=self._transport.send_dropped if self._transport else 0,
             queue_dropped=self._queue_dropped,
             signature_rejected=self.mav.signing.reject_count + self.mav.signing.badsig_count,
+            garbage_dropped=self._garbage,
+            strangers_dropped=self._strangers,
+            peer=(f"{peer[0]}:{peer[1]}" if (peer := getattr(self._transport, "peer", None)) is not None else None),
+            peer_changes=getattr(self._transport, "peer_changes", 0),
         )
 
     def received_count(self, msg_type: str) -> int:

@@ -6,8 +6,10 @@ callback from inside the event loop as they arrive (one call per datagram or per
 datagram that cannot go out is dropped and counted, because MAVLink is a lossy protocol and a
 stalled sender is worse than a lost setpoint.
 
-* UDP in (``udpin://``): bound to a local port, replies to the address that sent last (PX4
-  sends from its own port to ours).
+* UDP in (``udpin://``): bound to a local port, replies to its peer: the first address whose
+  datagram the link accepted (``on_stranger``: a valid MAVLink packet from the autopilot).
+  Datagrams from any other address go to ``on_stranger`` and are dropped unless the link
+  accepts them; the peer changes only once it has been silent for ``peer_timeout_s``.
 * UDP out (``udpout://``): sends to a fixed address from an ephemeral port.
 * TCP client (``tcp://``): reconnects with back-off while open.
 * TCP server (``tcpin://``): one client at a time; a new client replaces the old one.
@@ -37,6 +39,8 @@ from companion.mavlink.urls import Endpoint, EndpointKind
 log = logging.getLogger(__name__)
 
 BytesCallback = Callable[[bytes], None]
+#: ``(datagram, source address)`` for a datagram that is not from the UDP peer.
+StrangerCallback = Callable[[bytes, Any], None]
 
 #: A stream transport drops outgoing bytes rather than buffer more than this.
 MAX_WRITE_BUFFER_BYTES = 64 * 1024
@@ -121,14 +125,23 @@ class _DatagramProtocol(asyncio.DatagramProtocol):
 
 
 class UdpTransport(Transport):
-    """``udpin://`` (bind, reply to the last sender) or ``udpout://`` (fixed peer)."""
+    """``udpin://`` (bind, reply to the locked peer) or ``udpout://`` (fixed peer).
+
+    ``on_stranger``: called for each ``udpin`` datagram not from the peer (the link decides
+    whether it may become the peer, see :meth:`set_peer`); without it strangers are dropped.
+    """
 
     datagram = True
 
-    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
+    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback,
+                 on_stranger: StrangerCallback | None = None) -> None:
         super().__init__(endpoint, on_bytes)
         self._transport: asyncio.DatagramTransport | None = None
         self._peer: Any = None
+        self._on_stranger = on_stranger
+        #: When the peer last sent a datagram (monotonic s).
+        self.peer_seen_s = -float("inf")
+        self.peer_changes = 0
 
     async def _open(self) -> None:
         loop = asyncio.get_running_loop()
@@ -172,10 +185,29 @@ class UdpTransport(Transport):
         return f"{self.endpoint.url} (local {host}:{port})"
 
     def _on_datagram(self, data: bytes, addr: Any) -> None:
-        if self.endpoint.kind is EndpointKind.UDP_IN and addr != self._peer:
-            log.info("%s: peer is now %s:%s", self.endpoint.url, addr[0], addr[1])
+        if addr == self._peer:
+            self.peer_seen_s = time.monotonic()
+            self._deliver(data)
+        elif self.endpoint.kind is EndpointKind.UDP_OUT:
+            self._deliver(data)
+        elif self._on_stranger is not None:
+            self._on_stranger(data, addr)
+
+    def peer_silent_s(self) -> float:
+        """Seconds since the peer last sent (infinite when there is no peer)."""
+        return time.monotonic() - self.peer_seen_s
+
+    def set_peer(self, addr: Any) -> None:
+        """Reply to ``addr`` from now on (``udpin``; the link accepted its datagram)."""
+        if addr != self._peer:
+            if self._peer is None:
+                log.info("%s: peer is %s:%s", self.endpoint.url, addr[0], addr[1])
+            else:
+                log.warning("%s: peer changed from %s:%s (silent %.1f s) to %s:%s", self.endpoint.url,
+                            self._peer[0], self._peer[1], self.peer_silent_s(), addr[0], addr[1])
             self._peer = addr
-        self._deliver(data)
+            self.peer_changes += 1
+        self.peer_seen_s = time.monotonic()
 
     def send(self, data: bytes) -> bool:
         if self._transport is None:
@@ -467,10 +499,12 @@ class ReplayTransport(Transport):
         log.info("%s: replay finished after %d packets", self.endpoint.url, self.packets)
 
 
-def make_transport(endpoint: Endpoint, on_bytes: BytesCallback) -> Transport:
-    """The transport for an endpoint (not yet open: use it with ``async with``)."""
+def make_transport(endpoint: Endpoint, on_bytes: BytesCallback,
+                   on_stranger: StrangerCallback | None = None) -> Transport:
+    """The transport for an endpoint (not yet open: use it with ``async with``);
+    ``on_stranger``: see :class:`UdpTransport`."""
     if endpoint.kind in (EndpointKind.UDP_IN, EndpointKind.UDP_OUT):
-        return UdpTransport(endpoint, on_bytes)
+        return UdpTransport(endpoint, on_bytes, on_stranger)
     if endpoint.kind is EndpointKind.TCP_CLIENT:
         return TcpClientTransport(endpoint, on_bytes)
     if endpoint.kind is EndpointKind.TCP_SERVER:

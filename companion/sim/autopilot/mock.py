@@ -38,7 +38,7 @@ from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
 from companion.sim.autopilot.timesync import PeerClock
-from companion.sim.autopilot.transport import Faults, UdpEndpoint
+from companion.sim.autopilot.transport import Faults, UdpEndpoint, sign_with
 from companion.sim.autopilot.vehicle import (
     KinematicMulticopter,
     Target,
@@ -199,6 +199,12 @@ class MockAutopilot:
     def local_port(self) -> int:
         """The bound UDP port (useful with ``local_port=0``)."""
         return self._link.local_port
+
+    def enable_signing(self, key: bytes, unsigned_from: tuple[tuple[str, int], ...] = ()) -> None:
+        """MAVLink 2 signing with ``key``, as PX4 with ``MAV_SIGN_CFG`` set: everything sent is
+        signed, unsigned or badly signed input is dropped (except from ``unsigned_from``)."""
+        sign_with(self._mav, key)
+        self._link.require_signed(key, unsigned_from)
 
     def add_remote(self, host: str, port: int) -> None:
         """Also stream to ``host:port`` from now on."""
