@@ -140,6 +140,9 @@ class MockAutopilot:
         self._last_setpoint_s = -math.inf
         self._offboard_target: Target | None = None
         self.setpoints: deque[offboard.ReceivedSetpoint] = deque(maxlen=2000)
+        #: The longest time without a setpoint while in OFFBOARD (s): between two setpoints, or
+        #: from the last one until OFFBOARD ended (a stream that never resumed counts too).
+        self.offboard_gap_max_s = 0.0
         self.vision: deque[VisionSample] = deque(maxlen=2000)
         #: The companion's clock, learned from TIMESYNC (see :mod:`.timesync`).
         self.peer_clock = PeerClock()
@@ -388,9 +391,14 @@ class MockAutopilot:
         if self.peer_clock.request_due(now):
             self.send(self._mav.timesync_encode(0, int(now * 1e9)))
 
+    def _note_offboard_gap(self, now: float) -> None:
+        if self._mode is FlightMode.OFFBOARD and math.isfinite(self._last_setpoint_s):
+            self.offboard_gap_max_s = max(self.offboard_gap_max_s, now - self._last_setpoint_s)
+
     def _check_offboard(self, now: float) -> None:
         if self._mode is not FlightMode.OFFBOARD:
             return
+        self._note_offboard_gap(now)
         if now - self._last_setpoint_s > self.params.get("COM_OF_LOSS_T"):
             action = {3: FlightMode.RTL, 4: FlightMode.LAND}.get(
                 int(self.params.get("COM_OBL_RC_ACT")), FlightMode.HOLD)
@@ -614,6 +622,7 @@ class MockAutopilot:
         # The controller flies the estimate to the setpoint: where the airframe really goes.
         target = self.estimator.to_true(target)
         frame = int(getattr(msg, "coordinate_frame", 0))
+        self._note_offboard_gap(now)
         self.setpoints.append(offboard.ReceivedSetpoint(now, mtype, frame, int(msg.type_mask),
                                                         target))
         self._last_setpoint_s = now
