@@ -42,6 +42,7 @@ from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.flight_log import FlightLog
+from companion.service.latency import LatencyStats
 from companion.service.localization import ServiceLocalization
 from companion.service.mission_runner import (
     Leg,
@@ -50,7 +51,7 @@ from companion.service.mission_runner import (
     mission_legs,
     position_enu,
 )
-from companion.service.perception_process import LatencyStats, PerceptionProcess
+from companion.service.perception_process import PerceptionProcess
 from companion.service.perception_worker import (
     PerceptionPipeline,
     new_semantic_map,
