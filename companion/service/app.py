@@ -167,6 +167,8 @@ class CompanionService:
         self.mission_done = asyncio.Event()
         self._mission_task: asyncio.Task[None] | None = None
         self._background_tasks: set[asyncio.Task[None]] = set()
+        #: Set once perception could not be started again: the vehicle lands (stop included).
+        self.perception_lost = False
         #: The mission's legs not flown yet (the first is the one in progress); kept by a pause.
         self.legs_left: list[Leg] = []
         #: True between a ``pause`` and the ``start`` that resumes the mission.
@@ -309,7 +311,8 @@ class CompanionService:
                 await self._mission_task
         v = self.vehicle
         if v is not None and v.offboard.state.streams:
-            then = FlightMode.LAND if self.cfg.service.on_sigterm == "land" else FlightMode.HOLD
+            land = self.cfg.service.on_sigterm == "land" or self.perception_lost
+            then = FlightMode.LAND if land else FlightMode.HOLD
             try:
                 await v.offboard.release(then)
                 log.info("stopping: vehicle handed to %s", then.name)
@@ -334,6 +337,7 @@ class CompanionService:
     async def _land_without_perception(self) -> None:
         """Perception is gone for good: the map cannot be trusted, so stop the mission and land
         here (the vehicle has been holding since the map went stale)."""
+        self.perception_lost = True
         if self._mission_task is not None and not self._mission_task.done():
             self._mission_task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):

@@ -168,7 +168,8 @@ def _wait_for_stop(stop: Connection, loop: asyncio.AbstractEventLoop, stopping: 
     """Block until the service closes its end of the stop pipe (or dies), then set ``stopping``."""
     with contextlib.suppress(EOFError, OSError):
         stop.recv()
-    loop.call_soon_threadsafe(stopping.set)
+    with contextlib.suppress(RuntimeError):  # the child's loop has closed already
+        loop.call_soon_threadsafe(stopping.set)
 
 
 async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
@@ -344,7 +345,9 @@ class PerceptionProcess:
         if child.ready.is_set():
             log.info("perception process %d running", proc.pid)
             return None
-        await self._stop_child(child, kill=True)
+        # A child that ended is exiting by itself (its exit code says how); one that never got
+        # ready in time is killed.
+        await self._stop_child(child, kill=not child.ended.is_set())
         return int(proc.exitcode) if proc.exitcode is not None else -int(signal.SIGKILL)
 
     async def _supervise(self) -> None:

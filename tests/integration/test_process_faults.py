@@ -224,3 +224,37 @@ def test_a_map_dir_that_cannot_be_a_folder_is_a_config_error(tmp_path: Path) -> 
                              text=True, timeout=60.0)
         assert res.returncode == 2, (args, res.stdout, res.stderr[-2000:])
         assert "service.map_dir" in res.stderr and "/dev/null" in res.stderr
+
+
+@pytest.mark.slow
+def test_perception_that_cannot_be_started_again_makes_the_vehicle_land(tmp_path: Path) -> None:
+    cfg = _cfg(tmp_path, service={"checkpoint_interval_s": 1.0})
+    events: dict[str, Any] = {}
+
+    async def inject(world: SimWorld, svc: CompanionService, broker: LocalBroker | None) -> None:
+        await _until(lambda: svc.vehicle is not None and svc.vehicle.offboard.state is OffboardState.ACTIVE, 40.0)
+        p = svc.perception
+        assert p is not None
+        await _until(lambda: p.counters()["checkpoints"] >= 1, 20.0)
+        # The map folder becomes a file: every new perception process fails while starting.
+        map_dir = Path(svc.cfg.service.map_dir)
+
+        def replace_with_a_file() -> None:
+            map_dir.rename(tmp_path / "map-moved")
+            map_dir.write_text("not a folder")
+
+        await asyncio.to_thread(replace_with_a_file)
+        events["perception"] = p
+        os.kill(_perception_proc(p).pid, signal.SIGKILL)
+
+    out = tmp_path / "out"
+    result = asyncio.run(run_e2e(cfg, out, use_broker=False, timeout_s=150.0, inject=inject))
+    s = result.summary
+    p = events["perception"]
+    assert p.failed and p.restarts == 3
+    # Given up on perception, the service cancelled the mission and landed (its stop did not
+    # turn that into a hold).
+    assert s["waypoints_reached"] < s["waypoints_total"]
+    assert s["autopilot_final"]["mode"] == "LAND", s["autopilot_final"]
+    # The last checkpoint the process wrote is intact where it was.
+    SemanticMap.load(tmp_path / "map-moved" / "semantic_map.npz")
