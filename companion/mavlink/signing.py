@@ -38,12 +38,12 @@ def key_file_problem(path: Path) -> str | None:
         raw = path.read_bytes()
     except OSError as exc:
         return f"{path}: cannot read MAVLink signing key: {exc.strerror or exc}"
-    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        return (f"{path}: MAVLink signing key is readable by others (mode {stat.S_IMODE(st.st_mode):04o}); "
-                f"run: chmod 600 {path}")
     if parse_key(raw) is None:
         return (f"{path}: MAVLink signing key must be {SIGNING_KEY_BYTES} raw bytes or "
                 f"{2 * SIGNING_KEY_BYTES} hex characters (got {len(raw)} bytes)")
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        return (f"{path}: MAVLink signing key is readable by others (mode {stat.S_IMODE(st.st_mode):04o}); "
+                f"run: chmod 600 {path}")
     return None
 
 

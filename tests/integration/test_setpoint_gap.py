@@ -22,6 +22,7 @@ async def test_a_stream_that_stops_in_offboard_is_the_longest_gap() -> None:
                 link.send(link.mav.set_position_target_local_ned_encode(
                     link.time_boot_ms(), 1, 1, 1, 0b0000_1111_1111_1000, 0.0, 0.0, -1.0, 0, 0, 0, 0, 0, 0, 0, 0))
                 if i == 10:
+                    ap.arm()  # PX4's offboard-loss failsafe acts only while armed
                     ap.set_mode(FlightMode.OFFBOARD)
                 await asyncio.sleep(1.0 / 30.0)
             await ap.wait_until(lambda: ap.mode is not FlightMode.OFFBOARD, 5.0 + loss_s)

@@ -15,10 +15,10 @@ import yaml
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import config_from_dict
+from companion.config_checks import check_runtime
 from companion.errors import ConfigError
 from companion.mavlink.link import MavlinkLink, SigningConfig
 from companion.mavlink.signing import key_file_problem, read_key_file, write_key_file
-from companion.preflight import check_paths
 from companion.sim.autopilot import MockAutopilot
 
 REPO = Path(__file__).resolve().parents[2]
@@ -48,11 +48,12 @@ def test_key_files_readable_by_others_or_short_are_config_errors(tmp_path: Path)
     short.write_bytes(b"0123456789")
     short.chmod(0o600)
     assert "32 raw bytes" in (key_file_problem(short) or "")
-    cfg = config_from_dict({"link": {"signing_key_path": str(good)}})
+    service = {"output_dir": str(tmp_path / "out"), "map_dir": str(tmp_path / "map")}
+    cfg = config_from_dict({"link": {"signing_key_path": str(good)}, "service": service})
     with pytest.raises(ConfigError, match="link.signing_key_path"):
-        check_paths(cfg, "cfg.yaml")
+        check_runtime(cfg, "cfg.yaml")
     cfg_path = tmp_path / "cfg.yaml"
-    cfg_path.write_text(yaml.safe_dump({"link": {"signing_key_path": str(short)}}))
+    cfg_path.write_text(yaml.safe_dump({"link": {"signing_key_path": str(short)}, "service": service}))
     res = subprocess.run([sys.executable, "-m", "companion", "config", "check", str(cfg_path)], cwd=REPO,
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "link.signing_key_path" in res.stderr and "short.key" in res.stderr
