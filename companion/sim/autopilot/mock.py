@@ -50,7 +50,7 @@ from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
 from companion.sim.autopilot.timesync import PeerClock
-from companion.sim.autopilot.transport import Faults, UdpEndpoint
+from companion.sim.autopilot.transport import Faults, UdpEndpoint, sign_with
 from companion.sim.autopilot.vehicle import (
     KinematicMulticopter,
     Target,
@@ -167,6 +167,9 @@ class MockAutopilot:
         self._last_setpoint_s = -math.inf
         self._offboard_target: Target | None = None
         self.setpoints: deque[offboard.ReceivedSetpoint] = deque(maxlen=2000)
+        #: The longest time without a setpoint while in OFFBOARD (s): between two setpoints, or
+        #: from the last one until OFFBOARD ended (a stream that never resumed counts too).
+        self.offboard_gap_max_s = 0.0
         self.vision: deque[VisionSample] = deque(maxlen=2000)
         #: The companion's clock, learned from TIMESYNC (see :mod:`.timesync`).
         self.peer_clock = PeerClock()
@@ -235,6 +238,12 @@ class MockAutopilot:
     def local_port(self) -> int:
         """The bound UDP port (useful with ``local_port=0``)."""
         return self._link.local_port
+
+    def enable_signing(self, key: bytes, unsigned_from: tuple[tuple[str, int], ...] = ()) -> None:
+        """MAVLink 2 signing with ``key``, as PX4 with ``MAV_SIGN_CFG`` set: everything sent is
+        signed, unsigned or badly signed input is dropped (except from ``unsigned_from``)."""
+        sign_with(self._mav, key)
+        self._link.require_signed(key, unsigned_from)
 
     def add_remote(self, host: str, port: int) -> None:
         """Also stream to ``host:port`` from now on."""
@@ -442,9 +451,14 @@ class MockAutopilot:
         self.announce(mavlink.MAV_SEVERITY_INFO, "Ready for takeoff!")
         self._send_now("HOME_POSITION")
 
+    def _note_offboard_gap(self, now: float) -> None:
+        if self._mode is FlightMode.OFFBOARD and math.isfinite(self._last_setpoint_s):
+            self.offboard_gap_max_s = max(self.offboard_gap_max_s, now - self._last_setpoint_s)
+
     def _check_offboard(self, now: float) -> None:
         if self._mode is not FlightMode.OFFBOARD or not self._armed:
             return  # PX4's failsafes act only while armed
+        self._note_offboard_gap(now)
         if now - self._last_setpoint_s > self.params.get("COM_OF_LOSS_T"):
             act = int(self.params.get("COM_OBL_RC_ACT"))
             if self.behaviour.offboard_loss_px4_actions:
@@ -703,6 +717,7 @@ class MockAutopilot:
         # The controller flies the estimate to the setpoint: where the airframe really goes.
         target = self.estimator.to_true(target)
         frame = int(getattr(msg, "coordinate_frame", 0))
+        self._note_offboard_gap(now)
         self.setpoints.append(offboard.ReceivedSetpoint(now, mtype, frame, int(msg.type_mask),
                                                         target))
         self._last_setpoint_s = now
