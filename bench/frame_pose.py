@@ -44,7 +44,9 @@ from companion.config import LinkConfig  # noqa: E402
 from companion.mavlink.failsafe import PositionSetpoint  # noqa: E402
 from companion.mavlink.vehicle import Vehicle  # noqa: E402
 from companion.px4 import FlightMode  # noqa: E402
+from companion.service.mission_runner import took_off  # noqa: E402
 from companion.sim.autopilot import MockAutopilot  # noqa: E402
+from companion.sim.autopilot.behaviour import Px4Behaviour  # noqa: E402
 from companion.sources.poses import BootClock, SharedPoseHistory, TelemetryPoseRecorder  # noqa: E402
 
 CAMERA_HZ = 15.0
@@ -82,17 +84,22 @@ async def run_case(corners: int, attitude_hz: float | None, busy: bool, arrival:
     async with Vehicle(cfg) as vehicle:
         port = vehicle.link.transport.local_address[1]  # type: ignore[attr-defined]
         params = {"MPC_TKO_SPEED": 3.0, "COM_DISARM_PRFLT": -1.0}
-        async with MockAutopilot(local_port=0, remote_ports=[port], params=params) as ap:
-            recorder = TelemetryPoseRecorder(history)
+        # The square's corners are judged against the mock's floor-based truth, so its local
+        # origin is put on the floor; every other PX4 way stays on.
+        async with MockAutopilot(local_port=0, remote_ports=[port], params=params,
+                                 behaviour=Px4Behaviour(floor_z_ned_m=0.0)) as ap:
+            recorder = TelemetryPoseRecorder(history, remote_to_local=vehicle.autopilot_clock.to_local,
+                                             map_frame=lambda: vehicle.snapshot().map_frame)
             if arrival:
                 recorder.boot_clock = _ArrivalClock()
             remove = vehicle.link.add_listener(recorder.handle, recorder.MESSAGES)
             await vehicle.wait_connected(10.0)
             if attitude_hz is not None:
                 await vehicle.commands.set_message_interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, attitude_hz)
+            await vehicle.state.wait_for(lambda s: s.ready_to_arm, 30.0, "the autopilot's pre-flight checks")
             await vehicle.commands.arm()
             await vehicle.commands.takeoff(ALT_M)
-            await vehicle.state.wait_for(lambda s: s.in_air and s.flight_mode is FlightMode.HOLD, 20.0, "takeoff")
+            await vehicle.state.wait_for(lambda s: took_off(s, ALT_M), 20.0, "takeoff")
 
             async def camera() -> None:
                 nonlocal unposed

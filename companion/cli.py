@@ -29,6 +29,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "companion.cmd_map",
     "companion.cmd_plan",
     "companion.cmd_run",
+    "companion.cmd_keygen",
 )
 
 

@@ -13,9 +13,13 @@ import asyncio
 import contextlib
 import logging
 import signal
+from typing import TYPE_CHECKING
 
 from companion.config import load_config
 from companion.geo import GeoOrigin
+
+if TYPE_CHECKING:
+    from companion.sim.autopilot.behaviour import Px4Behaviour
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +41,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    "0 disables")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="set a PX4 parameter, e.g. --param COM_DISARM_PRFLT=-1 (repeatable)")
+    p.add_argument("--naive", action="store_true",
+                   help="an idealised autopilot instead of PX4's ways (origin on the floor, ready at "
+                   "once, ...; docs/mock-autopilot.md)")
+    p.add_argument("--behaviour", action="append", default=[], metavar="NAME=VALUE",
+                   help="one PX4 behaviour switch, e.g. --behaviour ready_after_s=20 (repeatable)")
     p.set_defaults(func=_run)
 
 
@@ -67,13 +76,24 @@ def _run(args: argparse.Namespace) -> int:
     remotes = [p for p in (offboard, gcs) if p]
     home = GeoOrigin(cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m)
     params = _parse_params(args.param)
+    behaviour = _parse_behaviour(args.behaviour, args.naive)
     remote_host = args.remote_host or ("127.0.0.1" if args.host == "0.0.0.0" else args.host)
-    asyncio.run(_serve(args.host, local, remote_host, remotes, home, params))
+    asyncio.run(_serve(args.host, local, remote_host, remotes, home, params, behaviour))
     return 0
 
 
+def _parse_behaviour(items: list[str], naive: bool) -> Px4Behaviour:
+    from companion.errors import ConfigError
+    from companion.sim.autopilot.behaviour import Px4Behaviour, behaviour_from_settings
+
+    try:
+        return behaviour_from_settings(items, Px4Behaviour.naive() if naive else None)
+    except ValueError as exc:
+        raise ConfigError(f"--behaviour: {exc}") from exc
+
+
 async def _serve(host: str, local: int, remote_host: str, remotes: list[int],
-                 home: GeoOrigin, params: dict[str, float]) -> None:
+                 home: GeoOrigin, params: dict[str, float], behaviour: Px4Behaviour) -> None:
     from companion.sim.autopilot import MockAutopilot  # pymavlink's dialect is slow to import
 
     loop = asyncio.get_running_loop()
@@ -82,6 +102,6 @@ async def _serve(host: str, local: int, remote_host: str, remotes: list[int],
         with contextlib.suppress(NotImplementedError):
             loop.add_signal_handler(sig, stop.set)
     async with MockAutopilot(host=host, local_port=local, remote_ports=remotes,
-                             remote_host=remote_host, home=home, params=params):
+                             remote_host=remote_host, home=home, params=params, behaviour=behaviour):
         await stop.wait()
         log.info("stopping mock autopilot")

@@ -2,7 +2,7 @@
 
 :func:`check_runtime` looks at the machine the config is meant for: the files it names
 exist and can be read (MQTT password and TLS files, the MAVLink signing key, the detector
-model, a recording), the output folder can be written, and a map checkpoint in
+model, a recording), the output and map folders can be written, and a map checkpoint in
 ``service.map_dir`` was made with the configured map settings. ``config check`` and ``run``
 both call it, so a config that passes ``config check`` does not fail at start for these.
 Problems are :class:`~companion.errors.ConfigError` naming the key and the path.
@@ -76,6 +76,9 @@ def runtime_problems(cfg: CompanionConfig) -> list[str]:
         if rec is not None and not Path(rec).exists():
             problems.append(f"camera.recorded_path: {rec} does not exist")
     _writable_dir("service.output_dir", cfg.service.output_dir, problems)
+    # The perception process saves the map there; a bad folder must not surface only when it
+    # fails to start.
+    _writable_dir("service.map_dir", cfg.service.map_dir, problems)
     from companion.service.checkpoint import checkpoint_mismatch, checkpoint_path
 
     mismatch = checkpoint_mismatch(cfg, checkpoint_path(cfg))

@@ -100,9 +100,23 @@ class PlanningService:
         self.close()
 
     def start(self) -> None:
-        """Start the worker process if it is not running (blocks until it is ready)."""
-        if self._proc is not None and self._proc.is_alive():
-            return
+        """Start the worker process if it is not running (blocks until it is ready). A worker
+        killed by a signal while starting is started once more."""
+        if self._proc is not None:
+            if self._proc.is_alive():
+                return
+            log.warning("planning worker pid %d died (exit code %s); starting a new one",
+                        self._proc.pid, self._proc.exitcode)
+            self._abandon()
+        try:
+            self._start_once()
+        except PlanningError as exc:
+            if not str(exc).startswith("planning worker killed"):
+                raise
+            log.warning("%s; starting it once more", exc)
+            self._start_once()
+
+    def _start_once(self) -> None:
         parent, child = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(target=_worker_main, args=(child, self.config),
                                  name="planner-worker", daemon=True)
@@ -115,7 +129,10 @@ class PlanningService:
         try:
             ready = parent.recv()
         except EOFError as exc:
-            raise PlanningError("planning worker exited while starting") from exc
+            proc.join(1.0)
+            code = proc.exitcode
+            what = f"killed by signal {-code}" if code is not None and code < 0 else f"exited with code {code}"
+            raise PlanningError(f"planning worker {what} while starting") from exc
         if ready != ("ready",):
             raise PlanningError(f"planning worker sent {ready!r} instead of ready")
         self._proc, self._conn, self._worker_version = proc, parent, None
@@ -160,6 +177,14 @@ class PlanningService:
         if remaining <= 0.0 or not conn.poll(remaining):
             raise TimeoutError
         return conn.recv()
+
+    def _warn_dead(self, exc: BaseException) -> None:
+        proc = self._proc
+        if proc is not None:
+            proc.join(1.0)
+        log.warning("planning worker pid %s died (%s, exit code %s); a new one starts with the next request",
+                    proc.pid if proc is not None else "?", type(exc).__name__,
+                    proc.exitcode if proc is not None else "?")
 
     def _abandon(self) -> None:
         proc = self._proc
@@ -229,6 +254,7 @@ class PlanningService:
                     time.monotonic() - t0, map_version,
                 )
             except (EOFError, OSError, BrokenPipeError) as exc:
+                self._warn_dead(exc)
                 self._abandon()
                 return PlanResult.failure(
                     PlanStatus.TIMEOUT, f"planning worker stopped ({type(exc).__name__}); it will be restarted",
@@ -268,7 +294,11 @@ class PlanningService:
                     reply = self._recv(deadline)
                     if reply[1] == req_id or reply[0] == "error":
                         break
-            except (TimeoutError, EOFError, OSError, BrokenPipeError):
+            except TimeoutError:
+                self._abandon()
+                return None
+            except (EOFError, OSError, BrokenPipeError) as exc:
+                self._warn_dead(exc)
                 self._abandon()
                 return None
         if reply[0] == "error":

@@ -26,17 +26,19 @@ import asyncio
 import collections
 import logging
 import time
-from collections.abc import AsyncIterator, Callable, Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, TypeAlias
+from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError, LinkError
+from companion.mavlink.signing import SIGNING_KEY_BYTES, read_key_file
+from companion.mavlink.subscription import Message, Subscription
 from companion.mavlink.tlog import TlogWriter
-from companion.mavlink.transport import Transport, make_transport
+from companion.mavlink.transport import Transport, UdpTransport, make_transport
 from companion.mavlink.urls import parse_url
 
 if TYPE_CHECKING:
@@ -44,13 +46,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-Message: TypeAlias = mavlink.MAVLink_message
 Listener = Callable[[Message], None]
 
 #: Seconds between 1970-01-01 and the MAVLink signing epoch (2015-01-01 00:00:00 UTC).
 _SIGNING_EPOCH_UNIX_S = 1420070400
-#: MAVLink 2 signing keys are 32 bytes.
-SIGNING_KEY_BYTES = 32
 DEFAULT_QUEUE_SIZE = 64
 
 
@@ -74,27 +73,12 @@ class SigningConfig:
 
 
 def load_signing_key(path: str | Path) -> bytes:
-    """Read a 32-byte signing key: the raw bytes, or 64 hex characters (whitespace ignored).
+    """Read a 32-byte signing key file (see :mod:`companion.mavlink.signing`).
 
-    Raises :class:`ConfigError` naming the file when it is missing or malformed.
+    Raises :class:`ConfigError` naming the file when it is missing, malformed or readable by
+    others than its owner.
     """
-    p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read MAVLink signing key: {exc.strerror or exc}") from exc
-    if len(raw) == SIGNING_KEY_BYTES:
-        return raw
-    text = raw.decode("ascii", errors="replace").strip()
-    if len(text) == 2 * SIGNING_KEY_BYTES:
-        try:
-            return bytes.fromhex(text)
-        except ValueError:
-            pass
-    raise ConfigError(
-        f"{p}: MAVLink signing key must be {SIGNING_KEY_BYTES} raw bytes or "
-        f"{2 * SIGNING_KEY_BYTES} hex characters (got {len(raw)} bytes)"
-    )
+    return read_key_file(path)
 
 
 def signing_timestamp_now() -> int:
@@ -104,7 +88,13 @@ def signing_timestamp_now() -> int:
 
 @dataclass(frozen=True)
 class LinkStats:
-    """Counters since the link opened."""
+    """Counters since the link opened.
+
+    ``garbage_dropped``: datagrams from other addresses than the peer that were not MAVLink;
+    ``strangers_dropped``: MAVLink datagrams from other addresses (another system, or the
+    autopilot's ids while the peer is alive, or unsigned with signing on), ignored;
+    ``peer``: the address the link is locked to (UDP in), ``peer_changes``: how often it was set.
+    """
 
     messages_received: int
     messages_sent: int
@@ -112,6 +102,22 @@ class LinkStats:
     send_dropped: int
     queue_dropped: int
     signature_rejected: int
+    garbage_dropped: int = 0
+    strangers_dropped: int = 0
+    peer: str | None = None
+    peer_changes: int = 0
+
+
+def first_packet_ids(data: bytes) -> tuple[int, int] | None:
+    """``(system id, component id)`` of the MAVLink packet a datagram starts with, or None
+    when it cannot start with a whole one (a few byte reads: garbage is dropped this cheaply)."""
+    n = len(data)
+    if n >= 12 and data[0] == mavlink.PROTOCOL_MARKER_V2:
+        size = 12 + data[1] + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if data[2] & mavlink.MAVLINK_IFLAG_SIGNED else 0)
+        return (data[5], data[6]) if size <= n else None
+    if n >= 8 and data[0] == mavlink.PROTOCOL_MARKER_V1:
+        return (data[3], data[4]) if 8 + data[1] <= n else None
+    return None
 
 
 class _Writer:
@@ -126,95 +132,6 @@ class _Writer:
         self.transport.send(bytes(buf))
 
 
-class Subscription:
-    """A bounded queue of received messages, as an async iterator and context manager.
-
-    When full, the oldest message is dropped (the consumer wants the newest) and the drop is
-    logged on the first occurrence and every 100th after. When the link closes, a waiting
-    :meth:`get` raises :class:`LinkError` and ``async for`` ends.
-    """
-
-    def __init__(self, link: "MavlinkLink", msg_types: frozenset[str] | None, maxsize: int) -> None:
-        if maxsize < 1:
-            raise ValueError(f"subscription queue size must be >= 1 (got {maxsize})")
-        self._link = link
-        self.msg_types = msg_types
-        # One extra slot so the end-of-link marker always fits.
-        self._queue: asyncio.Queue[Message | None] = asyncio.Queue(maxsize + 1)
-        self._maxsize = maxsize
-        self.dropped = 0
-        self._closed = False
-        self._link_closed = False
-
-    def _offer(self, msg: Message) -> None:
-        if self._queue.qsize() >= self._maxsize:
-            self._queue.get_nowait()
-            self.dropped += 1
-            self._link._queue_dropped += 1
-            if self.dropped == 1 or self.dropped % 100 == 0:
-                log.warning("slow subscriber to %s: dropped %d old messages",
-                            sorted(self.msg_types) if self.msg_types else "all", self.dropped)
-        self._queue.put_nowait(msg)
-
-    def _end(self) -> None:
-        """The link closed: wake the consumer."""
-        self._link_closed = True
-        self._queue.put_nowait(None)
-        self.close()
-
-    async def _next(self) -> Message | None:
-        msg = await self._queue.get()
-        if msg is None:
-            self._queue.put_nowait(None)  # every later call sees the end too
-        return msg
-
-    async def get(self, timeout_s: float | None = None) -> Message:
-        """The next message; raises :class:`TimeoutError` after ``timeout_s`` seconds and
-        :class:`LinkError` once the link has closed."""
-        if timeout_s is None:
-            msg = await self._next()
-        else:
-            async with asyncio.timeout(timeout_s):
-                msg = await self._next()
-        if msg is None:
-            raise LinkError(f"{self._link.endpoint.url}: link closed")
-        return msg
-
-    def get_nowait(self) -> Message | None:
-        """The next queued message, or None if there is none (or the link closed)."""
-        try:
-            msg = self._queue.get_nowait()
-        except asyncio.QueueEmpty:
-            return None
-        if msg is None:
-            self._queue.put_nowait(None)
-        return msg
-
-    def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            self._link._remove_subscription(self)
-
-    async def __aenter__(self) -> "Subscription":
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        self.close()
-
-    def __aiter__(self) -> AsyncIterator[Message]:
-        return self._iterate()
-
-    async def _iterate(self) -> AsyncIterator[Message]:
-        try:
-            while True:
-                msg = await self._next()
-                if msg is None:
-                    return
-                yield msg
-        finally:
-            self.close()
-
-
 class MavlinkLink:
     """An open MAVLink 2 connection with our identity and heartbeat (async context manager).
 
@@ -222,6 +139,12 @@ class MavlinkLink:
     ``MAV_COMP_ID_ONBOARD_COMPUTER``). ``heartbeat_rate_hz``: our heartbeat (0 = none, for
     passive tools). ``signing``: MAVLink 2 signing, or None for off. ``record_path``: append
     every valid received packet to this ``.tlog`` (replay it later with ``tlog://``).
+
+    With ``udpin`` the link is locked to one peer: the first address that sends a valid
+    MAVLink packet from ``peer_system`` (any system when None) and ``peer_component`` (any
+    when 0), signed when signing is on. Datagrams from any other address are counted and
+    dropped; another address becomes the peer only after the peer was silent for
+    ``peer_timeout_s``.
     """
 
     def __init__(
@@ -234,8 +157,17 @@ class MavlinkLink:
         mav_type: int = mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
         signing: SigningConfig | None = None,
         record_path: str | Path | None = None,
+        peer_system: int | None = None,
+        peer_component: int = 0,
+        peer_timeout_s: float = 3.0,
     ) -> None:
         self.endpoint = parse_url(url)
+        self.peer_system = peer_system
+        self.peer_component = peer_component
+        self.peer_timeout_s = peer_timeout_s
+        self._garbage = 0
+        self._strangers = 0
+        self._stranger_log_s = 0.0
         self.record_path = Path(record_path) if record_path is not None else None
         self._recorder: TlogWriter | None = None
         self.system_id = system_id
@@ -275,6 +207,9 @@ class MavlinkLink:
             heartbeat_rate_hz=cfg.heartbeat_rate_hz,
             signing=signing,
             record_path=record_path,
+            peer_system=cfg.target_system,
+            peer_component=cfg.target_component,
+            peer_timeout_s=cfg.heartbeat_timeout_s,
         )
 
     # --- lifecycle -------------------------------------------------------------------
@@ -282,7 +217,7 @@ class MavlinkLink:
     async def __aenter__(self) -> "MavlinkLink":
         if self.record_path is not None:
             self._recorder = TlogWriter(self.record_path).__enter__()
-        transport = make_transport(self.endpoint, self._on_bytes)
+        transport = make_transport(self.endpoint, self._on_bytes, self._on_stranger)
         try:
             await transport.__aenter__()
         except BaseException:
@@ -370,24 +305,70 @@ class MavlinkLink:
     # --- receiving -------------------------------------------------------------------
 
     def _on_bytes(self, data: bytes) -> None:
+        for msg in self._parse(data):
+            self._dispatch(msg)
+
+    def _parse(self, data: bytes) -> list[Message]:
+        """The valid messages in ``data`` (malformed input counted and skipped)."""
         try:
             msgs = self.mav.parse_buffer(data) or []
         except Exception as exc:  # pymavlink raises plain exceptions on odd input
             self._count_bad(f"parser error: {exc}")
             self._reset_parser()
-            return
+            return []
+        good = []
         for msg in msgs:
             if isinstance(msg, mavlink.MAVLink_bad_data):
                 self._count_bad(getattr(msg, "reason", "bad data"))
-                continue
-            if isinstance(msg, mavlink.MAVLink_unknown):
-                continue
-            self._dispatch(msg)
+            elif not isinstance(msg, mavlink.MAVLink_unknown):
+                good.append(msg)
         if self._transport is not None and self._transport.datagram and self.mav.buf_len():
             # A datagram holds whole messages; a tail is garbage and must not swallow the
             # start of the next datagram.
             self._count_bad("truncated message at the end of a datagram")
             self._reset_parser()
+        return good
+
+    def _is_peer_ids(self, system_id: int, component_id: int) -> bool:
+        return ((self.peer_system is None or system_id == self.peer_system)
+                and (self.peer_component == 0 or component_id == self.peer_component))
+
+    def _on_stranger(self, data: bytes, addr: Any) -> None:
+        """A ``udpin`` datagram from another address than the peer: it becomes the peer when
+        it carries a valid (signed, with signing on) packet from the autopilot and the old
+        peer has been silent for ``peer_timeout_s``; else it is counted and dropped. The
+        checks run cheapest first, so a flood costs a few byte reads per datagram."""
+        transport = self._transport
+        assert isinstance(transport, UdpTransport)
+        ids = first_packet_ids(data)
+        if ids is None:
+            self._garbage += 1
+            self._log_stranger(addr, "not MAVLink")
+            return
+        if not self._is_peer_ids(*ids):
+            self._strangers += 1
+            self._log_stranger(addr, f"from system {ids[0]}/{ids[1]}, not the autopilot")
+            return
+        if transport.peer is not None and transport.peer_silent_s() < self.peer_timeout_s:
+            self._strangers += 1
+            self._log_stranger(addr, "the link is locked to its peer, which is alive")
+            return
+        msgs = self._parse(data)
+        if not any(self._is_peer_ids(m.get_srcSystem(), m.get_srcComponent())
+                   and (self.signing is None or m.get_signed()) for m in msgs):
+            self._strangers += 1
+            self._log_stranger(addr, "no valid packet from the autopilot" + (" (signed)" if self.signing else ""))
+            return
+        transport.set_peer(addr)
+        for msg in msgs:
+            self._dispatch(msg)
+
+    def _log_stranger(self, addr: Any, why: str) -> None:
+        now = time.monotonic()
+        if now - self._stranger_log_s > 5.0:
+            self._stranger_log_s = now
+            log.warning("%s: ignored a datagram from %s:%s (%s); %d strangers, %d garbage so far",
+                        self.endpoint.url, addr[0], addr[1], why, self._strangers, self._garbage)
 
     def _reset_parser(self) -> None:
         self.mav.buf = bytearray()
@@ -487,6 +468,10 @@ class MavlinkLink:
             send_dropped=self._transport.send_dropped if self._transport else 0,
             queue_dropped=self._queue_dropped,
             signature_rejected=self.mav.signing.reject_count + self.mav.signing.badsig_count,
+            garbage_dropped=self._garbage,
+            strangers_dropped=self._strangers,
+            peer=(f"{peer[0]}:{peer[1]}" if (peer := getattr(self._transport, "peer", None)) is not None else None),
+            peer_changes=getattr(self._transport, "peer_changes", 0),
         )
 
     def received_count(self, msg_type: str) -> int:

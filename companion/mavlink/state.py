@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import enum
 import logging
+import math
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -63,18 +64,19 @@ class HomePosition:
 
 @dataclass(frozen=True)
 class MapFrame:
-    """The map frame: PX4's local frame in ENU (x east, y north) with z the height above
-    home, where the vehicle stood on the floor when PX4 set it. The map's heights (objects,
-    the flight band) are heights above the floor, so every local position goes through here."""
+    """The map frame: PX4's local frame in ENU (x east, y north) with z the height above the
+    floor the vehicle took off from (home's floor). The map's heights (objects, the flight
+    band) are heights above the floor, so every local position goes through here."""
 
-    home_down_m: float
+    #: PX4's local z (NED) of the floor: where the vehicle stood, landed.
+    floor_down_m: float
 
     def from_ned(self, north_m: float, east_m: float, down_m: float) -> Vec3:
-        return ned_to_enu(north_m, east_m, down_m - self.home_down_m)
+        return ned_to_enu(north_m, east_m, down_m - self.floor_down_m)
 
     def to_ned(self, x_m: float, y_m: float, z_m: float) -> Vec3:
         n, e, d = enu_to_ned(x_m, y_m, z_m)
-        return n, e, d + self.home_down_m
+        return n, e, d + self.floor_down_m
 
 
 @dataclass(frozen=True)
@@ -114,6 +116,10 @@ class VehicleState:
     #: its age; None without one.
     range_down_m: float | None = None
     range_down_age_s: float | None = None
+    #: PX4's local z (NED) of the floor: the vehicle's own z while it last stood landed (PX4
+    #: moves home's z in flight, and home's z can differ from where the vehicle stands); home's
+    #: z until the vehicle has been seen landed. None before either is known.
+    floor_down_m: float | None = None
 
     def heartbeat_fresh(self, timeout_s: float) -> bool:
         """True if the autopilot's heartbeat is younger than ``timeout_s``."""
@@ -141,7 +147,7 @@ class VehicleState:
     @property
     def map_frame(self) -> MapFrame | None:
         """The map frame, or None before the first HOME_POSITION (no height is known then)."""
-        return None if self.home is None else MapFrame(self.home.position_ned_m[2])
+        return None if self.floor_down_m is None else MapFrame(self.floor_down_m)
 
     @property
     def position_map_m(self) -> Vec3 | None:
@@ -152,14 +158,14 @@ class VehicleState:
         return frame.from_ned(*self.position_ned_m)
 
     @property
-    def height_above_home_m(self) -> float | None:
+    def height_above_floor_m(self) -> float | None:
         pos = self.position_map_m
         return None if pos is None else pos[2]
 
     def clearance_below_m(self, max_age_s: float = 0.5) -> float | None:
-        """How high the vehicle is by every height it has: above home, and the downward
+        """How high the vehicle is by every height it has: above the floor, and the downward
         range sensor's reading where a fresh one exists (the lower of the two)."""
-        height = self.height_above_home_m
+        height = self.height_above_floor_m
         fresh_range = (self.range_down_m is not None and self.range_down_age_s is not None
                        and self.range_down_age_s <= max_age_s)
         if height is None or not fresh_range:
@@ -211,6 +217,7 @@ class VehicleStateTracker:
         self._battery_v: float | None = None
         self._battery_remaining: float | None = None
         self._home: HomePosition | None = None
+        self._floor_down: float | None = None
         self._global: GlobalPosition | None = None
         self._changed = asyncio.Event()
         self._unknown_mode_logged: set[int] = set()
@@ -252,6 +259,8 @@ class VehicleStateTracker:
 
     def _on_local_position(self, msg: mavlink.MAVLink_message) -> None:
         self._pos = (float(msg.x), float(msg.y), float(msg.z))
+        if self._landed is LandedState.ON_GROUND and math.isfinite(msg.z):
+            self._floor_down = float(msg.z)  # standing on the floor: this z is the floor
         self._vel = (float(msg.vx), float(msg.vy), float(msg.vz))
         self._pos_s = self._clock()
 
@@ -321,6 +330,8 @@ class VehicleStateTracker:
             battery_v=self._battery_v,
             battery_remaining=self._battery_remaining,
             home=self._home,
+            floor_down_m=self._floor_down if self._floor_down is not None else (
+                None if self._home is None else self._home.position_ned_m[2]),
             global_position=self._global,
             autopilot_system_status=self._system_status,
             prearm_ok=self._prearm_ok,

@@ -6,8 +6,10 @@ callback from inside the event loop as they arrive (one call per datagram or per
 datagram that cannot go out is dropped and counted, because MAVLink is a lossy protocol and a
 stalled sender is worse than a lost setpoint.
 
-* UDP in (``udpin://``): bound to a local port, replies to the address that sent last (PX4
-  sends from its own port to ours).
+* UDP in (``udpin://``): bound to a local port, replies to its peer: the first address whose
+  datagram the link accepted (``on_stranger``: a valid MAVLink packet from the autopilot).
+  Datagrams from any other address go to ``on_stranger`` and are dropped unless the link
+  accepts them; the peer changes only once it has been silent for ``peer_timeout_s``.
 * UDP out (``udpout://``): sends to a fixed address from an ephemeral port.
 * TCP client (``tcp://``): reconnects with back-off while open.
 * TCP server (``tcpin://``): one client at a time; a new client replaces the old one.
@@ -24,6 +26,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import socket
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -37,9 +40,15 @@ from companion.mavlink.urls import Endpoint, EndpointKind
 log = logging.getLogger(__name__)
 
 BytesCallback = Callable[[bytes], None]
+#: ``(datagram, source address)`` for a datagram that is not from the UDP peer.
+StrangerCallback = Callable[[bytes, Any], None]
 
 #: A stream transport drops outgoing bytes rather than buffer more than this.
 MAX_WRITE_BUFFER_BYTES = 64 * 1024
+#: ``udpin`` reads at most this many datagrams per wake-up before the loop runs its timers.
+UDP_READ_BATCH = 64
+#: ``udpin`` socket receive buffer (the kernel caps it at ``net.core.rmem_max``).
+UDP_RECEIVE_BUFFER_BYTES = 1 << 20
 TCP_RECONNECT_MIN_S = 0.2
 TCP_RECONNECT_MAX_S = 2.0
 
@@ -108,6 +117,21 @@ class Transport(abc.ABC):
 
 # --- UDP ---------------------------------------------------------------------------------
 
+def _bound_udp_socket(host: str, port: int) -> socket.socket:
+    """A non-blocking UDP socket bound to ``host:port`` with a receive buffer that absorbs a
+    burst while the event loop is busy."""
+    family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM, flags=socket.AI_PASSIVE)[0]
+    sock = socket.socket(family, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER_BYTES)
+        sock.bind(addr)
+        sock.setblocking(False)
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
 class _DatagramProtocol(asyncio.DatagramProtocol):
     def __init__(self, owner: "UdpTransport") -> None:
         self._owner = owner
@@ -121,40 +145,75 @@ class _DatagramProtocol(asyncio.DatagramProtocol):
 
 
 class UdpTransport(Transport):
-    """``udpin://`` (bind, reply to the last sender) or ``udpout://`` (fixed peer)."""
+    """``udpin://`` (bind, reply to the locked peer) or ``udpout://`` (fixed peer).
+
+    ``on_stranger``: called for each ``udpin`` datagram not from the peer (the link decides
+    whether it may become the peer, see :meth:`set_peer`); without it strangers are dropped.
+    """
 
     datagram = True
 
-    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
+    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback,
+                 on_stranger: StrangerCallback | None = None) -> None:
         super().__init__(endpoint, on_bytes)
         self._transport: asyncio.DatagramTransport | None = None
+        #: ``udpin``: our own non-blocking socket, drained in batches (:meth:`_drain`).
+        self._sock: socket.socket | None = None
         self._peer: Any = None
+        self._on_stranger = on_stranger
+        #: When the peer last sent a datagram (monotonic s).
+        self.peer_seen_s = -float("inf")
+        self.peer_changes = 0
 
     async def _open(self) -> None:
         loop = asyncio.get_running_loop()
         ep = self.endpoint
         if ep.kind is EndpointKind.UDP_IN:
-            transport, _ = await loop.create_datagram_endpoint(
-                lambda: _DatagramProtocol(self), local_addr=(ep.host, ep.port)
-            )
+            self._sock = await asyncio.to_thread(_bound_udp_socket, ep.host, ep.port)
+            loop.add_reader(self._sock.fileno(), self._drain)
         else:
             transport, _ = await loop.create_datagram_endpoint(
                 lambda: _DatagramProtocol(self), remote_addr=(ep.host, ep.port)
             )
             self._peer = (ep.host, ep.port)
-        self._transport = transport
+            self._transport = transport
 
     async def _close(self) -> None:
         if self._transport is not None:
             self._transport.close()
             self._transport = None
+        if self._sock is not None:
+            asyncio.get_running_loop().remove_reader(self._sock.fileno())
+            self._sock.close()
+            self._sock = None
+
+    def _drain(self) -> None:
+        """Read what is queued (up to a batch, so timers run between batches): one wake-up
+        per batch rather than per datagram keeps a flood from starving the setpoint task."""
+        sock = self._sock
+        for _ in range(UDP_READ_BATCH):
+            if sock is None:
+                return
+            try:
+                data, addr = sock.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                # ICMP port-unreachable and friends: the peer is not up yet. MAVLink carries on.
+                log.debug("%s: socket error %s", self.endpoint.url, exc)
+                return
+            self._on_datagram(data, addr)
+            sock = self._sock  # a callback may have closed the link
 
     @property
     def local_address(self) -> tuple[str, int]:
         """The bound (host, port); useful when the URL asked for port 0."""
-        if self._transport is None:
+        if self._sock is not None:
+            sockname = self._sock.getsockname()
+        elif self._transport is not None:
+            sockname = self._transport.get_extra_info("sockname")
+        else:
             raise LinkError(f"{self.endpoint.url}: transport is not open")
-        sockname = self._transport.get_extra_info("sockname")
         return str(sockname[0]), int(sockname[1])
 
     @property
@@ -163,34 +222,60 @@ class UdpTransport(Transport):
 
     @property
     def connected(self) -> bool:
-        return self._transport is not None and self._peer is not None
+        return (self._transport is not None or self._sock is not None) and self._peer is not None
 
     def describe(self) -> str:
-        if self._transport is None:
+        if self._transport is None and self._sock is None:
             return self.endpoint.url
         host, port = self.local_address
         return f"{self.endpoint.url} (local {host}:{port})"
 
     def _on_datagram(self, data: bytes, addr: Any) -> None:
-        if self.endpoint.kind is EndpointKind.UDP_IN and addr != self._peer:
-            log.info("%s: peer is now %s:%s", self.endpoint.url, addr[0], addr[1])
+        if addr == self._peer:
+            self.peer_seen_s = time.monotonic()
+            self._deliver(data)
+        elif self.endpoint.kind is EndpointKind.UDP_OUT:
+            self._deliver(data)
+        elif self._on_stranger is not None:
+            self._on_stranger(data, addr)
+
+    def peer_silent_s(self) -> float:
+        """Seconds since the peer last sent (infinite when there is no peer)."""
+        return time.monotonic() - self.peer_seen_s
+
+    def set_peer(self, addr: Any) -> None:
+        """Reply to ``addr`` from now on (``udpin``; the link accepted its datagram)."""
+        if addr != self._peer:
+            if self._peer is None:
+                log.info("%s: peer is %s:%s", self.endpoint.url, addr[0], addr[1])
+            else:
+                log.warning("%s: peer changed from %s:%s (silent %.1f s) to %s:%s", self.endpoint.url,
+                            self._peer[0], self._peer[1], self.peer_silent_s(), addr[0], addr[1])
             self._peer = addr
-        self._deliver(data)
+            self.peer_changes += 1
+        self.peer_seen_s = time.monotonic()
 
     def send(self, data: bytes) -> bool:
-        if self._transport is None:
+        if self._transport is None and self._sock is None:
             return self._drop("transport closed", len(data))
         if self._peer is None:
             # Normal until the autopilot's first datagram tells us where it is.
             return self._drop("no peer has sent to us yet", len(data), quiet=True)
+        if self._sock is not None:
+            try:
+                self._sock.sendto(data, self._peer)
+            except (BlockingIOError, InterruptedError):
+                return self._drop("socket buffer full", len(data))
+            except OSError as exc:
+                return self._drop(f"send failed: {exc.strerror or exc}", len(data))
+            self.bytes_sent += len(data)
+            return True
+        assert self._transport is not None
         # Selector datagram transports buffer when the socket would block (not in typeshed).
         buffered = getattr(self._transport, "get_write_buffer_size", lambda: 0)()
         if buffered > MAX_WRITE_BUFFER_BYTES:
             return self._drop("socket buffer full", len(data))
-        if self.endpoint.kind is EndpointKind.UDP_OUT:
-            self._transport.sendto(data)
-        else:
-            self._transport.sendto(data, self._peer)
+        self._transport.sendto(data)
         self.bytes_sent += len(data)
         return True
 
@@ -467,10 +552,12 @@ class ReplayTransport(Transport):
         log.info("%s: replay finished after %d packets", self.endpoint.url, self.packets)
 
 
-def make_transport(endpoint: Endpoint, on_bytes: BytesCallback) -> Transport:
-    """The transport for an endpoint (not yet open: use it with ``async with``)."""
+def make_transport(endpoint: Endpoint, on_bytes: BytesCallback,
+                   on_stranger: StrangerCallback | None = None) -> Transport:
+    """The transport for an endpoint (not yet open: use it with ``async with``);
+    ``on_stranger``: see :class:`UdpTransport`."""
     if endpoint.kind in (EndpointKind.UDP_IN, EndpointKind.UDP_OUT):
-        return UdpTransport(endpoint, on_bytes)
+        return UdpTransport(endpoint, on_bytes, on_stranger)
     if endpoint.kind is EndpointKind.TCP_CLIENT:
         return TcpClientTransport(endpoint, on_bytes)
     if endpoint.kind is EndpointKind.TCP_SERVER:

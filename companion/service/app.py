@@ -43,6 +43,7 @@ from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.flight_log import FlightLog
+from companion.service.latency import LatencyStats
 from companion.service.localization import ServiceLocalization
 from companion.service.mission_runner import (
     Leg,
@@ -51,7 +52,7 @@ from companion.service.mission_runner import (
     mission_legs,
     position_enu,
 )
-from companion.service.perception_process import LatencyStats, PerceptionProcess
+from companion.service.perception_process import PerceptionProcess
 from companion.service.perception_worker import (
     PerceptionPipeline,
     new_semantic_map,
@@ -155,6 +156,8 @@ class CompanionService:
         self.pipeline: PerceptionPipeline | None = None
         self.vehicle: Vehicle | None = None
         self.perception: PerceptionProcess | None = None
+        #: The planner process's client while the service runs.
+        self.planning: PlanningService | None = None
         self.localization = ServiceLocalization(cfg)
         #: The autopilot's recent poses from telemetry: a camera that delivers no pose (the
         #: RealSense) gets its frames posed from them (:mod:`companion.sources.poses`).
@@ -164,6 +167,9 @@ class CompanionService:
         self.restored = False
         self.mission_done = asyncio.Event()
         self._mission_task: asyncio.Task[None] | None = None
+        self._background_tasks: set[asyncio.Task[None]] = set()
+        #: Set once perception could not be started again: the vehicle lands (stop included).
+        self.perception_lost = False
         #: The mission's legs not flown yet (the first is the one in progress); kept by a pause.
         self.legs_left: list[Leg] = []
         #: True between a ``pause`` and the ``start`` that resumes the mission.
@@ -208,7 +214,7 @@ class CompanionService:
         posed = TelemetryPosedSource(self.frame_source, self.pose_history, cfg.camera.extrinsics.T_body_camera())
         perception = self.perception = PerceptionProcess(cfg, loc.source(posed), self.object_classes)
         async with contextlib.AsyncExitStack() as stack:
-            planning = PlanningService(cfg.planner)
+            planning = self.planning = PlanningService(cfg.planner)
             await asyncio.to_thread(planning.start)
             # Joining the worker waits up to seconds: off the loop (MQTT and the link stay served).
             stack.push_async_callback(asyncio.to_thread, planning.close)
@@ -218,7 +224,8 @@ class CompanionService:
             self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh,
                                                                    obstacle_source=self._obstacle_input))
             recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component,
-                                             remote_to_local=self.vehicle.autopilot_clock.to_local)
+                                             remote_to_local=self.vehicle.autopilot_clock.to_local,
+                                             map_frame=lambda: self.vehicle.snapshot().map_frame if self.vehicle else None)
             stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
             await stack.enter_async_context(loc.vision_stream(self.vehicle.link))
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
@@ -229,6 +236,7 @@ class CompanionService:
             # A hung perception process (or camera) stops the pings: systemd restarts us.
             watchdog.register("perception", PERCEPTION_SILENCE_S)
             perception.on_frame = lambda: watchdog.alive("perception")
+            perception.on_failed = lambda: self._background(self._land_without_perception(), "perception-lost")
             self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,
                                         on_path=self._on_path, capture_time=perception.capture_time)
             self.state = "active"
@@ -320,7 +328,8 @@ class CompanionService:
                 await self._mission_task
         v = self.vehicle
         if v is not None and v.offboard.state.streams:
-            then = FlightMode.LAND if self.cfg.service.on_sigterm == "land" else FlightMode.HOLD
+            land = self.cfg.service.on_sigterm == "land" or self.perception_lost
+            then = FlightMode.LAND if land else FlightMode.HOLD
             try:
                 await v.offboard.release(then)
                 log.info("stopping: vehicle handed to %s", then.name)
@@ -336,6 +345,32 @@ class CompanionService:
                     log.info("stopping: landed")
                 except CompanionError as exc:
                     log.warning("stopping: %s; the autopilot goes on landing by itself", exc)
+
+    def _background(self, coro: Any, name: str) -> None:
+        task = asyncio.get_running_loop().create_task(coro, name=name)
+        self._background_tasks.add(task)
+        task.add_done_callback(self._background_tasks.discard)
+
+    async def _land_without_perception(self) -> None:
+        """Perception is gone for good: the map cannot be trusted, so stop the mission and land
+        here (the vehicle has been holding since the map went stale)."""
+        self.perception_lost = True
+        if self._mission_task is not None and not self._mission_task.done():
+            self._mission_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._mission_task
+        v = self.vehicle
+        if v is None or not v.snapshot().in_air:
+            log.error("perception is gone: no mission or goal can be flown until the service restarts")
+            return
+        log.error("perception is gone: landing")
+        try:
+            if v.offboard.state.streams:
+                await v.offboard.release(FlightMode.LAND)
+            else:
+                await v.commands.land()
+        except CompanionError as exc:
+            log.error("perception is gone and landing could not be commanded (%s)", exc)
 
     # --- the mission --------------------------------------------------------------------
 

@@ -237,16 +237,21 @@ async def upload_mission_mavsdk(port: int, waypoints_map_xy: list[tuple[float, f
     log.info("mission of %d waypoints uploaded with MAVSDK", len(waypoints_map_xy))
 
 
-def setpoint_gap_stats_ms(stamps_s: list[float]) -> dict[str, float | int]:
+def setpoint_gap_stats_ms(stamps_s: list[float], offboard_gap_max_s: float = 0.0) -> dict[str, float | int]:
     """The distribution of gaps between consecutive received setpoints (autopilot receive
-    times, seconds): ``{"p50_ms", "p99_ms", "max_ms", "over_100ms"}`` (zeros for fewer than two)."""
+    times, seconds): ``{"p50_ms", "p99_ms", "max_ms", "over_100ms", "offboard_max_ms"}`` (zeros
+    for fewer than two). ``offboard_gap_max_s``: the autopilot's own longest gap in OFFBOARD,
+    which also counts a stream that stopped and never resumed; ``max_ms`` is the longer of the two."""
+    off_ms = round(1e3 * offboard_gap_max_s, 1)
     if len(stamps_s) < 2:
-        return {"p50_ms": 0.0, "p99_ms": 0.0, "max_ms": 0.0, "over_100ms": 0}
+        return {"p50_ms": 0.0, "p99_ms": 0.0, "max_ms": off_ms, "over_100ms": int(off_ms > 100.0),
+                "offboard_max_ms": off_ms}
     gaps_ms = 1e3 * np.diff(np.asarray(sorted(stamps_s)))
     return {"p50_ms": round(float(np.percentile(gaps_ms, 50)), 1),
             "p99_ms": round(float(np.percentile(gaps_ms, 99)), 1),
-            "max_ms": round(float(np.max(gaps_ms)), 1),
-            "over_100ms": int(np.count_nonzero(gaps_ms > 100.0))}
+            "max_ms": max(round(float(np.max(gaps_ms)), 1), off_ms),
+            "over_100ms": max(int(np.count_nonzero(gaps_ms > 100.0)), int(off_ms > 100.0)),
+            "offboard_max_ms": off_ms}
 
 
 async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool = True,
@@ -333,6 +338,8 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
     path_map = np.array(flown) if flown else np.zeros((0, 3))
     result.files["picture"] = _write_picture(out / "map_with_path.png", service, placement, path_map, wps_map)
     result.summary = _summary(cfg, placement, report, path_map, wps_map, stamps, service, time.monotonic() - t_start)
+    # The gap the autopilot saw, open ones included (the stream to it stopped after a failsafe).
+    result.summary["setpoint_gaps"] = setpoint_gap_stats_ms(stamps, world.autopilot.offboard_gap_max_s)
     result.summary["mqtt"] = broker_port is not None
     result.summary["detector"] = cfg.detector.kind
     result.summary["autopilot_failsafes"] = [str(f) for f in world.autopilot.failsafes]

@@ -258,7 +258,11 @@ class MissionRunner:
         v = self.vehicle
         if not v.snapshot().in_air:
             await self.arm_when_ready()
-            await v.commands.takeoff(altitude_m)
+            state = v.snapshot()
+            assert state.home is not None  # ready_to_arm waited for it
+            # PX4 takes the take-off altitude above home, whose z need not be the floor's.
+            home_above_floor_m = map_frame_of(state).from_ned(*state.home.position_ned_m)[2]
+            await v.commands.takeoff(altitude_m - home_above_floor_m)
             await v.state.wait_for(lambda s: took_off(s, altitude_m), timeout_s,
                                    f"the take-off to {altitude_m:.2f} m above home to finish")
         await self.engage_here(altitude_m)

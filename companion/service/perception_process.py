@@ -17,8 +17,8 @@ map and its checkpoints live in a child process (``spawn``):
   the latest update for the planner, the status and the freshness check, and on exit stops
   the child, which saves the map one last time; the final map is then loaded from that save.
 
-A child that dies is logged; the map goes stale, so the offboard controller holds position,
-and the systemd watchdog (no frames through perception) restarts the service.
+A child that dies is started again from the last map checkpoint; meanwhile the map is stale, so
+the offboard controller holds position. If it cannot be started again the service lands.
 """
 
 from __future__ import annotations
@@ -66,6 +66,10 @@ KEEPALIVE_S = 1.0
 START_TIMEOUT_S = 120.0
 #: How long the child may take to stop (last frame, final map save).
 STOP_TIMEOUT_S = 30.0
+#: A dead child is started again this many times in a row before perception is given up.
+MAX_RESTARTS = 3
+#: Pause before starting a dead child again (a crash loop must not eat the CPU).
+RESTART_DELAY_S = 1.0
 #: The perception process's nice value relative to the service (an unprivileged process may
 #: lower its own priority): the setpoint stream gets the CPU first, perception the rest.
 PERCEPTION_NICE = 5
@@ -141,7 +145,7 @@ class _TimedPipeline(PerceptionPipeline):
         return out
 
 
-def _child_main(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
+def _child_main(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
     """The perception process's entry point (``spawn``)."""
     # The service decides when perception stops (SIGTERM/Ctrl-C reach the whole process group).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -160,7 +164,15 @@ def _child_main(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
         conn.close()
 
 
-async def _child(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
+def _wait_for_stop(stop: Connection, loop: asyncio.AbstractEventLoop, stopping: asyncio.Event) -> None:
+    """Block until the service closes its end of the stop pipe (or dies), then set ``stopping``."""
+    with contextlib.suppress(EOFError, OSError):
+        stop.recv()
+    with contextlib.suppress(RuntimeError):  # the child's loop has closed already
+        loop.call_soon_threadsafe(stopping.set)
+
+
+async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
     cfg = spec.cfg
     parent = os.getppid()
     # Compile (or load from numba's cache) the per-frame kernels before reporting ready, so
@@ -175,8 +187,8 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
     loop = asyncio.get_running_loop()
     frame_seen = asyncio.Event()
     stopping = asyncio.Event()
-    threading.Thread(target=lambda: (stop.wait(), loop.call_soon_threadsafe(stopping.set)),
-                     name="perception-stop", daemon=True).start()
+    threading.Thread(target=_wait_for_stop, args=(stop, loop, stopping), name="perception-stop",
+                     daemon=True).start()
 
     worker = PerceptionWorker(pipeline, source, rate_hz=cfg.camera.rate_hz,
                               queue_size=cfg.service.frame_queue_size, stale_after_s=cfg.map.stale_after_s)
@@ -226,6 +238,18 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Any) -> None:
         await send(update("final", True))
 
 
+@dataclass
+class _Child:
+    """One perception process as the service holds it."""
+
+    proc: Any
+    #: The service's end of the stop pipe: closing it (or the service dying) stops the child.
+    stop: Connection
+    reader: threading.Thread
+    ready: asyncio.Event = field(default_factory=asyncio.Event)
+    ended: asyncio.Event = field(default_factory=asyncio.Event)
+
+
 class PerceptionProcess:
     """The perception process, seen from the service (async context manager).
 
@@ -234,6 +258,11 @@ class PerceptionProcess:
     event loop) whenever the child reports that frames went through perception (the systemd
     watchdog's heartbeat). The map lives in the child; :meth:`costmap`, :attr:`objects` and
     :attr:`spec` give its latest state at the flight band.
+
+    A child that dies is started again (it restores the last checkpoint), up to
+    ``MAX_RESTARTS`` times in a row; after that :attr:`failed` is set and ``on_failed``
+    called (the service lands). A child killed by a signal while starting is retried the
+    same way; one that exits with an error while starting is not (its log says why).
     """
 
     def __init__(self, cfg: CompanionConfig, source: FrameSource,
@@ -243,8 +272,14 @@ class PerceptionProcess:
         self.object_classes = dict(object_classes) if object_classes is not None else None
         self.band = flight_band(cfg)
         self.on_frame: Callable[[], None] | None = None
+        #: Called on the event loop when perception is given up for good.
+        self.on_failed: Callable[[], None] | None = None
         self.latest: PerceptionUpdate | None = None
         self.final_map: SemanticMap | None = None
+        #: Perception processes started again after one died.
+        self.restarts = 0
+        #: True once a dead perception process could not be started again.
+        self.failed = False
         self._costmap: Costmap | None = None
         self._objects: tuple[ObjectFootprint, ...] = ()
         self._spec: GridSpec | None = None
@@ -252,37 +287,26 @@ class PerceptionProcess:
         self._capture_by_costmap: deque[tuple[Costmap, float | None]] = deque(maxlen=16)
         #: Frame capture -> costmap in the service (ms), recent values.
         self.frame_to_map_ms: deque[float] = deque(maxlen=2000)
-        self._proc: Any = None
-        self._stop: Any = None
-        self._reader: threading.Thread | None = None
-        self._ready = asyncio.Event()
-        self._ended = asyncio.Event()
+        self._child: _Child | None = None
+        self._stopping = False
+        self._supervisor: asyncio.Task[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
 
     # --- lifecycle ----------------------------------------------------------------------
 
     async def __aenter__(self) -> PerceptionProcess:
-        ctx = mp.get_context("spawn")
         self._loop = asyncio.get_running_loop()
-        recv, send = ctx.Pipe(duplex=False)
-        self._stop = ctx.Event()
-        spec = _ChildSpec(self.cfg, self.source, self.object_classes, logging.getLogger().getEffectiveLevel())
-        self._proc = ctx.Process(target=_child_main, args=(spec, send, self._stop), name="companion-perception",
-                                 daemon=True)
-        await asyncio.to_thread(self._proc.start)
-        send.close()  # the child holds the only sending end: EOF here when it exits
-        self._reader = threading.Thread(target=self._read, args=(recv,), name="perception-updates", daemon=True)
-        self._reader.start()
-        ready, ended = asyncio.ensure_future(self._ready.wait()), asyncio.ensure_future(self._ended.wait())
-        done, pending = await asyncio.wait({ready, ended}, timeout=START_TIMEOUT_S,
-                                           return_when=asyncio.FIRST_COMPLETED)
-        for t in pending:
-            t.cancel()
-        if not self._ready.is_set():
-            await self._shutdown()
-            raise PerceptionError(f"the perception process did not start (exit code {self._proc.exitcode}); "
-                                  "see its log lines above")
-        log.info("perception process %d running", self._proc.pid)
+        self._stopping = False
+        for attempt in range(MAX_RESTARTS + 1):
+            code = await self._spawn()
+            if code is None:
+                break
+            if code >= 0 or attempt == MAX_RESTARTS:
+                raise PerceptionError(f"the perception process did not start (exit code {code}); "
+                                      "see its log lines above")
+            self.restarts += 1
+            log.warning("the perception process was killed while starting (signal %d); starting it again", -code)
+        self._supervisor = asyncio.create_task(self._supervise(), name="perception-supervisor")
         return self
 
     async def __aexit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
@@ -296,23 +320,90 @@ class PerceptionProcess:
             except MapError as exc:
                 log.error("the perception process's final map %s cannot be loaded: %s", path, exc)
 
+    async def _spawn(self) -> int | None:
+        """Start a child and wait until it is ready: None when it is, else its exit code."""
+        ctx = mp.get_context("spawn")
+        recv, send = ctx.Pipe(duplex=False)
+        stop_recv, stop_send = ctx.Pipe(duplex=False)
+        spec = _ChildSpec(self.cfg, self.source, self.object_classes, logging.getLogger().getEffectiveLevel())
+        proc = ctx.Process(target=_child_main, args=(spec, send, stop_recv), name="companion-perception",
+                           daemon=True)
+        await asyncio.to_thread(proc.start)
+        send.close()  # the child holds the only sending end: EOF here when it exits
+        stop_recv.close()
+        child = _Child(proc, stop_send, threading.Thread(target=lambda: None))
+        child.reader = threading.Thread(target=self._read, args=(recv, child), name="perception-updates",
+                                        daemon=True)
+        self._child = child
+        child.reader.start()
+        ready, ended = asyncio.ensure_future(child.ready.wait()), asyncio.ensure_future(child.ended.wait())
+        try:
+            await asyncio.wait({ready, ended}, timeout=START_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            ready.cancel()
+            ended.cancel()
+        if child.ready.is_set():
+            log.info("perception process %d running", proc.pid)
+            return None
+        # A child that ended is exiting by itself (its exit code says how); one that never got
+        # ready in time is killed.
+        await self._stop_child(child, kill=not child.ended.is_set())
+        return int(proc.exitcode) if proc.exitcode is not None else -int(signal.SIGKILL)
+
+    async def _supervise(self) -> None:
+        """Start a dead child again; give up (``on_failed``) after ``MAX_RESTARTS`` tries."""
+        while True:
+            child = self._child
+            assert child is not None
+            await child.ended.wait()
+            await asyncio.to_thread(child.proc.join, 5.0)
+            log.error("the perception process %d died (exit code %s): the map goes stale, the vehicle "
+                      "holds; starting it again from the last map checkpoint", child.proc.pid, child.proc.exitcode)
+            for attempt in range(1, MAX_RESTARTS + 1):
+                await asyncio.sleep(RESTART_DELAY_S)
+                self.restarts += 1
+                code = await self._spawn()
+                if code is None:
+                    log.warning("perception process started again (%d restarts so far)", self.restarts)
+                    break
+                log.error("perception process did not start again (exit code %s; attempt %d of %d)",
+                          code, attempt, MAX_RESTARTS)
+            else:
+                self.failed = True
+                log.error("perception is gone: %d attempts to start it again failed", MAX_RESTARTS)
+                if self.on_failed is not None:
+                    self.on_failed()
+                return
+
     async def _shutdown(self) -> None:
-        proc = self._proc
-        if proc is None:
-            return
-        self._stop.set()
+        self._stopping = True
+        if self._supervisor is not None:
+            self._supervisor.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._supervisor
+            self._supervisor = None
+        child, self._child = self._child, None
+        if child is not None:
+            # A child that is not ready yet has no newer map than the checkpoint: no need to wait.
+            await self._stop_child(child, kill=not child.ready.is_set())
+
+    async def _stop_child(self, child: _Child, *, kill: bool) -> None:
+        """Stop one child: closing the stop pipe never blocks, whether the child lives or not
+        (it saves the map and exits); ``kill`` does not wait for that."""
+        proc = child.proc
+        child.stop.close()
+        if kill and proc.is_alive():
+            proc.kill()
         await asyncio.to_thread(proc.join, STOP_TIMEOUT_S)
         if proc.is_alive():
-            log.error("perception process did not stop within %.0f s; terminating it", STOP_TIMEOUT_S)
-            proc.terminate()
+            log.error("perception process did not stop within %.0f s; killing it", STOP_TIMEOUT_S)
+            proc.kill()
             await asyncio.to_thread(proc.join, 5.0)
-        elif proc.exitcode:
-            log.error("perception process exited with code %s", proc.exitcode)
-        if self._reader is not None:
-            await asyncio.to_thread(self._reader.join, 5.0)
-        self._proc = None
+        elif proc.exitcode and not kill:
+            log.warning("perception process exited with code %s", proc.exitcode)
+        await asyncio.to_thread(child.reader.join, 5.0)
 
-    def _read(self, conn: Connection) -> None:
+    def _read(self, conn: Connection, child: _Child) -> None:
         """The reader thread: hand each update to the event loop."""
         loop = self._loop
         assert loop is not None
@@ -323,18 +414,13 @@ class PerceptionProcess:
                 except (EOFError, OSError):
                     break
                 with contextlib.suppress(RuntimeError):  # the loop closed
-                    loop.call_soon_threadsafe(self._apply, u)
+                    loop.call_soon_threadsafe(self._apply, u, child)
         finally:
             conn.close()
             with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(self._on_end)
+                loop.call_soon_threadsafe(child.ended.set)
 
-    def _on_end(self) -> None:
-        self._ended.set()
-        if self._stop is not None and not self._stop.is_set():
-            log.error("the perception process ended unexpectedly: the map goes stale, the vehicle holds")
-
-    def _apply(self, u: PerceptionUpdate) -> None:
+    def _apply(self, u: PerceptionUpdate, child: _Child | None = None) -> None:
         prev = self.latest
         self.latest = u
         if u.map_spec is not None:
@@ -346,8 +432,8 @@ class PerceptionProcess:
                 self.frame_to_map_ms.append(1e3 * (time.monotonic() - u.costmap_capture_mono_s))
         if u.objects is not None:
             self._objects = u.objects
-        if u.kind == "ready":
-            self._ready.set()
+        if u.kind == "ready" and child is not None:
+            child.ready.set()
         # A frame skipped for want of a pose still shows the camera and perception alive.
         handled = u.frames_done + u.frames_failed + u.frames_unposed
         if self.on_frame is not None and (
@@ -387,7 +473,7 @@ class PerceptionProcess:
 
     @property
     def running(self) -> bool:
-        return self._proc is not None and self._proc.is_alive()
+        return self._child is not None and self._child.ready.is_set() and self._child.proc.is_alive()
 
     def is_fresh(self) -> bool:
         """True while frames keep being integrated (within ``map.stale_after_s``)."""
@@ -403,25 +489,3 @@ class PerceptionProcess:
             return {"processed": 0, "failed": 0, "dropped": 0, "unposed": 0, "checkpoints": 0}
         return {"processed": u.frames_done, "failed": u.frames_failed, "dropped": u.frames_dropped,
                 "unposed": u.frames_unposed, "checkpoints": u.checkpoints}
-
-
-@dataclass
-class LatencyStats:
-    """Recent latencies (ms) with percentiles for status messages and reports."""
-
-    values_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
-
-    def add(self, ms: float) -> None:
-        self.values_ms.append(ms)
-
-    def summary(self) -> dict[str, float | int]:
-        """``{"count", "p50_ms", "p95_ms", "max_ms"}`` (empty values -> count 0 only)."""
-        v = sorted(self.values_ms)
-        if not v:
-            return {"count": 0}
-
-        def pct(q: float) -> float:
-            return round(v[min(len(v) - 1, int(round(q * (len(v) - 1))))], 1)
-
-        return {"count": len(v), "p50_ms": pct(0.5), "p95_ms": pct(0.95), "max_ms": round(v[-1], 1)}
-

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
 from companion.geo import GeoOrigin
+from companion.mavlink.signing import read_key_file
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.odometry import OdometryDriftModel
 from companion.sim.render import renderer_from_config
@@ -247,6 +248,12 @@ class SimWorld:
             params={"COM_DISARM_PRFLT": -1.0, **(params or {})}, seed=s.seed,
             odometry_drift=drift_from_config(cfg), vision_gain=s.vision_fusion_gain,
         )
+        if cfg.link.signing_key_path is not None:
+            # The mock autopilot signs like PX4 with MAV_SIGN_CFG: the companion's link (the
+            # first remote) must sign; the ground station ports stand for PX4's exempt USB link.
+            ports = (s.autopilot_offboard_port, s.autopilot_gcs_port) if remote_ports is None else remote_ports
+            self.autopilot.enable_signing(read_key_file(cfg.link.signing_key_path),
+                                          tuple(("127.0.0.1", p) for p in ports[1:]))
         self.cfg = cfg
         self.shared = SharedSimState()
         self._pose_task: asyncio.Task[None] | None = None

@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation, Slerp
 
+from companion.mavlink.state import MapFrame
 from companion.mavlink.vision import R_FLU_FRD, R_NED_ENU
 from companion.sources.base import FrameSource, WrappedSource
 from semmap.frames import Transform, make_transform, rotation_from_rpy, rpy_from_rotation
@@ -260,20 +261,22 @@ class TelemetryPoseRecorder:
     ``max_position_age_s``: across a longer telemetry gap the odometry misses the motion
     of the gap (the SLAM's scan match takes it up) rather than extrapolating a stale velocity."""
 
-    MESSAGES = ("ATTITUDE", "LOCAL_POSITION_NED", "HOME_POSITION")
+    MESSAGES = ("ATTITUDE", "LOCAL_POSITION_NED")
 
     def __init__(self, history: SharedPoseHistory, target_system: int = 1,
                  target_component: int = mavlink.MAV_COMP_ID_AUTOPILOT1, max_position_age_s: float = 0.2,
                  clock: Callable[[], float] = time.monotonic,
-                 remote_to_local: Callable[[float], float | None] | None = None) -> None:
+                 remote_to_local: Callable[[float], float | None] | None = None,
+                 map_frame: Callable[[], MapFrame | None] | None = None) -> None:
         self.history = history
         self.target_system = target_system
         self.target_component = target_component
         self.max_position_age_s = max_position_age_s
         self.clock = clock
         self.boot_clock = BootClock(drift_s_per_s=FALLBACK_DRIFT_S_PER_S, remote_to_local=remote_to_local)
-        #: Home's local z (NED): map heights are above home (see ``MapFrame``); no pose before it.
-        self._home_down_m: float | None = None
+        #: The map frame (heights above home) from the vehicle's state; no pose without one.
+        #: None: PX4's local frame as it is (a recording or a test with the origin on the floor).
+        self.map_frame = map_frame
         self._pos: tuple[float, float, float, float, float, float, float] | None = None  # t, xyz, vxyz
         #: Dead-reckoned odometry (x_m, y_m, yaw_rad; ENU) at ``_odo_t``.
         self._odo: NDArray[np.float64] | None = None
@@ -286,24 +289,21 @@ class TelemetryPoseRecorder:
         mtype = msg.get_type()
         if mtype not in self.MESSAGES:
             return
-        if mtype == "HOME_POSITION":
-            if math.isfinite(msg.z):
-                self._home_down_m = float(msg.z)
-            return
         t_msg = self.boot_clock.to_local(msg.time_boot_ms * 1e-3, self.clock())
         if mtype == "LOCAL_POSITION_NED":
             vals = (float(msg.x), float(msg.y), float(msg.z), float(msg.vx), float(msg.vy), float(msg.vz))
             if all(math.isfinite(v) for v in vals):
                 self._pos = (t_msg, *vals)
             return
-        if self._pos is None or self._home_down_m is None:
+        frame = self.map_frame() if self.map_frame is not None else MapFrame(0.0)
+        if self._pos is None or frame is None:
             return
         rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
         t, x, y, z, vx, vy, vz = self._pos
         dt = t_msg - t
         if not all(math.isfinite(v) for v in rpy) or abs(dt) > self.max_position_age_s:
             return
-        T = map_pose_from_ned((x + vx * dt, y + vy * dt, z + vz * dt - self._home_down_m), rpy)
+        T = map_pose_from_ned((x + vx * dt, y + vy * dt, z + vz * dt - frame.floor_down_m), rpy)
         yaw_rate = float(msg.yawspeed)
         odo = self._dead_reckon(t_msg, T, (vy, vx), -yaw_rate if math.isfinite(yaw_rate) else 0.0)
         if self.history.push(t_msg, T, odo):

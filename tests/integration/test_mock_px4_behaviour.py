@@ -319,3 +319,83 @@ async def test_preflight_auto_disarm_after_10_s() -> None:
     assert default_s == pytest.approx(10.0, abs=0.3)
     assert texts[-1] == "Disarmed by auto preflight disarming"
     assert off_s is None
+
+
+async def _hover(behaviour: Px4Behaviour) -> tuple[float, float, float]:
+    """(seconds from receiving a setpoint to the controller flying it, max and std of the
+    horizontal distance from the setpoint over 3 s of hover)."""
+    async with mock(behaviour) as (ap, c):
+        await _take_off(ap, c)
+        home = await c.recv("HOME_POSITION", timeout_s=5.0)
+        async with streaming(c, 0.0, 0.0, home.z - 2.5, period_s=0.1):
+            assert await c.command(mavlink.MAV_CMD_DO_SET_MODE,
+                                   *px4.set_mode_params(FlightMode.OFFBOARD)) == ACCEPTED
+            await asyncio.sleep(0.5)
+        c.send(_position_setpoint(c, 1.0, 0.0, home.z - 2.5))
+        for _ in range(1000):  # poll finely: the lag is the measurement
+            if ap.vehicle.target.position_ned_m[0] == 1.0:
+                break
+            await asyncio.sleep(0.002)
+        lag_s = ap.now_s() - ap.setpoints[-1].stamp_s
+        async with streaming(c, 1.0, 0.0, home.z - 2.5, period_s=0.1):
+            await ap.wait_until(lambda: math.hypot(ap.position_ned_m[0] - 1.0, ap.position_ned_m[1]) < 0.1,
+                                10.0, "setpoint reached")
+            await asyncio.sleep(3.0)  # the approach has settled
+            errors = []
+            for _ in range(60):
+                n, e, _d = ap.position_ned_m
+                errors.append(math.hypot(n - 1.0, e))
+                await asyncio.sleep(0.05)
+        mean = sum(errors) / len(errors)
+        std = math.sqrt(sum((x - mean) ** 2 for x in errors) / len(errors))
+        return lag_s, max(errors), std
+
+
+async def test_tracking_lags_and_wobbles() -> None:
+    lag_s, worst_m, std_m = await _hover(PX4)
+    assert lag_s >= PX4.tracking_delay_s - 0.011  # one physics tick
+    assert 0.003 < worst_m < 0.1 and std_m > 0.001
+    lag_s, worst_m, _ = await _hover(replace(PX4, tracking_delay_s=0.0, wobble_m=0.0))
+    assert lag_s < 0.05 and worst_m < 0.002
+
+
+async def _upload_items(c: RawClient, items: list[tuple[int, float, float, float]]) -> int:
+    """Upload ``(command, lat_deg, lon_deg, relative alt m)`` items; the MISSION_ACK type."""
+    since = c.mark()
+    c.send(c.mav.mission_count_encode(1, 1, len(items), 0))
+    for _ in items:
+        req = await c.recv("MISSION_REQUEST_INT", since=since)
+        since = c.mark()
+        cmd, lat, lon, alt = items[req.seq]
+        c.send(c.mav.mission_item_int_encode(
+            1, 1, req.seq, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, cmd, 0, 1, 0, 0, 0, NAN,
+            round(lat * 1e7), round(lon * 1e7), alt, 0))
+    return int((await c.recv("MISSION_ACK", since=since)).type)
+
+
+async def _fly_mission_with_position_free_steps(behaviour: Px4Behaviour) -> tuple[MockAutopilot, list[str]]:
+    async with mock(behaviour, NAV_ACC_RAD=0.3) as (ap, c):
+        await c.wait_ready()
+        lat, lon, _ = ap.home.to_global(2.0, 0.0, 0.0)
+        items = [(mavlink.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, 2.0), (mavlink.MAV_CMD_NAV_WAYPOINT, lat, lon, 2.0),
+                 (mavlink.MAV_CMD_NAV_LAND, 0.0, 0.0, 0.0)]
+        assert await _upload_items(c, items) == mavlink.MAV_MISSION_ACCEPTED
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+        assert await c.command(mavlink.MAV_CMD_MISSION_START, 0, 0) == ACCEPTED
+        with contextlib.suppress(TimeoutError):
+            await ap.wait_until(lambda: ap.position_ned_m[0] < -5.0 or not ap.armed, 20.0,
+                                "heading south or landed")
+        return ap, c.status_texts()
+
+
+async def test_mission_items_at_0_0_are_flown_to_0_0() -> None:
+    ap, texts = await _fly_mission_with_position_free_steps(PX4)
+    home_to_null_island_m = math.hypot(*ap.home.to_ned(0.0, 0.0, 0.0)[:2])
+    warning = next(t for t in texts if t.startswith("First waypoint far away from home"))
+    assert warning == f"First waypoint far away from home: {home_to_null_island_m:.0f}m. Correct mission loaded?"
+    n, e, d = ap.position_ned_m
+    assert n < -5.0 and e < 0.0 and d < -1.5  # climbed, then south-west towards 0/0
+    assert ap.armed and ap.reached_items == []
+    ap, texts = await _fly_mission_with_position_free_steps(replace(PX4, null_island_items=False))
+    assert not any(t.startswith("First waypoint") for t in texts)
+    assert ap.reached_items == [0, 1, 2] and math.hypot(ap.position_ned_m[0] - 2.0, ap.position_ned_m[1]) < 0.5

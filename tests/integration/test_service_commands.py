@@ -39,6 +39,9 @@ from companion.service.demo import (
 from companion.service.mission_runner import position_enu
 from companion.service.sim_world import SimWorld
 
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("open3d")
 
 SMALL: dict[str, Any] = {

@@ -12,6 +12,9 @@ from companion.cli import main
 from companion.config import CompanionConfig, load_config
 from companion.service.demo import read_flight_log
 
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("open3d")
 
 SMALL = {

@@ -37,6 +37,9 @@ from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.demo import LocalBroker, free_udp_port, run_e2e
 from companion.service.sim_world import SimWorld
 
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("open3d")
 
 REPO = Path(__file__).resolve().parents[2]

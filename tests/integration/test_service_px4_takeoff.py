@@ -21,6 +21,9 @@ from companion.sources.poses import SharedPoseHistory, TelemetryPoseRecorder
 from planner.worker import PlanningService
 from semmap.costmap import Costmap
 
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
+
 ALTITUDE_M = 1.0
 
 
@@ -114,7 +117,8 @@ def test_telemetry_poses_stay_on_time_with_an_autopilot_clock_at_another_rate(cl
     lags: list[float] = []
 
     async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
-        recorder = TelemetryPoseRecorder(history, remote_to_local=v.autopilot_clock.to_local)
+        recorder = TelemetryPoseRecorder(history, remote_to_local=v.autopilot_clock.to_local,
+                                         map_frame=lambda: v.snapshot().map_frame)
         remove = v.link.add_listener(recorder.handle, recorder.MESSAGES)
         try:
             await v.state.wait_for(lambda s: s.home is not None, 10.0, "home")

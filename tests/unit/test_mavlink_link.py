@@ -416,26 +416,32 @@ async def test_signed_links_talk_and_reject_strangers(tmp_path: Path) -> None:
     key = bytes(range(32))
     key_file = tmp_path / "mavlink.key"
     key_file.write_text(key.hex() + "\n")
+    key_file.chmod(0o600)
     assert load_signing_key(key_file) == key
     signing = SigningConfig(key=load_signing_key(key_file))
-    async with MavlinkLink("udpin://127.0.0.1:0", heartbeat_rate_hz=20.0, signing=signing) as a:
+    async with MavlinkLink("udpin://127.0.0.1:0", heartbeat_rate_hz=20.0, signing=signing,
+                           peer_timeout_s=0.2) as a:
         port = a.transport.local_address[1]  # type: ignore[attr-defined]
         url = f"udpout://127.0.0.1:{port}"
         async with MavlinkLink(url, system_id=1, component_id=1, heartbeat_rate_hz=20.0, signing=signing) as b:
             hb = await a.wait_message("HEARTBEAT", 2.0)
             assert hb.get_signed() and hb.get_srcComponent() == 1
             await b.wait_message("HEARTBEAT", 2.0)
+        peer = a.stats.peer
+        await asyncio.sleep(0.3)  # the peer is silent: strangers get their signatures checked
         wrong = SigningConfig(key=b"\x01" * 32)
         async with MavlinkLink(url, system_id=1, component_id=2, heartbeat_rate_hz=20.0, signing=wrong), \
                 MavlinkLink(url, system_id=1, component_id=3, heartbeat_rate_hz=20.0):
             with pytest.raises(TimeoutError):
                 await a.wait_message("HEARTBEAT", 0.5, lambda m: m.get_srcComponent() in (2, 3))
         assert a.stats.signature_rejected > 0
+        assert a.stats.peer == peer  # badly signed and unsigned packets never pick the peer
 
 
 def test_bad_signing_keys_name_the_file(tmp_path: Path) -> None:
     bad = tmp_path / "short.key"
     bad.write_bytes(b"abc")
+    bad.chmod(0o600)
     with pytest.raises(ConfigError, match="short.key"):
         load_signing_key(bad)
     with pytest.raises(ConfigError, match="cannot read"):
@@ -580,6 +586,7 @@ def test_link_from_config_reads_the_signing_key(tmp_path: Path) -> None:
 
     key_file = tmp_path / "link.key"
     key_file.write_bytes(bytes(range(100, 132)))
+    key_file.chmod(0o600)
     link = MavlinkLink.from_config(LinkConfig(url="udpout://127.0.0.1:14580", component_id=191,
                                               signing_key_path=str(key_file)))
     assert link.signing is not None and link.signing.key == bytes(range(100, 132))

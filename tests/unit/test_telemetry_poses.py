@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.mavlink.state import VehicleStateTracker
 from companion.mavlink.timesync import AutopilotClock
 from companion.mavlink.vision import ned_pose_from_map
 from companion.sources.base import FrameSource
@@ -155,7 +156,8 @@ def test_boot_clock_follows_an_autopilot_clock_one_percent_slow() -> None:
 def test_recorder_makes_one_sample_per_attitude_with_the_position_moved_on() -> None:
     now = [100.0]
     hist = SharedPoseHistory(16)
-    rec = TelemetryPoseRecorder(hist, clock=lambda: now[0])
+    tracker = VehicleStateTracker()
+    rec = TelemetryPoseRecorder(hist, clock=lambda: now[0], map_frame=lambda: tracker.snapshot().map_frame)
     mav = _mav()
     rec.handle(_decoded(mav, mav.attitude_encode(0, 0.0, 0.0, 0.0, 0, 0, 0)))
     assert len(hist) == 0  # no position yet
@@ -163,7 +165,7 @@ def test_recorder_makes_one_sample_per_attitude_with_the_position_moved_on() -> 
     rec.handle(_decoded(mav, mav.attitude_encode(1000, 0.0, 0.0, 0.0, 0, 0, 0)))
     assert len(hist) == 0  # no home yet: no height above the floor
     # PX4's local origin is not the floor: home (where it stood) is 0.86 m "up" in local z.
-    rec.handle(_decoded(mav, _home(mav, -0.86)))
+    tracker.handle(_decoded(mav, _home(mav, -0.86)))
     now[0] = 100.05  # arrived late: the stamp is the message's own time on our clock
     rec.handle(_decoded(mav, mav.attitude_encode(1020, 0.0, 0.0, math.pi / 2, 0, 0, 0)))
     stamp = hist.latest_stamp_s()
@@ -217,9 +219,8 @@ def test_recorder_dead_reckons_odometry_that_ignores_vision_corrections_of_the_p
     integrated from the velocity and the yaw rate, does not (the SLAM's motion prior)."""
     now = [0.0]
     hist = SharedPoseHistory(64)
-    rec = TelemetryPoseRecorder(hist, clock=lambda: now[0])
+    rec = TelemetryPoseRecorder(hist, clock=lambda: now[0])  # local origin on the floor
     mav = _mav()
-    rec.handle(_decoded(mav, _home(mav, 0.0)))
     # Flying east (map +x) at 1 m/s, heading east (NED yaw pi/2), for 0.5 s.
     for k in range(51):
         t_ms = 10 * k

@@ -8,7 +8,11 @@ switch means for a client is in docs/mock-autopilot.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import math
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+from numpy.typing import NDArray
 
 from companion.geo import GeoOrigin
 from companion.sim.autopilot.vehicle import Target, VehicleState
@@ -64,6 +68,30 @@ class Px4Behaviour:
                    null_island_items=False)
 
 
+def behaviour_from_settings(settings: list[str], base: Px4Behaviour | None = None) -> Px4Behaviour:
+    """``base`` (default: PX4's) with ``NAME=VALUE`` settings applied, e.g. ``ready_after_s=0``
+    or ``heartbeat_on_change=true``. Raises ValueError naming the bad setting."""
+    out = base or Px4Behaviour()
+    types = {f.name: f.type for f in fields(Px4Behaviour)}
+    for item in settings:
+        name, sep, text = item.partition("=")
+        if not sep or name not in types:
+            raise ValueError(f"behaviour setting {item!r}: expected NAME=VALUE with NAME one of "
+                             f"{', '.join(sorted(types))}")
+        value: float | bool
+        if types[name] in (bool, "bool"):
+            if text.lower() not in ("true", "false", "1", "0", "on", "off"):
+                raise ValueError(f"behaviour setting {name}: {text!r} is not true/false")
+            value = text.lower() in ("true", "1", "on")
+        else:
+            try:
+                value = float(text)
+            except ValueError as exc:
+                raise ValueError(f"behaviour setting {name}: {text!r} is not a number") from exc
+        out = replace(out, **{name: value})
+    return out
+
+
 def report_ned(position_ned_m: tuple[float, float, float], floor_z_ned_m: float) -> tuple[float, float, float]:
     """A true (floor-based) local NED position in the frame the mock reports."""
     n, e, d = position_ned_m
@@ -88,3 +116,19 @@ def accept_target(target: Target, floor_z_ned_m: float) -> Target:
 def ekf_origin(home: GeoOrigin, floor_z_ned_m: float) -> GeoOrigin:
     """The reported frame's origin (GPS_GLOBAL_ORIGIN): ``home`` is the floor below it."""
     return replace(home, alt_m=home.alt_m + floor_z_ned_m)
+
+
+class Wobble:
+    """A smooth seeded wobble about the setpoint: per axis three sinusoids of 0.1-0.7 Hz with
+    random phases, peak ``amplitude_m`` horizontally and half that vertically."""
+
+    def __init__(self, amplitude_m: float, seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        self._freq_hz = rng.uniform(0.1, 0.7, (3, 3))
+        self._phase_rad = rng.uniform(0.0, 2.0 * math.pi, (3, 3))
+        self._amp_m = amplitude_m / 3.0 * np.array([[1.0], [1.0], [0.5]])
+
+    def offset_ned_m(self, t_s: float) -> NDArray[np.float64]:
+        """(3,) NED offset at time ``t_s``."""
+        waves = np.sin(2.0 * math.pi * self._freq_hz * t_s + self._phase_rad)
+        return np.asarray((self._amp_m * waves).sum(axis=1), dtype=np.float64)

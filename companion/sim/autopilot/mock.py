@@ -4,12 +4,14 @@ One UDP socket bound to ``local_port`` (PX4: 14580) sends every message to the c
 remote ports (PX4: 14540 for the onboard/API link, 14550 for a ground station) and to any
 address that has sent it a packet, which is how PX4 learns a partner (see :mod:`.transport`).
 
-Behaviour follows PX4 v1.14/1.15 where clients can observe it: heartbeats with PX4 custom
+Behaviour follows PX4 v1.16 where clients can observe it: heartbeats with PX4 custom
 modes, the command protocol (acks within one physics tick, duplicates re-acked without
 re-executing), parameters with byte-wise encoding, the mission protocol, offboard that is
-refused without a setpoint stream and falls back to Hold when setpoints stop for
-``COM_OF_LOSS_T``, auto-disarm after landing (``COM_DISARM_LAND``) and when not taking off after
-arming (``COM_DISARM_PRFLT``).
+refused in the air without a setpoint stream and takes the ``COM_OBL_RC_ACT`` failsafe when
+setpoints stop for ``COM_OF_LOSS_T``, auto-disarm after landing (``COM_DISARM_LAND``) and when
+not taking off after arming (``COM_DISARM_PRFLT``). Where PX4 surprises a naive client (local
+origin below the floor, readiness delay, 1 Hz heartbeat, ...) the mock does the same, each
+behaviour switchable in :class:`~.behaviour.Px4Behaviour`.
 
 Faults for tests are set on :attr:`MockAutopilot.faults` while it runs.
 """
@@ -26,6 +28,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import SimulationError
@@ -34,6 +37,7 @@ from companion.px4 import FlightMode
 from companion.sim.autopilot import offboard, telemetry
 from companion.sim.autopilot.behaviour import (
     Px4Behaviour,
+    Wobble,
     accept_target,
     ekf_origin,
     report_ned,
@@ -41,11 +45,12 @@ from companion.sim.autopilot.behaviour import (
 )
 from companion.sim.autopilot.commands import PREVENTS_ARMING, CommandHandler
 from companion.sim.autopilot.estimator import SimEstimator, T_map_body_of
+from companion.sim.autopilot.guided import FollowTarget
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
 from companion.sim.autopilot.timesync import PeerClock
-from companion.sim.autopilot.transport import Faults, UdpEndpoint
+from companion.sim.autopilot.transport import Faults, UdpEndpoint, sign_with
 from companion.sim.autopilot.vehicle import (
     KinematicMulticopter,
     Target,
@@ -64,6 +69,8 @@ OFFBOARD_LOSS_ACTIONS = {0: FlightMode.POSCTL, 1: FlightMode.ALTCTL, 2: FlightMo
 MANUAL_MODES = frozenset({FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.MANUAL})
 #: Mode names as PX4 words them in messages.
 MODE_NAMES = {FlightMode.POSCTL: "Position", FlightMode.ALTCTL: "Altitude", FlightMode.RTL: "Return"}
+#: A changed parameter is broadcast again this long after the set (PX4: at least 5 ms).
+PARAM_CHANGE_BROADCAST_S = 0.02
 #: MISSION_ITEM_REACHED is sent again this long after the first time.
 REACHED_RESEND_S = 0.5
 
@@ -152,13 +159,17 @@ class MockAutopilot:
                                       self._on_set_current)
         self.missions.reject_seq = lambda: self.faults.reject_mission_seq
         self.navigator = Navigator(self.vehicle, self.params, self.home, self.set_mode,
-                                   self._on_item_reached, self._on_current_changed)
+                                   self._on_item_reached, self._on_current_changed,
+                                   null_island_items=self.behaviour.null_island_items)
         self.navigator.enter(FlightMode.HOLD)
         self.commands = CommandHandler(self)
         # offboard
         self._last_setpoint_s = -math.inf
         self._offboard_target: Target | None = None
         self.setpoints: deque[offboard.ReceivedSetpoint] = deque(maxlen=2000)
+        #: The longest time without a setpoint while in OFFBOARD (s): between two setpoints, or
+        #: from the last one until OFFBOARD ended (a stream that never resumed counts too).
+        self.offboard_gap_max_s = 0.0
         self.vision: deque[VisionSample] = deque(maxlen=2000)
         #: The companion's clock, learned from TIMESYNC (see :mod:`.timesync`).
         self.peer_clock = PeerClock()
@@ -178,7 +189,14 @@ class MockAutopilot:
         self._streams: dict[str, list[float]] = {
             n: [1.0 / r if r > 0 else 0.0, 0.0] for n, r in rates.items()}
         self._default_rates = dict(rates)
+        #: Changed parameters to broadcast: (due on the mock clock, name).
+        self._params_changed: deque[tuple[float, str]] = deque()
         self._battery_pct = 100.0
+        self._wobble = Wobble(self.behaviour.wobble_m, seed)
+        #: Received offboard targets waiting out ``tracking_delay_s``: (apply at s, target).
+        self._delayed_targets: deque[tuple[float, Target]] = deque()
+        #: Injected failures (MAV_CMD_INJECT_FAILURE): (FAILURE_UNIT, instance) -> FAILURE_TYPE.
+        self.failures: dict[tuple[int, int], int] = {}
         #: PX4's pre-flight checks pass (EKF and GPS converged): arming allowed, home valid.
         self.ready = self.behaviour.ready_after_s <= 0.0
 
@@ -220,6 +238,12 @@ class MockAutopilot:
     def local_port(self) -> int:
         """The bound UDP port (useful with ``local_port=0``)."""
         return self._link.local_port
+
+    def enable_signing(self, key: bytes, unsigned_from: tuple[tuple[str, int], ...] = ()) -> None:
+        """MAVLink 2 signing with ``key``, as PX4 with ``MAV_SIGN_CFG`` set: everything sent is
+        signed, unsigned or badly signed input is dropped (except from ``unsigned_from``)."""
+        sign_with(self._mav, key)
+        self._link.require_signed(key, unsigned_from)
 
     def add_remote(self, host: str, port: int) -> None:
         """Also stream to ``host:port`` from now on."""
@@ -402,6 +426,7 @@ class MockAutopilot:
         self._tick_monotonic_s = self._t0 + now / self.behaviour.clock_rate
         # Physics steps at most 0.1 s after a stall; the state's stamp stays on our clock
         # (what TIMESYNC and the telemetry's time_boot_ms report).
+        self._track(now)
         self.vehicle.step(dt_s, clock_s=now)
         self.estimator.update(self.vehicle.state(), armed=self._armed)
         self.navigator.tick(self.vehicle.stamp_s)
@@ -413,6 +438,8 @@ class MockAutopilot:
             self._reached_resend = None
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
+        while self._params_changed and self._params_changed[0][0] <= now:
+            self._send_param(self._params_changed.popleft()[1])
         if not self.ready and now >= self.behaviour.ready_after_s:
             self._become_ready()
         self._stream(now)
@@ -424,9 +451,14 @@ class MockAutopilot:
         self.announce(mavlink.MAV_SEVERITY_INFO, "Ready for takeoff!")
         self._send_now("HOME_POSITION")
 
+    def _note_offboard_gap(self, now: float) -> None:
+        if self._mode is FlightMode.OFFBOARD and math.isfinite(self._last_setpoint_s):
+            self.offboard_gap_max_s = max(self.offboard_gap_max_s, now - self._last_setpoint_s)
+
     def _check_offboard(self, now: float) -> None:
         if self._mode is not FlightMode.OFFBOARD or not self._armed:
             return  # PX4's failsafes act only while armed
+        self._note_offboard_gap(now)
         if now - self._last_setpoint_s > self.params.get("COM_OF_LOSS_T"):
             act = int(self.params.get("COM_OBL_RC_ACT"))
             if self.behaviour.offboard_loss_px4_actions:
@@ -500,6 +532,8 @@ class MockAutopilot:
         health = telemetry.SENSORS_OK
         if self.faults.prearm_fail or not self.ready:
             health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        for unit, _instance in self.failures:
+            health &= ~telemetry.FAILURE_UNIT_SENSOR_BITS[unit]
         nav = self.navigator
         floor_z = self.behaviour.floor_z_ned_m
         return telemetry.Snapshot(
@@ -509,7 +543,8 @@ class MockAutopilot:
             armed=self._armed, landed_state=self.landed_state,
             sensors_health=health, mission_seq=nav.mission_seq, mission_total=nav.mission_count,
             mission_state=int(nav.mission_state), battery_remaining_pct=int(self._battery_pct),
-            system_id=self.system_id)
+            system_id=self.system_id,
+            gps_fix=not any(u == mavlink.FAILURE_UNIT_SENSOR_GPS for u, _i in self.failures))
 
     def _stream(self, now: float) -> None:
         snap: telemetry.Snapshot | None = None
@@ -606,6 +641,8 @@ class MockAutopilot:
             self._on_param_set(msg)
         elif mtype == "TIMESYNC":
             self._on_timesync(msg, now)
+        elif mtype == "FOLLOW_TARGET":
+            self._on_follow_target(msg, now)
 
     def _on_timesync(self, msg: Any, now: float) -> None:
         """Answer a request on our clock; learn from an answer to ours (PX4's ``MavlinkTimesync``)."""
@@ -613,6 +650,17 @@ class MockAutopilot:
             self.send(self._mav.timesync_encode(int(now * 1e9), msg.ts1))
         else:
             self.peer_clock.add_answer(msg.ts1, msg.tc1, now)
+
+    def _on_follow_target(self, msg: Any, now: float) -> None:
+        """A target to follow (lat/lon degE7, alt AMSL, NED velocity), in Follow Target mode."""
+        pos = self.home.to_ned(msg.lat * 1e-7, msg.lon * 1e-7, float(msg.alt))
+        vel = tuple(float(v) for v in msg.vel)
+        if not all(math.isfinite(v) for v in pos):
+            log.warning("FOLLOW_TARGET with a non-finite position ignored")
+            return
+        if self.navigator.follow_target is None:
+            self.navigator.follow_target = FollowTarget(pos, vel, now)  # type: ignore[arg-type]
+        self.navigator.follow_target.update(pos, vel, now)  # type: ignore[arg-type]
 
     def _send_param(self, name: str) -> None:
         spec = self.params.spec(name)
@@ -634,7 +682,10 @@ class MockAutopilot:
         else:
             value = decode_value(msg.param_value, spec.param_type)
             if math.isfinite(value):
-                self.params.set(name, value)
+                old = self.params.get(name)
+                if self.params.set(name, value) != old:
+                    # PX4 broadcasts a changed parameter again shortly after (send_untransmitted).
+                    self._params_changed.append((self.now_s() + PARAM_CHANGE_BROADCAST_S, name))
                 self.vehicle.limits = self._limits_from_params()
             else:
                 log.warning("PARAM_SET %s: non-finite value ignored", name)
@@ -666,12 +717,26 @@ class MockAutopilot:
         # The controller flies the estimate to the setpoint: where the airframe really goes.
         target = self.estimator.to_true(target)
         frame = int(getattr(msg, "coordinate_frame", 0))
+        self._note_offboard_gap(now)
         self.setpoints.append(offboard.ReceivedSetpoint(now, mtype, frame, int(msg.type_mask),
                                                         target))
         self._last_setpoint_s = now
+        if self.behaviour.tracking_delay_s > 0.0:
+            self._delayed_targets.append((now + self.behaviour.tracking_delay_s, target))
+        else:
+            self._apply_offboard_target(target)
+
+    def _apply_offboard_target(self, target: Target) -> None:
         self._offboard_target = target
         if self._mode is FlightMode.OFFBOARD:
             self.vehicle.set_target(target)
+
+    def _track(self, now: float) -> None:
+        """PX4's tracking: offboard setpoints take effect late, the vehicle wobbles in the air."""
+        while self._delayed_targets and self._delayed_targets[0][0] <= now:
+            self._apply_offboard_target(self._delayed_targets.popleft()[1])
+        flying = self.vehicle.motors_on and not self.vehicle.on_ground
+        self.vehicle.target_offset_ned_m = self._wobble.offset_ned_m(now) if flying else np.zeros(3)
 
     def _on_vision(self, msg: Any, now: float) -> None:
         if msg.get_type() == "ODOMETRY":
@@ -706,6 +771,11 @@ class MockAutopilot:
         if mission_type == mavlink.MAV_MISSION_TYPE_MISSION:
             self.navigator.set_mission(self.missions.items(mission_type))
             self.reached_items.clear()
+            first_m = self.navigator.first_waypoint_distance_m()
+            if first_m is not None and first_m > self.params.get("MIS_DIST_1WP") > 0:
+                # PX4's feasibility check warns and still accepts the mission.
+                self.announce(mavlink.MAV_SEVERITY_WARNING, f"First waypoint far away from home: "
+                              f"{first_m:.0f}m. Correct mission loaded?")
 
     def _on_set_current(self, seq: int) -> bool:
         ok = self.navigator.set_current(seq)

@@ -23,6 +23,8 @@ from companion.errors import SimulationError
 log = logging.getLogger(__name__)
 
 PEER_TIMEOUT_S = 10.0
+#: Seconds between 1970-01-01 and the MAVLink signing epoch (2015-01-01 00:00:00 UTC).
+_SIGNING_EPOCH_UNIX_S = 1420070400
 
 Address = tuple[str, int]
 
@@ -47,6 +49,17 @@ class Faults:
     reject_mission_seq: int | None = None
     #: Pre-arm checks fail (SYS_STATUS health bit cleared, arming denied).
     prearm_fail: bool = False
+
+
+def sign_with(mav: mavlink.MAVLink, key: bytes, link_id: int = 0) -> None:
+    """Sign every packet ``mav`` encodes with ``key``, and accept only signed packets when
+    it parses (MAVLink 2 signing, 32-byte key)."""
+    if len(key) != 32:
+        raise SimulationError(f"MAVLink signing key must be 32 bytes (got {len(key)})")
+    mav.signing.secret_key = key
+    mav.signing.link_id = link_id
+    mav.signing.timestamp = int((time.time() - _SIGNING_EPOCH_UNIX_S) * 100_000)
+    mav.signing.sign_outgoing = True
 
 
 class _Protocol(asyncio.DatagramProtocol):
@@ -77,6 +90,29 @@ class UdpEndpoint:
         self._rng = random.Random(seed)
         self._transport: asyncio.DatagramTransport | None = None
         self.bad_packets = 0
+        #: With signing required (:meth:`require_signed`): the one parser that checks signatures.
+        self._signed_parser: mavlink.MAVLink | None = None
+        self._unsigned_from: set[Address] = set()
+        self.unsigned_rejected = 0
+
+    def require_signed(self, key: bytes, unsigned_from: tuple[Address, ...] = ()) -> None:
+        """Accept only packets signed with ``key`` (PX4 with ``MAV_SIGN_CFG``), except from
+        the ``unsigned_from`` addresses (PX4 exempts its USB link the same way). One parser
+        keeps the signature timestamps, so a replayed packet is refused too."""
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        sign_with(parser, key)
+        self._signed_parser = parser
+        self._unsigned_from = set(unsigned_from)
+
+    def _parser_for(self, addr: Address) -> mavlink.MAVLink:
+        if self._signed_parser is None or addr in self._unsigned_from:
+            parser = mavlink.MAVLink(None)
+            parser.robust_parsing = True
+            return parser
+        p = self._signed_parser
+        p.buf, p.buf_index, p.expected_length = bytearray(), 0, mavlink.HEADER_LEN_V1 + 2
+        return p
 
     async def open(self) -> None:
         loop = asyncio.get_running_loop()
@@ -157,8 +193,7 @@ class UdpEndpoint:
     def _on_datagram(self, data: bytes, addr: Address) -> None:
         if self.faults.drop_link or self.faults.drop_incoming:
             return
-        parser = mavlink.MAVLink(None)
-        parser.robust_parsing = True
+        parser = self._parser_for(addr)
         try:
             msgs = parser.parse_buffer(data) or []
         except Exception as exc:  # pymavlink raises plain MAVError/struct errors on junk
@@ -168,6 +203,8 @@ class UdpEndpoint:
         for msg in msgs:
             if msg.get_type() == "BAD_DATA":
                 self.bad_packets += 1
+                if "signature" in str(getattr(msg, "reason", "")).lower():
+                    self.unsigned_rejected += 1
                 continue
             self._learned[addr] = time.monotonic()
             try:
