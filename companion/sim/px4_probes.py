@@ -246,6 +246,8 @@ async def land_in_offboard(sitl: Px4Sitl, altitude_m: float = 1.0, timeout_s: fl
         tl.attach(link)
         await tl.wait_for(lambda t: t.ned_m is not None, 15.0, "a local position")
         async with MavsdkClient(sitl.gcs_url, connect_timeout_s=30.0) as client:
+            # Position mode (where PX4's offboard-loss failsafe lands) does not arm without RC.
+            await client.action.hold()
             await client.action.set_takeoff_altitude(altitude_m)
             # After a companion left, PX4 refuses to arm ("Connection to mission computer
             # lost") until our link's heartbeat has been seen for a moment.
