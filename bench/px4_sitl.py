@@ -22,8 +22,10 @@ each get a fresh SITL:
 Targets (>= 5 rooms): every waypoint reached, 0 collisions, setpoints >= 25 Hz and obstacle
 distance >= 8 Hz at PX4, every scenario passing. PX4 and the service load both cores: the
 machine's load average is printed with the figures. ``--quick`` flies 1 room and checks the
-scenarios that flight shows (engage, obstacle_distance); it takes about 1.5 minutes, not 1: a
-flight across the room and back is that long. The last line is one JSON object.
+scenarios that flight shows (engage, obstacle_distance); it takes 2-3 minutes, not 1 (PX4's
+start, the perception process's warm-up and a flight across the room and back; 150 s measured
+at load average 2-5). The full run took 630 s at load average 9-13. The last line is one JSON
+object.
 """
 
 from __future__ import annotations

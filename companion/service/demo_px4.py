@@ -169,7 +169,8 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
     s["mqtt"] = broker is not None
     s["start_map_xy_m"] = [round(v, 3) for v in start]
     s["camera_poses"] = world.poses_published
-    engaged_ok, engaged = engage_check(flight.timeline.events, cfg.planner.flight_altitude_m)
+    engaged_ok, engaged = engage_check(flight.timeline.events, cfg.planner.flight_altitude_m,
+                                       path=flight.timeline.path)
     s["engage"] = {"ok": engaged_ok, "detail": engaged}
     s["modes"] = [f"{e.mode} {'armed' if e.armed else 'disarmed'} {e.landed}" +
                   ("" if e.xyz_map_m is None else f" z={e.xyz_map_m[2]:.2f}") for e in flight.timeline.events]

@@ -69,19 +69,28 @@ PX4_EVENT_PATTERN = (r"WARN|ERROR|[Ff]ailsafe|[Aa]rm|[Dd]isarm|[Ll]and|[Tt]akeof
                      r"[Mm]ission|[Pp]osition mode|Hold|denied")
 
 
-def engage_check(events: list[FlightEvent], altitude_m: float, tolerance_m: float = 0.15) -> tuple[bool, str]:
+def engage_check(events: list[FlightEvent], altitude_m: float, tolerance_m: float = 0.15,
+                 path: list[tuple[float, float, float, float]] | None = None) -> tuple[bool, str]:
     """Whether the vehicle was first reported armed in OFFBOARD while in the air at no less
     than ``altitude_m - tolerance_m`` above the floor (False also when it never was). OFFBOARD
-    while disarmed (PX4 keeps the mode a landing left) is not an engagement."""
+    while disarmed (PX4 keeps the mode a landing left) is not an engagement. PX4 reports modes
+    in its 1 Hz heartbeat, so with the flight's ``path`` ((t_s, x, y, z) samples) the lowest
+    height in the :data:`HEARTBEAT_LAG_S` before that report counts: the engagement happened
+    somewhere in there."""
     first = next((e for e in events if e.mode == "OFFBOARD" and e.armed), None)
     if first is None:
         return False, "never armed in OFFBOARD"
     z = None if first.xyz_map_m is None else first.xyz_map_m[2]
+    window = [p[3] for p in path or () if first.t_s - HEARTBEAT_LAG_S <= p[0] <= first.t_s]
+    if z is not None and window:
+        z = min(z, *window)
     where = "unknown height" if z is None else f"{z:.2f} m above the floor"
+    if window:
+        where = f"lowest {where} in the {HEARTBEAT_LAG_S:.1f} s before the report"
     if first.height_above_home_m is not None:
-        where += f" ({first.height_above_home_m:.2f} m above home)"
+        where += f" ({first.height_above_home_m:.2f} m above home at the report)"
     ok = first.landed == "IN_AIR" and first.armed and z is not None and z >= altitude_m - tolerance_m
-    return ok, (f"first OFFBOARD {'armed' if first.armed else 'disarmed'}, {first.landed}, at {where} "
+    return ok, (f"first OFFBOARD {'armed' if first.armed else 'disarmed'}, {first.landed}, {where} "
                 f"(take-off height {altitude_m:.2f} m)")
 
 

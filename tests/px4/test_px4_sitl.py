@@ -105,7 +105,8 @@ def test_service_takes_off_again_after_landing_in_offboard(rearm: tuple[Any, Any
 def test_service_engages_offboard_only_airborne_at_takeoff_height(rearm: tuple[Any, Any]) -> None:
     _, flight = rearm
     assert flight is not None, rearm[0].detail
-    ok, detail = engage_check(flight.timeline.events, _service_cfg().planner.flight_altitude_m)
+    ok, detail = engage_check(flight.timeline.events, _service_cfg().planner.flight_altitude_m,
+                              path=flight.timeline.path)
     assert ok, detail
 
 

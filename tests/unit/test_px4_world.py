@@ -100,3 +100,17 @@ def test_unpacked_once_per_tarball_hash(tmp_path: Path) -> None:
     assert unpack(a, tmp_path / "cache") == first and (first / "marker").exists()  # not unpacked again
     b = _tarball(tmp_path / "b.tar.gz", b"#!/bin/sh\necho other\n")
     assert unpack(b, tmp_path / "cache") != first
+
+
+def test_engage_judged_over_the_heartbeat_lag() -> None:
+    from companion.sim.px4_probes import HEARTBEAT_LAG_S, engage_check
+    from companion.sim.px4_world import FlightEvent
+
+    offboard = FlightEvent(10.0, "OFFBOARD", True, "IN_AIR", (0.0, 0.0, 0.61))
+    climbing = [(10.0 - HEARTBEAT_LAG_S + 0.1, 0.0, 0.0, 0.02), (10.0, 0.0, 0.0, 0.61)]
+    hovering = [(10.0 - HEARTBEAT_LAG_S + 0.1, 0.0, 0.0, 0.58), (10.0, 0.0, 0.0, 0.61)]
+    assert engage_check([offboard], 0.6)[0]  # the report alone looks fine
+    assert not engage_check([offboard], 0.6, path=climbing)[0]  # engaged near the floor, reported late
+    assert engage_check([offboard], 0.6, path=hovering)[0]
+    left_over = FlightEvent(1.0, "OFFBOARD", False, "ON_GROUND", (0.0, 0.0, 0.0))
+    assert engage_check([left_over, offboard], 0.6, path=hovering)[0]  # disarmed OFFBOARD is no engagement
