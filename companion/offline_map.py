@@ -199,7 +199,7 @@ def build_offline_map(
         raise ConfigError("detector.kind 'oracle' needs the simulator; for a recording give "
                           "--detections FILE or configure detector.kind: onnx")
     else:
-        detector = detector_from_config(cfg.detector, class_names)
+        detector = detector_from_config(cfg.detector, class_names, real_camera=True)
 
     T_map_world = (estimate_map_alignment(source, depth_range, opts.floor_sample_frames)
                    if opts.align_floor else np.eye(4))

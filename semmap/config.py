@@ -144,9 +144,11 @@ class DetectorConfig(StageConfig):
     #: ``onnx`` (default): the model at ``model_path``. ``oracle``: boxes from the simulated
     #: world's ground truth (the simulator only; unit tests and reference runs).
     kind: Literal["onnx", "oracle"] = "onnx"
-    #: Path of the .onnx file; ``builtin:furniture`` (default) names the model shipped in the
-    #: package (six furniture classes; see its model card). Bring your own for your drone.
-    model_path: str | None = "builtin:furniture"
+    #: Path of the .onnx file, or a model shipped in the package: ``builtin:coco`` (COCO-trained
+    #: YOLOX-nano, for real cameras) or ``builtin:furniture`` (trained on our simulated rooms).
+    #: ``auto`` (default): ``builtin:coco`` on a real camera (``camera.source`` realsense or
+    #: recorded, ``companion map``), ``builtin:furniture`` in the simulator.
+    model_path: str | None = "auto"
     head: Literal["auto", "yolov8", "yolox"] = "auto"
     input_size_px: int = Field(default=320, ge=32, le=2048)
     #: Model class names in output order; None reads them from the model's metadata.

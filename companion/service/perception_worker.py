@@ -123,7 +123,8 @@ class PerceptionPipeline:
                     object_classes: Mapping[int, str] | None = None) -> PerceptionPipeline:
         """The configured detector (``builtin:`` models from the package) and tracker."""
         detector = detector_from_config(cfg.detector, [c.name for c in cfg.classes],
-                                        object_classes=object_classes, seed=cfg.sim.seed)
+                                        object_classes=object_classes, seed=cfg.sim.seed,
+                                        real_camera=cfg.camera.source != "sim")
         return cls(cfg, smap, detector)
 
     def process(self, frame: Frame) -> dict[str, float]:

@@ -1,0 +1,97 @@
+"""The detector models shipped in the package, named ``builtin:NAME`` in ``detector.model_path``.
+
+Two ship (see their model cards in ``semmap/models/``):
+
+* ``builtin:furniture``: a YOLOv8n trained on our simulated rooms, the six classes of the
+  reference design. The simulator's default.
+* ``builtin:coco``: a COCO-trained YOLOX-nano (Megvii, Apache-2.0). The default for a real
+  camera: it was trained on real photographs, names chairs, sofas and tables, and its one
+  ``diningtable`` class is told apart into desk, coffee table or conference table by the
+  object map's geometric class prior (:mod:`semmap.class_prior`).
+
+``detector.model_path: auto`` (the default) picks one by camera: :func:`resolve_model_path`.
+
+A shipped model may carry two side files beside ``NAME_*.onnx``: ``<stem>.classes.txt`` (its
+class names, one per line, for a model whose ONNX file has no ``names`` metadata) and
+``<stem>.classmap.json`` (``{"class_map": {model class: our class}}``, used when the config's
+``detector.class_map`` is empty). The config overrides both.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from semmap.errors import PerceptionError
+
+BUILTIN_PREFIX = "builtin:"
+#: The models shipped in the package.
+BUILTIN_MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+#: ``detector.model_path`` value that picks the shipped model for the camera.
+AUTO_MODEL = "auto"
+#: What ``auto`` means on a real camera (a RealSense, a recording) and in the simulator.
+REAL_CAMERA_MODEL = "builtin:coco"
+SIMULATOR_MODEL = "builtin:furniture"
+
+
+def resolve_model_path(model_path: str | None, real_camera: bool) -> str | None:
+    """``model_path`` with ``auto`` replaced by the shipped model for the camera: the COCO
+    model for real images, the furniture model (trained on our renders) for the simulator."""
+    if model_path != AUTO_MODEL:
+        return model_path
+    return REAL_CAMERA_MODEL if real_camera else SIMULATOR_MODEL
+
+
+def builtin_model_file(folder: Path, name: str) -> Path:
+    """The file ``builtin:NAME`` names in ``folder``: ``NAME.onnx``, else the only
+    ``NAME_*.onnx`` (a shipped model's file name also states its architecture and input size,
+    e.g. ``furniture_yolov8n_320.onnx``). A missing file is reported when it is loaded."""
+    exact = folder / f"{name}.onnx"
+    variants = sorted(folder.glob(f"{name}_*.onnx"))
+    return exact if exact.exists() or len(variants) != 1 else variants[0]
+
+
+@dataclass(frozen=True)
+class BuiltinDefaults:
+    """What a shipped model's side files say: its class names (None: read the ONNX metadata)
+    and its class map onto our classes (empty: names that already are ours)."""
+
+    class_names: list[str] | None = None
+    class_map: dict[str, str] = field(default_factory=dict)
+
+
+def builtin_defaults(model_file: Path) -> BuiltinDefaults:
+    """The side files of ``model_file`` (see the module docstring); missing ones give the
+    defaults. Raises :class:`PerceptionError` naming a side file that cannot be read."""
+    names_file = model_file.with_suffix(".classes.txt")
+    map_file = model_file.with_suffix(".classmap.json")
+    names = None
+    try:
+        if names_file.is_file():
+            names = [ln.strip() for ln in names_file.read_text(encoding="utf-8").splitlines() if ln.strip()]
+        class_map: dict[str, str] = {}
+        if map_file.is_file():
+            doc = json.loads(map_file.read_text(encoding="utf-8"))
+            raw = doc.get("class_map") if isinstance(doc, dict) else None
+            if not isinstance(raw, dict):
+                raise PerceptionError(f"{map_file}: expected {{\"class_map\": {{model class: our class}}}}")
+            class_map = {str(k): str(v) for k, v in raw.items()}
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise PerceptionError(f"shipped model side file beside {model_file.name}: {exc}") from exc
+    return BuiltinDefaults(names, class_map)
+
+
+def default_class_map(defaults: BuiltinDefaults, semantic_classes: Sequence[str]) -> dict[str, str]:
+    """The shipped class map restricted to the configured classes: a deployment that drops a
+    class (no sofas here) keeps the rest of the map instead of failing on it."""
+    wanted = set(semantic_classes)
+    return {k: v for k, v in defaults.class_map.items() if v in wanted}
+
+
+def effective_class_map(
+    configured: Mapping[str, str], defaults: BuiltinDefaults, semantic_classes: Sequence[str],
+) -> dict[str, str]:
+    """The config's class map if it has one, else the shipped model's."""
+    return dict(configured) if configured else default_class_map(defaults, semantic_classes)
