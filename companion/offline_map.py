@@ -193,8 +193,9 @@ def build_offline_map(
     detections: dict[str, list[Detection]] | None = None
     detector: Detector | None = None
     if opts.detections_path is not None:
+        # A detections file was already thresholded by whoever wrote it, unless the config says.
         detections = load_detections_file(Path(opts.detections_path), class_names, cfg.detector.class_map,
-                                          cfg.detector.score_threshold)
+                                          cfg.detector.score_threshold or 0.0)
     elif cfg.detector.kind == "oracle":
         raise ConfigError("detector.kind 'oracle' needs the simulator; for a recording give "
                           "--detections FILE or configure detector.kind: onnx")

@@ -156,10 +156,14 @@ class DetectorConfig(StageConfig):
     #: Model class name (or id as a string) -> our semantic class. Names not listed are ignored.
     #: Empty means identity for names that are our classes.
     class_map: dict[str, str] = Field(default_factory=dict)
-    score_threshold: float = Field(default=0.25, ge=0.0, le=1.0)
-    #: Per-class overrides of score_threshold, keyed by our class name.
+    #: The operating point. None: the shipped model's own (its ``.classmap.json`` side file;
+    #: for ``builtin:coco`` score 0.35, tables 0.2, NMS IoU 0.45, see its model card), and
+    #: score 0.25, NMS IoU 0.6 for any other model.
+    score_threshold: float | None = Field(default=None, ge=0.0, le=1.0)
+    #: Per-class overrides of score_threshold, keyed by our class name (empty: the shipped
+    #: model's, if any).
     class_score_thresholds: dict[str, float] = Field(default_factory=dict)
-    nms_iou: float = Field(default=0.6, gt=0.0, le=1.0)
+    nms_iou: float | None = Field(default=None, gt=0.0, le=1.0)
     max_detections: int = Field(default=100, gt=0)
     #: ONNX Runtime execution providers in order of preference; missing ones are skipped.
     providers: list[str] = Field(

@@ -23,6 +23,7 @@ import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from semmap.errors import PerceptionError
 
@@ -53,13 +54,22 @@ def builtin_model_file(folder: Path, name: str) -> Path:
     return exact if exact.exists() or len(variants) != 1 else variants[0]
 
 
+#: The operating point of a model that states none.
+DEFAULT_SCORE_THRESHOLD = 0.25
+DEFAULT_NMS_IOU = 0.6
+
+
 @dataclass(frozen=True)
 class BuiltinDefaults:
-    """What a shipped model's side files say: its class names (None: read the ONNX metadata)
-    and its class map onto our classes (empty: names that already are ours)."""
+    """What a shipped model's side files say: its class names (None: read the ONNX metadata),
+    its class map onto our classes (empty: names that already are ours) and its operating
+    point (score threshold, per-class thresholds keyed by our classes, NMS IoU)."""
 
     class_names: list[str] | None = None
     class_map: dict[str, str] = field(default_factory=dict)
+    score_threshold: float = DEFAULT_SCORE_THRESHOLD
+    class_score_thresholds: dict[str, float] = field(default_factory=dict)
+    nms_iou: float = DEFAULT_NMS_IOU
 
 
 def builtin_defaults(model_file: Path) -> BuiltinDefaults:
@@ -68,19 +78,32 @@ def builtin_defaults(model_file: Path) -> BuiltinDefaults:
     names_file = model_file.with_suffix(".classes.txt")
     map_file = model_file.with_suffix(".classmap.json")
     names = None
+    doc: dict[str, Any] = {}
     try:
         if names_file.is_file():
             names = [ln.strip() for ln in names_file.read_text(encoding="utf-8").splitlines() if ln.strip()]
-        class_map: dict[str, str] = {}
         if map_file.is_file():
             doc = json.loads(map_file.read_text(encoding="utf-8"))
-            raw = doc.get("class_map") if isinstance(doc, dict) else None
-            if not isinstance(raw, dict):
-                raise PerceptionError(f"{map_file}: expected {{\"class_map\": {{model class: our class}}}}")
-            class_map = {str(k): str(v) for k, v in raw.items()}
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise PerceptionError(f"shipped model side file beside {model_file.name}: {exc}") from exc
-    return BuiltinDefaults(names, class_map)
+    if not map_file.is_file():
+        return BuiltinDefaults(class_names=names)
+    class_map = doc.get("class_map") if isinstance(doc, dict) else None
+    op = doc.get("operating_point", {}) if isinstance(doc, dict) else None
+    if not isinstance(class_map, dict) or not isinstance(op, dict):
+        raise PerceptionError(f"{map_file}: expected {{\"class_map\": {{model class: our class}}, "
+                              f"\"operating_point\": {{...}}}}")
+    try:
+        return BuiltinDefaults(
+            class_names=names,
+            class_map={str(k): str(v) for k, v in class_map.items()},
+            score_threshold=float(op.get("score_threshold", DEFAULT_SCORE_THRESHOLD)),
+            class_score_thresholds={str(k): float(v) for k, v in dict(op.get("class_score_thresholds", {})).items()},
+            nms_iou=float(op.get("nms_iou", DEFAULT_NMS_IOU)),
+        )
+    except (TypeError, ValueError) as exc:
+        raise PerceptionError(f"{map_file}: operating_point needs numbers for score_threshold, "
+                              f"class_score_thresholds and nms_iou ({exc})") from exc
 
 
 def default_class_map(defaults: BuiltinDefaults, semantic_classes: Sequence[str]) -> dict[str, str]:
@@ -95,3 +118,18 @@ def effective_class_map(
 ) -> dict[str, str]:
     """The config's class map if it has one, else the shipped model's."""
     return dict(configured) if configured else default_class_map(defaults, semantic_classes)
+
+
+def effective_operating_point(
+    score_threshold: float | None, class_score_thresholds: Mapping[str, float], nms_iou: float | None,
+    defaults: BuiltinDefaults, semantic_classes: Sequence[str],
+) -> tuple[float, dict[str, float], float]:
+    """(score threshold, per-class thresholds, NMS IoU): what the config sets, else the
+    shipped model's (per-class thresholds only for configured classes)."""
+    if class_score_thresholds:
+        per_class = dict(class_score_thresholds)
+    else:
+        wanted = set(semantic_classes)
+        per_class = {k: v for k, v in defaults.class_score_thresholds.items() if k in wanted}
+    return (defaults.score_threshold if score_threshold is None else float(score_threshold), per_class,
+            defaults.nms_iou if nms_iou is None else float(nms_iou))

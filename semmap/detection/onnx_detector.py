@@ -28,6 +28,7 @@ from semmap.detection.builtin import (
     builtin_defaults,
     builtin_model_file,
     effective_class_map,
+    effective_operating_point,
 )
 from semmap.detection.classmap import ClassMap, parse_names_metadata
 from semmap.detection.decode import (
@@ -238,6 +239,8 @@ class OnnxDetector:
                 raise PerceptionError(f"detector.model_path {cfg.model_path!r}: no built-in model folder given")
             path = builtin_model_file(Path(builtin_dir), name)
             defaults = builtin_defaults(path)
+        score, per_class, nms_iou = effective_operating_point(
+            cfg.score_threshold, cfg.class_score_thresholds, cfg.nms_iou, defaults, semantic_classes)
         return cls(
             path,
             semantic_classes,
@@ -245,9 +248,9 @@ class OnnxDetector:
             input_size_px=cfg.input_size_px,
             model_class_names=cfg.model_class_names if cfg.model_class_names is not None else defaults.class_names,
             class_map=effective_class_map(cfg.class_map, defaults, semantic_classes),
-            score_threshold=cfg.score_threshold,
-            class_score_thresholds=cfg.class_score_thresholds,
-            nms_iou=cfg.nms_iou,
+            score_threshold=score,
+            class_score_thresholds=per_class,
+            nms_iou=nms_iou,
             max_detections=cfg.max_detections,
             providers=cfg.providers,
             intra_op_threads=cfg.intra_op_threads,
