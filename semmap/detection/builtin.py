@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from semmap.config import DetectorConfig
 from semmap.errors import PerceptionError
 
 BUILTIN_PREFIX = "builtin:"
@@ -54,6 +55,9 @@ def builtin_model_file(folder: Path, name: str) -> Path:
     return exact if exact.exists() or len(variants) != 1 else variants[0]
 
 
+#: What a model class maps to: one of our classes, or several it cannot tell apart.
+ClassTarget = str | list[str]
+
 #: The operating point of a model that states none.
 DEFAULT_SCORE_THRESHOLD = 0.25
 DEFAULT_NMS_IOU = 0.6
@@ -66,7 +70,7 @@ class BuiltinDefaults:
     point (score threshold, per-class thresholds keyed by our classes, NMS IoU)."""
 
     class_names: list[str] | None = None
-    class_map: dict[str, str] = field(default_factory=dict)
+    class_map: dict[str, ClassTarget] = field(default_factory=dict)
     score_threshold: float = DEFAULT_SCORE_THRESHOLD
     class_score_thresholds: dict[str, float] = field(default_factory=dict)
     nms_iou: float = DEFAULT_NMS_IOU
@@ -96,7 +100,7 @@ def builtin_defaults(model_file: Path) -> BuiltinDefaults:
     try:
         return BuiltinDefaults(
             class_names=names,
-            class_map={str(k): str(v) for k, v in class_map.items()},
+            class_map={str(k): v if isinstance(v, str) else [str(t) for t in v] for k, v in class_map.items()},
             score_threshold=float(op.get("score_threshold", DEFAULT_SCORE_THRESHOLD)),
             class_score_thresholds={str(k): float(v) for k, v in dict(op.get("class_score_thresholds", {})).items()},
             nms_iou=float(op.get("nms_iou", DEFAULT_NMS_IOU)),
@@ -106,18 +110,44 @@ def builtin_defaults(model_file: Path) -> BuiltinDefaults:
                               f"class_score_thresholds and nms_iou ({exc})") from exc
 
 
-def default_class_map(defaults: BuiltinDefaults, semantic_classes: Sequence[str]) -> dict[str, str]:
+def default_class_map(defaults: BuiltinDefaults, semantic_classes: Sequence[str]) -> dict[str, ClassTarget]:
     """The shipped class map restricted to the configured classes: a deployment that drops a
     class (no sofas here) keeps the rest of the map instead of failing on it."""
     wanted = set(semantic_classes)
-    return {k: v for k, v in defaults.class_map.items() if v in wanted}
+    out: dict[str, ClassTarget] = {}
+    for k, v in defaults.class_map.items():
+        kept = [t for t in ([v] if isinstance(v, str) else v) if t in wanted]
+        if kept:
+            out[k] = kept[0] if isinstance(v, str) or len(kept) == 1 else kept
+    return out
 
 
 def effective_class_map(
-    configured: Mapping[str, str], defaults: BuiltinDefaults, semantic_classes: Sequence[str],
-) -> dict[str, str]:
+    configured: Mapping[str, ClassTarget], defaults: BuiltinDefaults, semantic_classes: Sequence[str],
+) -> dict[str, ClassTarget]:
     """The config's class map if it has one, else the shipped model's."""
     return dict(configured) if configured else default_class_map(defaults, semantic_classes)
+
+
+def vote_groups(class_map: Mapping[str, ClassTarget]) -> dict[str, tuple[str, ...]]:
+    """Reported class -> the classes a detection of it votes for, for the class map's list
+    targets (a model class that stands for several of ours; the first is reported)."""
+    return {v[0]: tuple(v) for v in class_map.values() if not isinstance(v, str) and len(v) > 1}
+
+
+def detector_vote_groups(
+    cfg: DetectorConfig, semantic_classes: Sequence[str], real_camera: bool,
+    builtin_dir: Path = BUILTIN_MODELS_DIR,
+) -> dict[str, tuple[str, ...]]:
+    """The vote groups of the detector ``cfg`` builds (see :func:`vote_groups`), without
+    loading the model: the object map needs them to weigh that detector's class votes."""
+    if cfg.kind != "onnx":
+        return {}
+    model_path = resolve_model_path(cfg.model_path, real_camera)
+    defaults = BuiltinDefaults()
+    if model_path is not None and model_path.startswith(BUILTIN_PREFIX):
+        defaults = builtin_defaults(builtin_model_file(builtin_dir, model_path[len(BUILTIN_PREFIX):]))
+    return vote_groups(effective_class_map(cfg.class_map, defaults, semantic_classes))
 
 
 def effective_operating_point(

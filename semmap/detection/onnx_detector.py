@@ -106,7 +106,7 @@ class OnnxDetector:
         head: str = "auto",
         input_size_px: int = 320,
         model_class_names: Sequence[str] | None = None,
-        class_map: Mapping[str, str] | None = None,
+        class_map: Mapping[str, str | list[str]] | None = None,
         score_threshold: float = 0.25,
         class_score_thresholds: Mapping[str, float] | None = None,
         nms_iou: float = 0.6,
