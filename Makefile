@@ -1,4 +1,6 @@
 # The two commands a newcomer needs:  make demo  and  make test.
+# make check is the everyday fast lane: lint, types and the unit tests (the full suite,
+# closed-loop flights included, is make test, which CI runs).
 # Each creates .venv if missing, installs the project with the extras it needs (only when
 # pyproject.toml changed), installs the Debian packages it needs when run as root (otherwise
 # says which), and then runs.
@@ -20,6 +22,7 @@ test: $(VENV)/.stamp-dev deps-debian
 check: $(VENV)/.stamp-dev
 	$(VENV)/bin/ruff check semmap planner companion tests bench
 	$(VENV)/bin/mypy
+	$(PY) -m pytest tests/unit -m "not slow" -q
 
 $(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)

@@ -55,6 +55,7 @@ from companion.service.perception_worker import PerceptionPipeline, flight_band,
 from companion.service.sim_world import SimPlacement
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.autopilot import telemetry as ap_telemetry
+from companion.sim.autopilot.behaviour import Px4Behaviour
 from companion.sim.render import RoomRenderer
 from planner.planner import Planner
 from planner.trajectory import Trajectory, TrajectoryLimits, time_parametrize
@@ -76,11 +77,15 @@ COMPANION_SYSID, COMPANION_COMPID = 1, 191
 
 class LockstepAutopilot(MockAutopilot):
     """The mock PX4 on a simulated clock: never opens its socket; :meth:`advance` ticks the
-    physics, :meth:`receive` feeds it MAVLink bytes (parsed as the UDP endpoint would)."""
+    physics, :meth:`receive` feeds it MAVLink bytes (parsed as the UDP endpoint would).
+
+    It is the naive autopilot (:meth:`Px4Behaviour.naive`): the lock-step flight is a bare
+    companion (arm, take off, offboard in the floor frame) measuring the map and planner, not
+    a PX4 client; PX4 conformance is measured against the mock's defaults and PX4 SITL."""
 
     def __init__(self, start_yaw_ned_rad: float, seed: int) -> None:
         super().__init__(local_port=0, remote_ports=(), home=HOME, seed=seed, start_yaw_rad=start_yaw_ned_rad,
-                         params={"COM_DISARM_PRFLT": -1.0},
+                         params={"COM_DISARM_PRFLT": -1.0}, behaviour=Px4Behaviour.naive(),
                          stream_rates_hz={name: 0.0 for name in ap_telemetry.STREAMS})
         self._sim_t_s = 0.0
         self._parser = mavlink.MAVLink(None)

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 from companion.config import load_config
 from companion.errors import DataError, MissionError
+from companion.mission_validation import check_plan
 from companion.missions import MissionPlan, load_mission, save_mission
 
 if TYPE_CHECKING:
@@ -51,8 +52,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def _load(path: str) -> MissionPlan:
+    """The mission in ``path``, checked as upload checks it (check and upload agree)."""
     try:
-        return load_mission(path)
+        plan = load_mission(path)
+        if plan.home is not None:  # the positions upload will send are known: check them too
+            check_plan(plan.resolved(None))
+        return plan
     except MissionError as exc:
         raise DataError(str(exc)) from exc  # a bad file is bad input (exit code 2)
 

@@ -13,6 +13,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
+import re
 from pathlib import Path
 
 import cv2
@@ -37,12 +39,17 @@ from semmap.costmap import (
 
 log = logging.getLogger(__name__)
 
+#: A negative number, or an X,Y pair starting with one: a value, not an option.
+_NUMBER = r"-?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_NEGATIVE_XY = re.compile(rf"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?(?:,{_NUMBER})?$")
+
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("plan", help="plan a path on a saved map and draw it")
     p.add_argument("--map", required=True, metavar="DIR",
                    help="map folder (semantic_map.npz, or map.yaml + map.pgm [+ objects.json])")
-    p.add_argument("--start", required=True, type=_xy_arg, metavar="X,Y", help="start, map frame, metres")
+    p.add_argument("--start", required=True, type=_xy_arg, metavar="X,Y",
+                   help="start, map frame, metres (negative too: --start -3.9,1.3)")
     p.add_argument("--goal", required=True, type=_xy_arg, metavar="X,Y", help="goal, map frame, metres")
     p.add_argument("--out", default=None, metavar="PNG", help="picture of the map and the path")
     p.add_argument("--config", default=None, help="config file (default: embedded default)")
@@ -53,6 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--source", choices=["auto", "semantic", "ros"], default="auto",
                    help="which map file to plan on (default: semantic_map.npz if present)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    # argparse takes "-3.9,1.3" for an option (only "-3.9" looks like a number to it): let
+    # negative X,Y pairs be values, as the help shows them.
+    p._negative_number_matcher = _NEGATIVE_XY  # noqa: SLF001 - argparse has no public hook
     p.set_defaults(func=_run)
 
 
@@ -64,6 +74,22 @@ def _xy_arg(text: str) -> tuple[float, float]:
     if not (np.isfinite(x) and np.isfinite(y)):
         raise argparse.ArgumentTypeError(f"coordinates must be finite, got {text!r}")
     return x, y
+
+
+def _json_safe(value: object) -> object:
+    """``value`` with numpy scalars as Python numbers and NaN/infinity as None (JSON null):
+    ``NaN`` is not JSON, and a ground tool's parser rejects it."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value
 
 
 def costmap_from_ros_occupancy(occupancy: NDArray[np.int8], spec: object, band: VerticalBand) -> Costmap:
@@ -185,13 +211,13 @@ def _run(args: argparse.Namespace) -> int:
         if not cv2.imwrite(str(out), draw_plan(planner, costmap, result, args.start, args.goal)):
             raise DataError(f"{out}: cannot write the picture")
     if args.json:
-        print(json.dumps({
+        print(json.dumps(_json_safe({
             "status": result.status.value, "reason": result.reason,
             "path_xy_m": np.round(result.path_xy_m, 4).tolist(), "length_m": result.length_m,
             "cost": result.cost, "planning_time_s": result.planning_time_s,
             "first_solution_time_s": result.first_solution_time_s, "goal_xy_m": result.goal_xy_m,
             "snapped_goal": result.snapped_goal, "source": result.source,
-        }, default=float))
+        }), allow_nan=False))
     elif result.ok:
         print(f"path: {len(result.path_xy_m)} points, {result.length_m:.2f} m, cost {result.cost:.2f}, "
               f"first path after {result.first_solution_time_s * 1e3:.1f} ms, total "

@@ -19,6 +19,7 @@ import signal
 from typing import Any
 
 from companion.config import load_config
+from companion.config_checks import check_runtime
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 def _run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
+    check_runtime(cfg, args.config or "the embedded default config")
     asyncio.run(_serve(cfg, args.fly_mission, args.out))
     return 0
 

@@ -9,6 +9,7 @@ key path and what is allowed, e.g.::
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 from pathlib import Path
 from typing import Any, Literal
@@ -61,6 +62,14 @@ class LinkConfig(StageConfig):
     obstacle_distance_max_m: float = Field(default=8.0, gt=0.0, le=600.0)
     #: Seconds to wait for the vehicle to report OFFBOARD after requesting it.
     offboard_engage_timeout_s: float = Field(default=3.0, gt=0.0)
+    #: Tracking monitor: the vehicle farther than this from the setpoint we send, for longer
+    #: than ``tracking_timeout_s``, is held where it is and the path re-planned from there.
+    tracking_error_m: float = Field(default=1.0, gt=0.0)
+    tracking_timeout_s: float = Field(default=2.0, gt=0.0)
+    #: Arming waits up to this long for PX4's readiness (pre-arm checks, home, estimator:
+    #: 15-70 s after boot), then retries a refused arm ``arm_retries`` times.
+    ready_timeout_s: float = Field(default=120.0, gt=0.0)
+    arm_retries: int = Field(default=3, ge=0, le=20)
     #: Scheduler slice (ms) the event-loop thread asks Linux for, so the setpoint task wakes
     #: on time under CPU load (EEVDF, Linux >= 6.12; ignored before); 0 = leave it alone.
     scheduler_slice_ms: float = Field(default=0.5, ge=0.0, le=100.0)
@@ -93,6 +102,16 @@ class LinkConfig(StageConfig):
                 f"obstacle_distance_max_m ({self.obstacle_distance_max_m})"
             )
         return self
+
+
+def _is_loopback(host: str) -> bool:
+    """True for a host name or address that never leaves this machine."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 class MqttConfig(StageConfig):
@@ -138,6 +157,17 @@ class MqttConfig(StageConfig):
             raise ValueError(
                 f"reconnect_min_s ({self.reconnect_min_s}) must be <= reconnect_max_s "
                 f"({self.reconnect_max_s})"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _no_cleartext_password(self) -> "MqttConfig":
+        # A password sent without TLS can be read by anyone on the network path to the broker.
+        if self.password_file is not None and not self.use_tls and not _is_loopback(self.host):
+            raise ValueError(
+                f"password_file set for the remote broker {self.host!r} without TLS: the "
+                "password would cross the network in clear text (set tls: true or "
+                "tls_ca_file)"
             )
         return self
 
@@ -322,17 +352,55 @@ def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> CompanionC
         raise ConfigError(format_validation_error(exc, source)) from exc
 
 
-def load_config(path: str | Path | None) -> CompanionConfig:
-    """Read a YAML config file; None gives the embedded default. Raises :class:`ConfigError`."""
-    if path is None:
-        return CompanionConfig()
-    p = Path(path)
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A safe YAML loader that refuses a key given twice in one mapping (YAML's last-wins
+    would silently drop the first value)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: dict[Any, int] = {}
+        for key_node, _value in node.value:
+            key = self.construct_object(key_node, deep=deep)  # type: ignore[no-untyped-call]
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r} (first at line {seen[key] + 1})",
+                    key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
+def _read_config_text(p: Path, allow_empty: bool) -> str:
+    """The file's text; an empty file or one cut off mid-line is refused unless allowed,
+    since it would silently run the built-in defaults (the simulator)."""
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read config file: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        line = p.read_bytes()[: exc.start].count(b"\n") + 1
+        raise ConfigError(f"{p}: not UTF-8 text: byte 0x{exc.object[exc.start]:02x} at line "
+                          f"{line} (offset {exc.start})") from exc
+    if allow_empty:
+        return text
+    if not any(ln.strip() and not ln.lstrip().startswith("#") for ln in text.splitlines()):
+        raise ConfigError(f"{p}: the config file is empty: it would run the built-in defaults "
+                          "(the simulator); give the keys, or run without --config")
+    if not text.endswith("\n"):
+        raise ConfigError(f"{p}: the config file does not end with a newline: it looks "
+                          "truncated")
+    return text
+
+
+def load_config(path: str | Path | None, *, allow_empty: bool = False) -> CompanionConfig:
+    """Read a YAML config file; None gives the embedded default. Raises :class:`ConfigError`.
+
+    ``allow_empty``: accept an empty file (the defaults) or one without a final newline.
+    """
+    if path is None:
+        return CompanionConfig()
+    p = Path(path)
+    text = _read_config_text(p, allow_empty)
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

@@ -42,6 +42,7 @@ from companion.missions import (
     ItemMap,
     MissionItemInt,
     MissionPlan,
+    check_plan,
     command_name,
     items_to_plan,
     plan_to_items,
@@ -239,7 +240,7 @@ class MavsdkClient:
         autopilot rejected, or :class:`LinkError` if the link fails.
         """
         vehicle_home = await self.home() if plan.home is None else None
-        resolved = plan.resolved(vehicle_home)
+        resolved = check_plan(plan.resolved(vehicle_home))
         imap = plan_to_items(resolved)
         if not imap.items:
             raise MissionError(f"{plan.source}: the mission has no items")

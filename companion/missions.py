@@ -40,6 +40,16 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import MissionError
 from companion.geo import GeoOrigin
+from companion.mission_validation import (
+    HOME_ALT_RANGE_M,
+    LOCAL_RANGE_M,
+    REL_ALT_RANGE_M,
+    SPEED_MAX_M_S,
+    YAW_RANGE_DEG,
+    check_plan,
+    plan_home,
+    plan_item_params,
+)
 from semmap.frames import enu_to_ned, ned_to_enu
 
 Action = Literal["waypoint", "takeoff", "land", "rtl"]
@@ -167,9 +177,24 @@ def plan_to_items(plan: MissionPlan) -> ItemMap:
     """MAVLink mission items (frame GLOBAL_RELATIVE_ALT_INT) for a resolved (global) plan.
 
     A DO_CHANGE_SPEED item precedes each waypoint whose speed differs from the one before.
+    A take-off or land step without a position gets one, as QGroundControl gives it: take-off
+    the plan's home, land the position of the step before it (home when there is none). An
+    INT item cannot say "here" (PX4 flies latitude/longitude 0/0 literally), so a step that
+    cannot be given a position is an error, never encoded as 0/0.
     """
     out = ItemMap()
     speed: float | None = None
+    home_ll = (plan.home.lat_deg, plan.home.lon_deg) if plan.home is not None else None
+    last_ll = home_ll
+
+    def position_of(i: int, w: Waypoint, fallback: tuple[float, float] | None) -> tuple[float, float]:
+        if math.isfinite(w.lat_deg) and math.isfinite(w.lon_deg):
+            return w.lat_deg, w.lon_deg
+        if fallback is None:
+            raise MissionError(f"{plan.source}: waypoint {i} ({w.action}) has no position and the plan "
+                               "has no home to take one from: give 'home' in the file, a position "
+                               "for the step, or upload to a vehicle that reports its home")
+        return fallback
 
     def add(idx: int, frame: int, cmd: int, p1: float, p2: float, p3: float, p4: float,
             lat: float, lon: float, alt: float) -> None:
@@ -190,14 +215,19 @@ def plan_to_items(plan: MissionPlan) -> ItemMap:
         if w.action == "rtl":
             add(i, FRAME_MISSION, CMD_RTL, 0, 0, 0, 0, _NAN, _NAN, 0.0)
         elif w.action == "takeoff":
-            add(i, FRAME_GLOBAL_REL_INT, CMD_TAKEOFF, 0, 0, 0, yaw, w.lat_deg, w.lon_deg,
-                w.rel_alt_m)
+            lat, lon = position_of(i, w, home_ll if home_ll is not None else last_ll)
+            add(i, FRAME_GLOBAL_REL_INT, CMD_TAKEOFF, 0, 0, 0, yaw, lat, lon, w.rel_alt_m)
+            last_ll = (lat, lon)
         elif w.action == "land":
-            add(i, FRAME_GLOBAL_REL_INT, CMD_LAND, 0, 0, 0, yaw, w.lat_deg, w.lon_deg, 0.0)
+            lat, lon = position_of(i, w, last_ll)
+            add(i, FRAME_GLOBAL_REL_INT, CMD_LAND, 0, 0, 0, yaw, lat, lon, 0.0)
+            last_ll = (lat, lon)
         else:
+            lat, lon = position_of(i, w, None)
             accept = w.acceptance_radius_m if w.acceptance_radius_m is not None else 0.0
-            add(i, FRAME_GLOBAL_REL_INT, CMD_WAYPOINT, w.hold_s, accept, 0.0, yaw, w.lat_deg,
-                w.lon_deg, w.rel_alt_m)
+            add(i, FRAME_GLOBAL_REL_INT, CMD_WAYPOINT, w.hold_s, accept, 0.0, yaw, lat, lon,
+                w.rel_alt_m)
+            last_ll = (lat, lon)
     return out
 
 
@@ -261,14 +291,7 @@ def parse_plan_json(data: Any, source: str) -> MissionPlan:
     mission = data.get("mission")
     if not isinstance(mission, dict) or not isinstance(mission.get("items"), list):
         raise MissionError(f"{source}: mission.items: missing or not a list")
-    home = None
-    php = mission.get("plannedHomePosition")
-    if php is not None:
-        try:
-            home = GeoOrigin(float(php[0]), float(php[1]), float(php[2]))
-        except (TypeError, ValueError, IndexError) as exc:
-            raise MissionError(f"{source}: mission.plannedHomePosition: expected "
-                               f"[lat, lon, alt_amsl] ({exc})") from exc
+    home = plan_home(mission.get("plannedHomePosition"), source)
     items: list[MissionItemInt] = []
     for i, raw in enumerate(mission["items"]):
         where = f"{source}: mission.items[{i}]"
@@ -281,22 +304,18 @@ def parse_plan_json(data: Any, source: str) -> MissionPlan:
         try:
             cmd = int(raw["command"])
             frame = int(raw["frame"])
-            params = [(_NAN if p is None else float(p)) for p in raw["params"]]
+            params = plan_item_params(raw["params"], cmd, frame, home, where)
         except (KeyError, TypeError, ValueError) as exc:
             raise MissionError(f"{where}: needs integer 'command', 'frame' and 7 numeric "
                                f"'params' ({exc!r})") from exc
         if len(params) != 7:
             raise MissionError(f"{where}: params must have 7 entries (got {len(params)})")
         lat, lon = params[4], params[5]
-        if math.isfinite(lat) and not -90 <= lat <= 90:
-            raise MissionError(f"{where}: latitude {lat} out of range")
-        if math.isfinite(lon) and not -180 <= lon <= 180:
-            raise MissionError(f"{where}: longitude {lon} out of range")
         x = int(round(lat * 1e7)) if math.isfinite(lat) else 0
         y = int(round(lon * 1e7)) if math.isfinite(lon) else 0
         items.append(MissionItemInt(i, frame, cmd, 0, int(bool(raw.get("autoContinue", True))),
                                     params[0], params[1], params[2], params[3], x, y, params[6]))
-    return items_to_plan(items, home, source, label="mission.items[{i}]")
+    return check_plan(items_to_plan(items, home, source, label="mission.items[{i}]"))
 
 
 def plan_to_json(plan: MissionPlan) -> dict[str, Any]:
@@ -329,27 +348,28 @@ def plan_to_json(plan: MissionPlan) -> dict[str, Any]:
 # --- YAML waypoint list -----------------------------------------------------------------------
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # strict: `true` is not 1.0 and "1.5" is not a number; NaN and infinity are refused
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 class _YamlHome(_Strict):
     lat_deg: float = Field(ge=-90, le=90)
     lon_deg: float = Field(ge=-180, le=180)
-    alt_m: float
+    alt_m: float = Field(ge=HOME_ALT_RANGE_M[0], le=HOME_ALT_RANGE_M[1])
 
 
 class _YamlWaypoint(_Strict):
     action: Action = "waypoint"
-    x_m: float | None = None
-    y_m: float | None = None
-    z_m: float | None = None
+    x_m: float | None = Field(default=None, ge=-LOCAL_RANGE_M, le=LOCAL_RANGE_M)
+    y_m: float | None = Field(default=None, ge=-LOCAL_RANGE_M, le=LOCAL_RANGE_M)
+    z_m: float | None = Field(default=None, ge=REL_ALT_RANGE_M[0], le=REL_ALT_RANGE_M[1])
     lat_deg: float | None = Field(default=None, ge=-90, le=90)
     lon_deg: float | None = Field(default=None, ge=-180, le=180)
-    alt_m: float | None = None
-    speed_m_s: float | None = Field(default=None, gt=0)
+    alt_m: float | None = Field(default=None, ge=REL_ALT_RANGE_M[0], le=REL_ALT_RANGE_M[1])
+    speed_m_s: float | None = Field(default=None, gt=0, le=SPEED_MAX_M_S)
     hold_s: float = Field(default=0.0, ge=0)
     acceptance_radius_m: float | None = Field(default=None, gt=0)
-    yaw_deg: float | None = None
+    yaw_deg: float | None = Field(default=None, ge=YAW_RANGE_DEG[0], le=YAW_RANGE_DEG[1])
 
     @model_validator(mode="after")
     def _position(self) -> _YamlWaypoint:
@@ -377,7 +397,7 @@ class _YamlWaypoint(_Strict):
 
 class _YamlMission(_Strict):
     home: _YamlHome | None = None
-    speed_m_s: float | None = Field(default=None, gt=0)
+    speed_m_s: float | None = Field(default=None, gt=0, le=SPEED_MAX_M_S)
     waypoints: list[_YamlWaypoint] = Field(min_length=1)
 
 
@@ -413,7 +433,7 @@ def parse_yaml_mission(data: Any, source: str) -> MissionPlan:
             wps.append(Waypoint(lat_deg=w.lat_deg, lon_deg=w.lon_deg, rel_alt_m=alt, **common))
         else:
             wps.append(Waypoint(rel_alt_m=alt, **common))
-    return MissionPlan(tuple(wps), home, source)
+    return check_plan(MissionPlan(tuple(wps), home, source))
 
 
 def plan_to_yaml_doc(plan: MissionPlan) -> dict[str, Any]:

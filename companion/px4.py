@@ -32,6 +32,13 @@ class MainMode(enum.IntEnum):
     RATTITUDE = 8
 
 
+class PosctlSubMode(enum.IntEnum):
+    """PX4 ``PX4_CUSTOM_SUB_MODE_POSCTL_*`` (only meaningful with :attr:`MainMode.POSCTL`)."""
+
+    POSCTL = 0
+    ORBIT = 1
+
+
 class AutoSubMode(enum.IntEnum):
     """PX4 ``PX4_CUSTOM_SUB_MODE_AUTO_*`` (only meaningful with :attr:`MainMode.AUTO`)."""
 
@@ -55,6 +62,7 @@ class FlightMode(enum.Enum):
     MANUAL = (MainMode.MANUAL, 0)
     ALTCTL = (MainMode.ALTCTL, 0)
     POSCTL = (MainMode.POSCTL, 0)
+    ORBIT = (MainMode.POSCTL, PosctlSubMode.ORBIT)  # MAV_CMD_DO_ORBIT
     ACRO = (MainMode.ACRO, 0)
     OFFBOARD = (MainMode.OFFBOARD, 0)
     STABILIZED = (MainMode.STABILIZED, 0)
@@ -155,10 +163,10 @@ def split_custom_mode(custom_mode: int) -> tuple[int, int]:
 def mode_from_main_sub(main_mode: int, sub_mode: int) -> FlightMode | None:
     """The named mode for a ``(main, sub)`` pair, or None if PX4 has no such mode.
 
-    Non-AUTO main modes ignore the sub mode, as PX4 does.
+    Main modes other than AUTO and POSCTL ignore the sub mode, as PX4 does.
     """
-    if main_mode != MainMode.AUTO:
-        sub_mode = 0
+    if main_mode != MainMode.AUTO and (int(main_mode), int(sub_mode)) not in _BY_PAIR:
+        sub_mode = 0  # e.g. Position's "slow" sub mode is Position
     return _BY_PAIR.get((int(main_mode), int(sub_mode)))
 
 
@@ -193,7 +201,7 @@ def encode_heartbeat_base_mode(mode: FlightMode, armed: bool) -> int:
         base |= MAV_MODE_FLAG_STABILIZE_ENABLED
     if mode.is_auto:
         base |= MAV_MODE_FLAG_AUTO_ENABLED | MAV_MODE_FLAG_GUIDED_ENABLED
-    elif mode in (FlightMode.POSCTL, FlightMode.OFFBOARD):
+    elif mode in (FlightMode.POSCTL, FlightMode.ORBIT, FlightMode.OFFBOARD):
         base |= MAV_MODE_FLAG_GUIDED_ENABLED
     if mode in (FlightMode.MANUAL, FlightMode.ALTCTL, FlightMode.POSCTL, FlightMode.STABILIZED,
                 FlightMode.ACRO, FlightMode.RATTITUDE):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from semmap.config import StageConfig
 
@@ -68,3 +68,12 @@ class PlannerConfig(StageConfig):
     #: Geofence in the map frame: [x_min, y_min, x_max, y_max]; None = the map's extent.
     geofence_xy_m: tuple[float, float, float, float] | None = None
     max_altitude_m: float = Field(default=3.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _altitudes(self) -> "PlannerConfig":
+        if self.flight_altitude_m > self.max_altitude_m:
+            raise ValueError(
+                f"flight_altitude_m ({self.flight_altitude_m}) is above max_altitude_m "
+                f"({self.max_altitude_m}): every goal at the flight altitude would be refused"
+            )
+        return self

@@ -17,10 +17,30 @@ from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform, rotation_from_r
 from semmap.types import CameraIntrinsics
 
 
-class StageConfig(BaseModel):
-    """Base of every config model: frozen, unknown keys are an error."""
+def _is_number_type(annotation: object) -> bool:
+    """True for ``float``/``int`` annotations, optional ones included (``bool`` excluded)."""
+    if annotation in (float, int):
+        return True
+    args = getattr(annotation, "__args__", ())
+    return bool(args) and type(None) in args and all(a in (float, int, type(None)) for a in args)
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+
+class StageConfig(BaseModel):
+    """Base of every config model: frozen, unknown keys are an error, numbers are finite
+    and ``true``/``false`` are not numbers."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, data: object) -> object:
+        # pydantic reads YAML's `true` as 1.0 for a float field: a typo must not become a size.
+        if isinstance(data, dict):
+            for name, field in cls.model_fields.items():
+                value = data.get(name)
+                if isinstance(value, bool) and _is_number_type(field.annotation):
+                    raise ValueError(f"{name}: must be a number (got {str(value).lower()})")
+        return data
 
 
 HollowKind = Literal["full", "partial", "none"]
@@ -296,6 +316,11 @@ class GeometryConfig(StageConfig):
     height_quantile: float = Field(default=0.995, gt=0.5, le=1.0)
 
 
+#: The initial grid's cell limit (250 m x 250 m at 5 cm): past it a grid does not fit in a
+#: companion computer's memory with its layers.
+MAX_MAP_CELLS = 25_000_000
+
+
 class MapConfig(StageConfig):
     """Occupancy grid, object map and semantic layers."""
 
@@ -354,6 +379,20 @@ class MapConfig(StageConfig):
     visibility_tolerance_m: float = Field(default=0.3, gt=0.0)
     #: Decay length of the safety margin's cost beyond the class margin, metres.
     margin_decay_m: float = Field(default=0.3, gt=0.0)
+
+    @model_validator(mode="after")
+    def _size(self) -> "MapConfig":
+        if not all(math.isfinite(v) for v in self.origin_xy_m):
+            raise ValueError(f"origin_xy_m must be finite (got {list(self.origin_xy_m)})")
+        cells = math.ceil(self.width_m / self.resolution_m) * math.ceil(self.height_m / self.resolution_m)
+        if cells > MAX_MAP_CELLS:
+            raise ValueError(
+                f"width_m x height_m ({self.width_m:g} x {self.height_m:g} m) at resolution_m "
+                f"{self.resolution_m:g} is {cells:.3g} cells, more than the {MAX_MAP_CELLS:,} a "
+                "companion computer can hold: reduce map.width_m/map.height_m or coarsen "
+                "map.resolution_m"
+            )
+        return self
 
     @model_validator(mode="after")
     def _check(self) -> "MapConfig":

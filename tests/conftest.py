@@ -1,4 +1,4 @@
-"""Shared fixtures: the real data folder beside the repo, temporary output folders."""
+"""Shared fixtures: the real RGB-D frames shipped in ``tests/data/real``."""
 
 from __future__ import annotations
 
@@ -7,12 +7,10 @@ from pathlib import Path
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = (REPO_ROOT / ".." / "shared" / "data").resolve()
+REAL_DATA = REPO_ROOT / "tests" / "data" / "real"
 
 
 @pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """``../shared/data`` (read-only real RGB-D frames and the MOT benchmark)."""
-    if not SHARED_DATA.is_dir():
-        pytest.fail(f"real data folder not found at {SHARED_DATA}; CI clones ../shared beside the repo")
-    return SHARED_DATA
+def real_data() -> Path:
+    """``tests/data/real``: real RGB-D frames (read-only; see its README for origin and licence)."""
+    return REAL_DATA

@@ -42,6 +42,7 @@ import aiomqtt
 import numpy as np
 from aiomqtt.exceptions import MqttConnectError
 from numpy.typing import NDArray
+from paho.mqtt.subscribeoptions import SubscribeOptions
 from pydantic import BaseModel, ValidationError
 
 from companion.config import CompanionConfig, MqttConfig
@@ -337,8 +338,13 @@ class MqttBridge:
         """
         try:
             self._handle_message(topic, payload, retain)
-        except Exception:  # a bug here must not take the link down
+        except Exception as exc:  # a bug here must not take the link down
             self._log.exception("ground link: error handling a message on %s", topic)
+            kind = self.topics.command_kind(topic)
+            if kind is not None:
+                self.stats.commands_rejected += 1
+                self.publish_reply(kind, False, None,
+                                   f"{kind}: internal error ({type(exc).__name__}); not executed")
 
     def _handle_message(self, topic: str, payload: Any, retain: bool) -> None:
         kind = self.topics.command_kind(topic)
@@ -467,7 +473,9 @@ class MqttBridge:
             logger=self._log.getChild("paho"),
             identifier=self._client_id,
             will=will,
-            clean_session=True,
+            # MQTT 5: only its "retain as published" shows a live-delivered retained command.
+            protocol=aiomqtt.ProtocolVersion.V5,
+            clean_start=True,
             keepalive=self.cfg.keepalive_s,
             timeout=self.cfg.timeout_s,
             tls_context=self._tls,
@@ -527,7 +535,10 @@ class MqttBridge:
 
     async def _session(self, client: aiomqtt.Client) -> None:
         """One connected session: subscribe, announce, resend state, then pump both ways."""
-        granted = await client.subscribe(self.topics.command_filter, qos=1)
+        granted = await client.subscribe(
+            self.topics.command_filter,
+            options=SubscribeOptions(qos=1, retainAsPublished=True),
+        )
         if any(getattr(rc, "is_failure", False) or rc == 0x80 for rc in granted):
             # Some brokers refuse a subscription their ACL forbids; state still goes out.
             self._log.error("ground link: the broker refused the subscription to %s: "

@@ -33,6 +33,8 @@ from semmap.costmap import Costmap, ObjectFootprint
 SCHEMA_VERSION = 1
 #: Larger command payloads are refused before parsing.
 MAX_COMMAND_BYTES = 4096
+#: Commands are flat objects; deeper nesting is refused before parsing.
+MAX_JSON_DEPTH = 8
 #: Coordinates in outbound messages are rounded to this many decimals (1 mm) so that equal
 #: states compare equal and payloads stay small.
 _DECIMALS = 3
@@ -214,13 +216,69 @@ def _request_id_of(data: Mapping[str, Any]) -> str | None:
     return rid if isinstance(rid, str) and 0 < len(rid) <= 64 else None
 
 
+class PayloadError(ValueError):
+    """A command payload that is not one strict JSON document (the message says why)."""
+
+
+def _max_depth(text: str) -> int:
+    """How deeply ``[``/``{`` nest in a JSON text, brackets inside strings not counted."""
+    depth = deepest = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
+def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise PayloadError(f"duplicate key {key!r}")
+        out[key] = value
+    return out
+
+
+def decode_payload(payload: bytes | bytearray | str) -> Any:
+    """The JSON document in ``payload``: UTF-8, no duplicate keys, nested at most
+    ``MAX_JSON_DEPTH`` deep. Raises :class:`PayloadError` saying what is wrong."""
+    if isinstance(payload, (bytes, bytearray)):
+        try:
+            text = bytes(payload).decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise PayloadError(f"not valid UTF-8 (byte 0x{payload[exc.start]:02x} at offset "
+                               f"{exc.start})") from exc
+    else:
+        text = payload
+    if _max_depth(text) > MAX_JSON_DEPTH:
+        raise PayloadError(f"JSON nested more than {MAX_JSON_DEPTH} levels deep")
+    try:
+        return json.loads(text, object_pairs_hook=_no_duplicate_keys)
+    except json.JSONDecodeError as exc:
+        raise PayloadError(f"not valid JSON ({exc})") from exc
+    except RecursionError as exc:  # unreachable after the depth check; never let it escape
+        raise PayloadError("JSON nested too deeply") from exc
+
+
 def peek_request_id(payload: bytes | bytearray | str) -> str | None:
     """The ``request_id`` of a payload, if it is readable, without validating the rest."""
     if len(payload) > MAX_COMMAND_BYTES:
         return None
     try:
-        data = json.loads(payload)
-    except (ValueError, UnicodeDecodeError):
+        data = decode_payload(payload)
+    except PayloadError:
         return None
     return _request_id_of(data) if isinstance(data, dict) else None
 
@@ -237,9 +295,9 @@ def parse_command(kind: str, payload: bytes | bytearray | str) -> Command | Reje
     if len(payload) > MAX_COMMAND_BYTES:
         return Rejection(kind, f"{kind}: payload too large ({len(payload)} > {MAX_COMMAND_BYTES} bytes)")
     try:
-        data = json.loads(payload)
-    except (ValueError, UnicodeDecodeError) as exc:
-        return Rejection(kind, f"{kind}: not valid JSON ({exc})")
+        data = decode_payload(payload)
+    except PayloadError as exc:
+        return Rejection(kind, f"{kind}: {exc}")
     if not isinstance(data, dict):
         return Rejection(kind, f"{kind}: must be a JSON object (got {type(data).__name__})")
     request_id = _request_id_of(data)

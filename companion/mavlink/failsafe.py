@@ -13,6 +13,10 @@ clock. The rules:
   the vehicle's current position (latched when the hold starts). Once both are fresh again
   the planner's setpoints are used again, but only one produced after the hold began: a
   setpoint computed from the stale inputs is never flown.
+* **The vehicle does not follow** (farther than ``tracking_error_m`` from the setpoint we
+  send for longer than ``tracking_timeout_s``: it is still on the ground, blocked, or another
+  controller flies it) -> ``HOLDING`` the same way, with :attr:`OffboardFailsafe.tracking_fault`
+  set, so the planner re-plans from where the vehicle is instead of dragging it on.
 
 States in which setpoints stream: ``WARMUP`` (before and while OFFBOARD is requested),
 ``ACTIVE`` and ``HOLDING``.
@@ -79,9 +83,16 @@ class Transition:
 class OffboardFailsafe:
     """Chooses the setpoint to send each tick. See the module docstring for the rules."""
 
-    def __init__(self, heartbeat_timeout_s: float, position_timeout_s: float) -> None:
+    def __init__(self, heartbeat_timeout_s: float, position_timeout_s: float,
+                 tracking_error_m: float = math.inf, tracking_timeout_s: float = 2.0) -> None:
         self.heartbeat_timeout_s = heartbeat_timeout_s
         self.position_timeout_s = position_timeout_s
+        self.tracking_error_m = tracking_error_m
+        self.tracking_timeout_s = tracking_timeout_s
+        #: Set when a hold was started because the vehicle did not follow its setpoints;
+        #: cleared when the planner's setpoints are flown again.
+        self.tracking_fault = False
+        self._off_track_since_s: float | None = None
         self.state = OffboardState.IDLE
         self.reason = "not engaged"
         self.transitions: list[Transition] = []
@@ -127,6 +138,8 @@ class OffboardFailsafe:
     def release(self, now_s: float, reason: str) -> None:
         """Stop commanding on purpose (we handed the vehicle to another mode)."""
         self._hold = None
+        self.tracking_fault = False
+        self._off_track_since_s = None
         self._go(OffboardState.IDLE, now_s, reason)
 
     # --- the tick --------------------------------------------------------------------
@@ -154,18 +167,42 @@ class OffboardFailsafe:
                      level=logging.WARNING)
             return None
         fresh = pose_fresh and map_fresh
+        off_track = self._off_track_s(now_s, vehicle) if st is OffboardState.ACTIVE else None
         if st is OffboardState.ACTIVE and not fresh:
             what = " and ".join(n for n, ok in (("pose", pose_fresh), ("map", map_fresh)) if not ok)
             self._latch_hold(now_s, vehicle)
             self._go(OffboardState.HOLDING, now_s, f"stale {what}: holding position",
                      level=logging.WARNING)
+        elif off_track is not None and off_track >= self.tracking_timeout_s:
+            self._latch_hold(now_s, vehicle)
+            self.tracking_fault = True
+            self._go(OffboardState.HOLDING, now_s,
+                     f"vehicle not following its setpoints (over {self.tracking_error_m:.2f} m away "
+                     f"for {off_track:.1f} s): holding position", level=logging.WARNING)
         elif st is OffboardState.HOLDING and fresh and self._setpoint_s > self._hold_since_s:
             self._hold = None
+            self.tracking_fault = False
+            self._off_track_since_s = None
             self._go(OffboardState.ACTIVE, now_s, "pose and map fresh again: resuming")
         sp = self._choose()
         if sp is not None:
             self._last_sent = sp
         return sp
+
+    def _off_track_s(self, now_s: float, vehicle: VehicleState) -> float | None:
+        """How long the vehicle has been farther than ``tracking_error_m`` from the setpoint
+        last sent (None while it is near it, or nothing can be judged)."""
+        sp = self._last_sent
+        if (sp is None or vehicle.position_ned_m is None
+                or not vehicle.position_fresh(self.position_timeout_s)):
+            self._off_track_since_s = None
+            return None
+        if math.dist(sp.position_ned_m, vehicle.position_ned_m) <= self.tracking_error_m:
+            self._off_track_since_s = None
+            return None
+        if self._off_track_since_s is None:
+            self._off_track_since_s = now_s
+        return now_s - self._off_track_since_s
 
     def _choose(self) -> PositionSetpoint | None:
         if self.state is OffboardState.HOLDING:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -223,6 +224,8 @@ class OffboardController:
         heartbeat_timeout_s: float = 3.0,
         pose_timeout_s: float = 0.5,
         engage_timeout_s: float = 3.0,
+        tracking_error_m: float = math.inf,
+        tracking_timeout_s: float = 2.0,
         is_pose_fresh: Callable[[], bool] | None = None,
         is_map_fresh: Callable[[], bool] | None = None,
         clock: Clock = time.monotonic,
@@ -238,7 +241,7 @@ class OffboardController:
         self._clock = clock
         self._is_pose_fresh = is_pose_fresh or self._telemetry_pose_fresh
         self._is_map_fresh = is_map_fresh or _always_fresh
-        self.failsafe = OffboardFailsafe(heartbeat_timeout_s, pose_timeout_s)
+        self.failsafe = OffboardFailsafe(heartbeat_timeout_s, pose_timeout_s, tracking_error_m, tracking_timeout_s)
         sender = commands.sender
         self.streamer = SetpointStreamer(
             link, rate_hz, self._tick, sender.target_system, sender.target_component

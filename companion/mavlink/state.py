@@ -7,7 +7,9 @@ returns a :class:`VehicleState` with ages computed against the tracker's clock
 (``time.monotonic`` unless a test injects one).
 
 Frames: PX4 local NED (x north, y east, z down, metres), attitude as roll/pitch/yaw in
-radians with yaw measured from north, clockwise.
+radians with yaw measured from north, clockwise. The service's map frame (:class:`MapFrame`)
+is that frame in ENU with heights above home: PX4's local origin is where its estimator
+started, not the floor (z reads -0.86 m on the ground with GPS height, +1.1 m with baro).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import LinkError
 from companion.px4 import FlightMode, decode_heartbeat
+from semmap.frames import enu_to_ned, ned_to_enu
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +62,22 @@ class HomePosition:
 
 
 @dataclass(frozen=True)
+class MapFrame:
+    """The map frame: PX4's local frame in ENU (x east, y north) with z the height above
+    home, where the vehicle stood on the floor when PX4 set it. The map's heights (objects,
+    the flight band) are heights above the floor, so every local position goes through here."""
+
+    home_down_m: float
+
+    def from_ned(self, north_m: float, east_m: float, down_m: float) -> Vec3:
+        return ned_to_enu(north_m, east_m, down_m - self.home_down_m)
+
+    def to_ned(self, x_m: float, y_m: float, z_m: float) -> Vec3:
+        n, e, d = enu_to_ned(x_m, y_m, z_m)
+        return n, e, d + self.home_down_m
+
+
+@dataclass(frozen=True)
 class GlobalPosition:
     """GLOBAL_POSITION_INT: WGS84 position, AMSL and relative-to-home altitude."""
 
@@ -88,6 +107,16 @@ class VehicleState:
     home: HomePosition | None
     global_position: GlobalPosition | None
     autopilot_system_status: int | None  # MAV_STATE
+    #: PX4's pre-arm checks (SYS_STATUS ``MAV_SYS_STATUS_PREARM_CHECK``): None when the
+    #: autopilot does not report them.
+    prearm_ok: bool | None = None
+    #: A downward range sensor's distance to what is below (DISTANCE_SENSOR, PITCH_270), and
+    #: its age; None without one.
+    range_down_m: float | None = None
+    range_down_age_s: float | None = None
+    #: Home's local z (NED) as it was on the ground: PX4 moves home's z in flight (its height
+    #: estimate drifts), the floor does not. None before the first HOME_POSITION.
+    home_down_on_ground_m: float | None = None
 
     def heartbeat_fresh(self, timeout_s: float) -> bool:
         """True if the autopilot's heartbeat is younger than ``timeout_s``."""
@@ -106,6 +135,41 @@ class VehicleState:
     def in_air(self) -> bool:
         return self.landed_state in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
 
+    @property
+    def ready_to_arm(self) -> bool:
+        """PX4's "Ready for takeoff": pre-arm checks pass (where reported), home is set and
+        the estimator gives a local position."""
+        return self.prearm_ok is not False and self.home is not None and self.position_ned_m is not None
+
+    @property
+    def map_frame(self) -> MapFrame | None:
+        """The map frame, or None before the first HOME_POSITION (no height is known then)."""
+        return None if self.home_down_on_ground_m is None else MapFrame(self.home_down_on_ground_m)
+
+    @property
+    def position_map_m(self) -> Vec3 | None:
+        """The vehicle's position in the map frame (z above home), or None."""
+        frame = self.map_frame
+        if frame is None or self.position_ned_m is None:
+            return None
+        return frame.from_ned(*self.position_ned_m)
+
+    @property
+    def height_above_home_m(self) -> float | None:
+        pos = self.position_map_m
+        return None if pos is None else pos[2]
+
+    def clearance_below_m(self, max_age_s: float = 0.5) -> float | None:
+        """How high the vehicle is by every height it has: above home, and the downward
+        range sensor's reading where a fresh one exists (the lower of the two)."""
+        height = self.height_above_home_m
+        fresh_range = (self.range_down_m is not None and self.range_down_age_s is not None
+                       and self.range_down_age_s <= max_age_s)
+        if height is None or not fresh_range:
+            return height
+        assert self.range_down_m is not None
+        return min(height, self.range_down_m)
+
 
 class StateTimeoutError(LinkError):
     """The vehicle did not reach the awaited state in time; the message says which."""
@@ -114,7 +178,7 @@ class StateTimeoutError(LinkError):
 #: Everything the tracker reads.
 TRACKED_MESSAGES: frozenset[str] = frozenset({
     "HEARTBEAT", "LOCAL_POSITION_NED", "ATTITUDE", "EXTENDED_SYS_STATE", "SYS_STATUS",
-    "BATTERY_STATUS", "HOME_POSITION", "GLOBAL_POSITION_INT",
+    "BATTERY_STATUS", "HOME_POSITION", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR",
 })
 
 _UINT16_MAX = 0xFFFF
@@ -139,6 +203,9 @@ class VehicleStateTracker:
         self._armed = False
         self._mode: FlightMode | None = None
         self._system_status: int | None = None
+        self._prearm_ok: bool | None = None
+        self._range_down: float | None = None
+        self._range_s: float | None = None
         self._landed = LandedState.UNDEFINED
         self._pos: Vec3 | None = None
         self._vel: Vec3 | None = None
@@ -147,6 +214,7 @@ class VehicleStateTracker:
         self._battery_v: float | None = None
         self._battery_remaining: float | None = None
         self._home: HomePosition | None = None
+        self._home_down_on_ground: float | None = None
         self._global: GlobalPosition | None = None
         self._changed = asyncio.Event()
         self._unknown_mode_logged: set[int] = set()
@@ -196,8 +264,12 @@ class VehicleStateTracker:
 
     def _on_extended_sys_state(self, msg: mavlink.MAVLink_message) -> None:
         self._landed = LandedState.from_mavlink(msg.landed_state)
+        self._latch_home_down()
 
     def _on_sys_status(self, msg: mavlink.MAVLink_message) -> None:
+        bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        if msg.onboard_control_sensors_present & bit:
+            self._prearm_ok = bool(msg.onboard_control_sensors_health & bit)
         if msg.voltage_battery != _UINT16_MAX:
             self._battery_v = msg.voltage_battery / 1000.0
         if msg.battery_remaining >= 0:
@@ -213,6 +285,14 @@ class VehicleStateTracker:
         if msg.battery_remaining >= 0:
             self._battery_remaining = msg.battery_remaining / 100.0
 
+    def _on_distance_sensor(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.orientation != mavlink.MAV_SENSOR_ROTATION_PITCH_270:
+            return  # not looking down
+        d_cm = msg.current_distance
+        if msg.min_distance <= d_cm <= msg.max_distance:
+            self._range_down = d_cm / 100.0
+            self._range_s = self._clock()
+
     def _on_home(self, msg: mavlink.MAVLink_message) -> None:
         self._home = HomePosition(
             latitude_deg=msg.latitude * 1e-7,
@@ -220,6 +300,14 @@ class VehicleStateTracker:
             altitude_amsl_m=msg.altitude / 1000.0,
             position_ned_m=(float(msg.x), float(msg.y), float(msg.z)),
         )
+        self._latch_home_down()
+
+    def _latch_home_down(self) -> None:
+        """Take home's z for the map frame while the vehicle stands on the ground (or before
+        it has ever said where it is); in the air keep the value it took off with."""
+        in_air = self._landed in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
+        if self._home is not None and (not in_air or self._home_down_on_ground is None):
+            self._home_down_on_ground = self._home.position_ned_m[2]
 
     def _on_global_position(self, msg: mavlink.MAVLink_message) -> None:
         self._global = GlobalPosition(
@@ -246,8 +334,12 @@ class VehicleStateTracker:
             battery_v=self._battery_v,
             battery_remaining=self._battery_remaining,
             home=self._home,
+            home_down_on_ground_m=self._home_down_on_ground,
             global_position=self._global,
             autopilot_system_status=self._system_status,
+            prearm_ok=self._prearm_ok,
+            range_down_m=self._range_down,
+            range_down_age_s=None if self._range_s is None else now - self._range_s,
         )
 
     async def wait_for(
@@ -295,5 +387,6 @@ _HANDLERS: dict[str, Callable[[VehicleStateTracker, mavlink.MAVLink_message], No
     "SYS_STATUS": VehicleStateTracker._on_sys_status,
     "BATTERY_STATUS": VehicleStateTracker._on_battery_status,
     "HOME_POSITION": VehicleStateTracker._on_home,
+    "DISTANCE_SENSOR": VehicleStateTracker._on_distance_sensor,
     "GLOBAL_POSITION_INT": VehicleStateTracker._on_global_position,
 }

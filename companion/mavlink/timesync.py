@@ -1,4 +1,4 @@
-"""Answering the autopilot's TIMESYNC requests, so PX4 can map our timestamps onto its clock.
+"""TIMESYNC both ways: PX4 maps our timestamps onto its clock, we map its clock onto ours.
 
 PX4 sends TIMESYNC with ``tc1 = 0`` and ``ts1`` its time (ns); the other end answers with
 ``tc1`` its own time (ns) and ``ts1`` echoed. From the answers PX4 estimates the offset
@@ -7,14 +7,22 @@ between the clocks (``MavlinkTimesync``) and, once that has converged, converts 
 the instant the camera captured it. Without answers it stamps them on arrival (no delay
 compensation). Our timestamps are ``time.monotonic`` (the camera's frames and the vision
 stream use it), so the answer carries ``time.monotonic_ns()``.
+
+The other way, :class:`AutopilotClock` asks PX4 for its time (``tc1 = 0``, ``ts1`` ours) and
+fits our clock against its answers, offset and rate, so telemetry stamped with PX4's
+``time_boot_ms`` lands at the right local time even when PX4's clock runs at another rate
+(a lockstep simulation runs about 1 % slow; crystals differ by tens of ppm).
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
 
+import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import LinkError
@@ -47,3 +55,82 @@ class TimesyncResponder:
             log.debug("TIMESYNC answer not sent: %s", exc)
             return
         self.answered += 1
+
+
+class AutopilotClock:
+    """Our clock as a function of the autopilot's, from TIMESYNC round trips.
+
+    Every answer gives one sample: the autopilot's time ``tc1`` matched to the midpoint of
+    our request and its arrival. Samples whose round trip was slow are dropped (only those
+    within ``rtt_margin_s`` of the window's fastest are kept), and a straight line
+    ``local = a + b * remote`` is fitted to the rest of the last ``window_s`` seconds, so a
+    clock running at another rate is followed, not just offset. :meth:`to_local` is None
+    until ``min_samples`` samples span ``min_span_s``."""
+
+    def __init__(self, link: MavlinkLink, target_system: int = 1, *, period_s: float = 0.5,
+                 window_s: float = 60.0, rtt_margin_s: float = 0.004, min_samples: int = 5,
+                 min_span_s: float = 2.0, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        self.link = link
+        self.target_system = target_system
+        self.period_s = period_s
+        self.window_s = window_s
+        self.rtt_margin_s = rtt_margin_s
+        self.min_samples = min_samples
+        self.min_span_s = min_span_s
+        self.clock_ns = clock_ns
+        #: (remote s, local s, round trip s), oldest first.
+        self._samples: deque[tuple[float, float, float]] = deque()
+        self._fit: tuple[float, float, float] | None = None  # remote reference, local there, rate
+
+    def attach(self) -> Callable[[], None]:
+        """Listen for answers on the link; returns the function that stops listening."""
+        return self.link.add_listener(self.handle, ("TIMESYNC",))
+
+    async def run(self) -> None:
+        """Ask for the autopilot's time every ``period_s`` (a task for the link's lifetime)."""
+        while True:
+            try:
+                self.link.send(self.link.mav.timesync_encode(0, self.clock_ns()))
+            except LinkError as exc:
+                log.debug("TIMESYNC request not sent: %s", exc)
+            await asyncio.sleep(self.period_s)
+
+    def handle(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.get_srcSystem() != self.target_system or msg.tc1 == 0:
+            return  # another system's, or the autopilot's own request
+        self.add_sample(msg.tc1 * 1e-9, msg.ts1 * 1e-9, self.clock_ns() * 1e-9)
+
+    def add_sample(self, remote_s: float, sent_s: float, received_s: float) -> None:
+        """One round trip: our request left at ``sent_s``, the answer (autopilot time
+        ``remote_s``) arrived at ``received_s``."""
+        rtt = received_s - sent_s
+        if rtt < 0.0 or rtt > 1.0:
+            return  # an answer to a request of a previous run, or one from long ago
+        if self._samples and remote_s < self._samples[-1][0] - 1.0:
+            self._samples.clear()  # the autopilot rebooted
+        self._samples.append((remote_s, 0.5 * (sent_s + received_s), rtt))
+        while self._samples and self._samples[-1][0] - self._samples[0][0] > self.window_s:
+            self._samples.popleft()
+        self._refit()
+
+    def _refit(self) -> None:
+        arr = np.array(self._samples)
+        keep = arr[arr[:, 2] <= arr[:, 2].min() + self.rtt_margin_s]
+        if len(keep) < self.min_samples or keep[-1, 0] - keep[0, 0] < self.min_span_s:
+            self._fit = None
+            return
+        ref = float(keep[-1, 0])
+        rate, local_at_ref = np.polyfit(keep[:, 0] - ref, keep[:, 1], 1)
+        self._fit = (ref, float(local_at_ref), float(rate))
+
+    @property
+    def rate(self) -> float | None:
+        """Our seconds per autopilot second (1.0 for clocks at the same rate), or None."""
+        return None if self._fit is None else self._fit[2]
+
+    def to_local(self, remote_s: float) -> float | None:
+        """Our time of autopilot time ``remote_s``, or None before the fit holds."""
+        if self._fit is None:
+            return None
+        ref, local_at_ref, rate = self._fit
+        return local_at_ref + rate * (remote_s - ref)

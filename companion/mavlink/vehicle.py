@@ -38,7 +38,7 @@ from companion.mavlink.obstacle_distance import ObstacleDistanceFeed, ObstacleDi
 from companion.mavlink.offboard import OffboardController
 from companion.mavlink.sched import request_short_slice
 from companion.mavlink.state import VehicleState, VehicleStateTracker
-from companion.mavlink.timesync import TimesyncResponder
+from companion.mavlink.timesync import AutopilotClock, TimesyncResponder
 
 if TYPE_CHECKING:
     from companion.config import LinkConfig
@@ -82,11 +82,15 @@ class Vehicle:
             heartbeat_timeout_s=cfg.heartbeat_timeout_s,
             pose_timeout_s=cfg.pose_timeout_s,
             engage_timeout_s=cfg.offboard_engage_timeout_s,
+            tracking_error_m=cfg.tracking_error_m,
+            tracking_timeout_s=cfg.tracking_timeout_s,
             is_pose_fresh=is_pose_fresh,
             is_map_fresh=is_map_fresh,
         )
         #: Answers PX4's TIMESYNC requests (PX4 then fuses our vision at its capture time).
         self.timesync = TimesyncResponder(self.link, cfg.target_system)
+        #: The autopilot's clock on ours (stamps of its telemetry), from our TIMESYNC requests.
+        self.autopilot_clock = AutopilotClock(self.link, cfg.target_system)
         self.obstacle_feed: ObstacleDistanceFeed | None = None
         if obstacle_source is not None and cfg.obstacle_distance_rate_hz > 0:
             self.obstacle_feed = ObstacleDistanceFeed(
@@ -97,6 +101,7 @@ class Vehicle:
         self._stack: contextlib.AsyncExitStack | None = None
         self._tg: asyncio.TaskGroup | None = None
         self._watchdog_task: asyncio.Task[None] | None = None
+        self._clock_task: asyncio.Task[None] | None = None
         self._connected = False
 
     async def __aenter__(self) -> "Vehicle":
@@ -107,6 +112,7 @@ class Vehicle:
             stack.callback(self.state.attach(self.link))
             # PX4 maps our vision timestamps onto its clock from our TIMESYNC answers.
             stack.callback(self.timesync.attach())
+            stack.callback(self.autopilot_clock.attach())
             await stack.enter_async_context(self.offboard)
             if self.obstacle_feed is not None:
                 await stack.enter_async_context(self.obstacle_feed)
@@ -115,6 +121,7 @@ class Vehicle:
             self._tg = asyncio.TaskGroup()
             await self._tg.__aenter__()
             self._watchdog_task = self._tg.create_task(self._watchdog(), name="heartbeat-watchdog")
+            self._clock_task = self._tg.create_task(self.autopilot_clock.run(), name="timesync-requests")
             self._stack = stack.pop_all()
         return self
 
@@ -128,8 +135,9 @@ class Vehicle:
         tg, self._tg = self._tg, None
         try:
             if tg is not None:
-                if self._watchdog_task is not None:
-                    self._watchdog_task.cancel()
+                for task in (self._watchdog_task, self._clock_task):
+                    if task is not None:
+                        task.cancel()
                 await tg.__aexit__(None, None, None)
         finally:
             if stack is not None:

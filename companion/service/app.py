@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from companion.config import CompanionConfig
 from companion.ground import MqttBridge
 from companion.ground.schema import GoalCommand, MissionCommand, VehicleCommand, command_kind_of
+from companion.mavlink.obstacle_distance import ObstacleDistanceInput
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.checkpoint import checkpoint_path, restore_map
@@ -60,7 +61,7 @@ from companion.sources.poses import SharedPoseHistory, TelemetryPosedSource, Tel
 from companion.systemd_notify import SystemdNotifier, Watchdog
 from planner.worker import PlanningService
 from semmap.costmap import ObjectFootprint
-from semmap.errors import CompanionError, MissionError
+from semmap.errors import CompanionError, MapError, MissionError
 from semmap.frames import yaw_ned_to_enu
 from semmap.semantic_map import SemanticMap
 
@@ -212,8 +213,13 @@ class CompanionService:
             # Joining the worker waits up to seconds: off the loop (MQTT and the link stay served).
             stack.push_async_callback(asyncio.to_thread, planning.close)
             await stack.enter_async_context(perception)
-            self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh))
-            recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component)
+            # OBSTACLE_DISTANCE from the flight-band costmap lets PX4's collision prevention
+            # (CP_DIST) stop the vehicle short of what the map holds, whoever flies it.
+            self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh,
+                                                                   obstacle_source=self._obstacle_input))
+            recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component,
+                                             remote_to_local=self.vehicle.autopilot_clock.to_local,
+                                             map_frame=lambda: self.vehicle.snapshot().map_frame if self.vehicle else None)
             stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
             await stack.enter_async_context(loc.vision_stream(self.vehicle.link))
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
@@ -266,6 +272,17 @@ class CompanionService:
             self.smap = perception.final_map
         log.info("service stopped")
         return self.report
+
+    def _obstacle_input(self) -> ObstacleDistanceInput | None:
+        """The OBSTACLE_DISTANCE feed's input: the newest costmap around the vehicle."""
+        v, perception = self.vehicle, self.perception
+        if v is None or perception is None:
+            return None
+        try:
+            costmap = perception.costmap()
+        except MapError:
+            return None  # no map yet: PX4 sees no feed rather than an empty one
+        return ObstacleDistanceInput.from_vehicle_state(costmap, v.snapshot())
 
     def latency_summary(self) -> dict[str, dict[str, float | int]]:
         """End-to-end latencies so far, ``{"count", "p50_ms", "p95_ms", "max_ms"}`` each:
@@ -333,7 +350,7 @@ class CompanionService:
             await v.wait_connected(timeout_s=30.0)
             if not resume:
                 state = await v.state.wait_for(lambda s: s.home is not None and s.position_ned_m is not None,
-                                               15.0, "the home position")
+                                               self.cfg.link.ready_timeout_s, "the home position")
                 assert state.home is not None
                 items = await v.download_mission()
                 self.legs_left = mission_legs(items, state.home, self.cfg.planner.flight_altitude_m)
@@ -350,6 +367,11 @@ class CompanionService:
         except CompanionError as exc:
             self.report.mission_error = str(exc)
             log.error("mission: %s", exc)
+            if v.offboard.state.streams:
+                # The vehicle is still ours: hand it to PX4's Hold rather than keep streaming
+                # setpoints for a mission that has ended.
+                with contextlib.suppress(CompanionError):
+                    await v.offboard.release(FlightMode.HOLD)
         finally:
             if not self.mission_paused:
                 self.mission_done.set()

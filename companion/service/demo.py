@@ -339,6 +339,10 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
     result.summary["autopilot_final"] = {"mode": world.autopilot.mode.name, "in_air": world.autopilot.in_air,
                                          "armed": world.autopilot.armed,
                                          "modes": [m.name for _, m in world.autopilot.mode_changes]}
+    # What reached the autopilot from the service, by message (the obstacle feed, TIMESYNC).
+    result.summary["autopilot_received"] = {
+        name: world.autopilot.messages_received[name]
+        for name in ("SET_POSITION_TARGET_LOCAL_NED", "OBSTACLE_DISTANCE", "TIMESYNC")}
     result.summary["map_restored"] = service.restored
     path = out / "summary.json"
     result.files["summary"] = path

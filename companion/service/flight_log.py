@@ -60,15 +60,16 @@ class FlightLog:
     def write_row(self) -> None:
         """Append the vehicle's current state (skipped before the first position)."""
         s = self.vehicle.snapshot()
-        if s.position_ned_m is None or self._file is None:
+        frame = s.map_frame
+        if s.position_ned_m is None or frame is None or self._file is None:
             return
-        x, y, z = ned_to_enu(*s.position_ned_m)
+        x, y, z = frame.from_ned(*s.position_ned_m)
         vx, vy, _vz = ned_to_enu(*(s.velocity_ned_m_s or (math.nan, math.nan, math.nan)))
         yaw = math.degrees(yaw_ned_to_enu(s.yaw_ned_rad)) if s.yaw_ned_rad is not None else math.nan
         st = self.vehicle.offboard.status()
         sp = (math.nan,) * 3
         if st.setpoint is not None and st.state.streams:
-            sp = ned_to_enu(*st.setpoint.position_ned_m)
+            sp = frame.from_ned(*st.setpoint.position_ned_m)
         self._writer.writerow([
             f"{time.monotonic() - self._t0:.3f}", _r(x), _r(y), _r(z), _r(yaw), _r(vx), _r(vy), int(s.armed),
             s.flight_mode.name if s.flight_mode else "", st.state.value, _r(sp[0]), _r(sp[1]), _r(sp[2]),

@@ -27,9 +27,10 @@ import numpy as np
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.mavlink.commands import CommandDeniedError, CommandTemporarilyRejectedError
 from companion.mavlink.failsafe import OffboardState, PositionSetpoint
 from companion.mavlink.mission_download import MissionItem, waypoint_ned_m
-from companion.mavlink.state import HomePosition, VehicleState
+from companion.mavlink.state import HomePosition, MapFrame, VehicleState
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from planner.config import PlannerConfig
@@ -38,7 +39,7 @@ from planner.trajectory import Trajectory, TrajectoryLimits, time_parametrize
 from planner.types import PlanResult, PlanStatus
 from planner.worker import PlanningService
 from semmap.costmap import Costmap
-from semmap.errors import MissionError
+from semmap.errors import CompanionError, MissionError
 from semmap.frames import enu_to_ned, ned_to_enu, yaw_enu_to_ned, yaw_ned_to_enu
 
 log = logging.getLogger(__name__)
@@ -61,6 +62,16 @@ SURVEY_SETTLE_S = 2.0
 #: about 1.5 planning times, so the plan is back before the vehicle gets there.
 MIN_REPLAN_LOOKAHEAD_S = 0.6
 MAX_REPLAN_LOOKAHEAD_S = 2.0
+#: The take-off has finished when the vehicle is this close below the take-off height.
+TAKEOFF_TOLERANCE_M = 0.15
+#: OFFBOARD is engaged only with the first setpoint this close to the vehicle (metres).
+ENGAGE_MAX_OFFSET_M = 0.5
+#: Pause between refused arming attempts (PX4 re-runs its checks at about 1 Hz).
+ARM_RETRY_S = 2.0
+#: Modes PX4 will not arm in, which it keeps after landing or accepts while disarmed.
+NOT_ARMABLE = frozenset({FlightMode.OFFBOARD, FlightMode.LAND, FlightMode.RTL, FlightMode.TAKEOFF})
+#: A leg is given up after this many holds for a vehicle that did not follow its setpoints.
+MAX_TRACKING_FAULTS = 3
 
 
 @dataclass(frozen=True)
@@ -94,10 +105,28 @@ def mission_legs(items: Sequence[MissionItem], home: HomePosition, altitude_m: f
 
 
 def position_enu(state: VehicleState) -> NDArray[np.float64] | None:
-    """(3,) the vehicle's map-frame position from LOCAL_POSITION_NED, or None."""
-    if state.position_ned_m is None:
-        return None
-    return np.array(ned_to_enu(*state.position_ned_m))
+    """(3,) the vehicle's map-frame position (z above home), or None before the position
+    and the home position are known."""
+    pos = state.position_map_m
+    return None if pos is None else np.array(pos)
+
+
+def map_frame_of(state: VehicleState) -> MapFrame:
+    """The map frame of ``state``; a :class:`MissionError` before PX4 reports home (no
+    setpoint height can be known then)."""
+    frame = state.map_frame
+    if frame is None:
+        raise MissionError("no home position from the autopilot: heights above home are unknown")
+    return frame
+
+
+def took_off(state: VehicleState, altitude_m: float) -> bool:
+    """PX4's take-off has finished at ``altitude_m`` above home: in the air, out of TAKEOFF
+    (PX4 ends it in Hold, and drops an OFFBOARD request made before), high enough by the
+    estimate and by a downward range sensor where there is one."""
+    height = state.clearance_below_m()
+    return (state.in_air and state.flight_mode is not FlightMode.TAKEOFF and height is not None
+            and height >= altitude_m - TAKEOFF_TOLERANCE_M)
 
 
 class SurveyTurn:
@@ -187,6 +216,7 @@ class LegReport:
     duration_s: float = 0.0
     final_error_m: float = math.nan
     snapped_goal: bool = False  # the waypoint was blocked; the nearest free point was flown to
+    tracking_faults: int = 0  # holds because the vehicle did not follow its setpoints
 
 
 class MissionRunner:
@@ -223,18 +253,48 @@ class MissionRunner:
     # --- vehicle steps ------------------------------------------------------------------
 
     async def take_off(self, altitude_m: float, timeout_s: float = 30.0) -> None:
-        """Arm, take off to ``altitude_m`` above home and engage OFFBOARD holding there."""
+        """Arm once PX4 is ready, take off to ``altitude_m`` above home, wait until the
+        take-off has finished and engage OFFBOARD holding there."""
         v = self.vehicle
-        state = v.snapshot()
-        if not state.in_air:
-            await v.commands.arm()
+        if not v.snapshot().in_air:
+            await self.arm_when_ready()
             await v.commands.takeoff(altitude_m)
-            await v.state.wait_for(
-                lambda s: s.position_ned_m is not None and -s.position_ned_m[2] >= altitude_m - 0.1,
-                timeout_s, f"the vehicle to climb to {altitude_m:.2f} m",
-            )
+            await v.state.wait_for(lambda s: took_off(s, altitude_m), timeout_s,
+                                   f"the take-off to {altitude_m:.2f} m above home to finish")
         await self.engage_here(altitude_m)
         await self.survey(altitude_m)
+
+    async def arm_when_ready(self) -> None:
+        """Wait for PX4's readiness (pre-arm checks, home, local position), leave a mode PX4
+        will not arm in (it keeps OFFBOARD or LAND after landing), then arm, retrying a
+        refusal a bounded number of times."""
+        v = self.vehicle
+        await v.state.wait_for(lambda s: s.ready_to_arm, v.cfg.ready_timeout_s,
+                               "the autopilot to be ready to arm (pre-arm checks, home, local position)")
+        await self.make_armable()
+        for attempt in range(v.cfg.arm_retries + 1):
+            try:
+                await v.commands.arm()
+                break
+            except (CommandDeniedError, CommandTemporarilyRejectedError) as exc:
+                if attempt == v.cfg.arm_retries:
+                    raise MissionError(f"arming refused {attempt + 1} times: {exc}") from exc
+                log.warning("arming refused (%s); retrying in %.0f s", exc, ARM_RETRY_S)
+                await asyncio.sleep(ARM_RETRY_S)
+                await self.make_armable()
+        await v.state.wait_for(lambda s: s.armed, v.cfg.heartbeat_timeout_s, "the vehicle to report armed")
+
+    async def make_armable(self) -> None:
+        """Put a vehicle on the ground into Hold when its mode is one PX4 will not arm in."""
+        v = self.vehicle
+        state = v.snapshot()
+        if state.in_air or state.armed or state.flight_mode not in NOT_ARMABLE:
+            return
+        assert state.flight_mode is not None
+        log.info("vehicle on the ground in %s: switching to HOLD so it can arm", state.flight_mode.name)
+        await v.commands.set_mode(FlightMode.HOLD)
+        await v.state.wait_for(lambda s: s.flight_mode is FlightMode.HOLD, v.cfg.heartbeat_timeout_s,
+                               "the vehicle to report HOLD")
 
     async def survey(self, altitude_m: float, turn_deg: float | None = None) -> None:
         """Turn on the spot by ``turn_deg`` (default ``planner.takeoff_survey_deg``), holding
@@ -248,7 +308,7 @@ class MissionRunner:
             log.warning("survey skipped: no heading from the autopilot yet")
             return
         turn = SurveyTurn(snap.yaw_ned_rad, total, math.radians(self.cfg.max_yaw_rate_deg_s))
-        target = enu_to_ned(float(pos[0]), float(pos[1]), altitude_m)
+        target = map_frame_of(snap).to_ned(float(pos[0]), float(pos[1]), altitude_m)
         deadline = time.monotonic() + turn.max_duration_s
         log.info("survey: turning %.0f deg on the spot", math.degrees(total))
         while time.monotonic() < deadline:
@@ -264,18 +324,33 @@ class MissionRunner:
         self.vehicle.offboard.set_setpoint(PositionSetpoint(target, yaw_rad=turn.final_yaw_rad))
 
     async def engage_here(self, altitude_m: float) -> None:
-        """Hold the current horizontal position at ``altitude_m`` and engage OFFBOARD."""
-        pos = position_enu(self.vehicle.snapshot())
+        """Hold the current horizontal position at ``altitude_m`` and engage OFFBOARD; only
+        in the air at the take-off height above home and with that hold near the vehicle, so
+        OFFBOARD never starts on the ground or with a setpoint somewhere else."""
+        state = self.vehicle.snapshot()
+        pos = position_enu(state)
         if pos is None:
-            raise MissionError("no vehicle position to engage offboard from")
+            raise MissionError("no vehicle position (or no home) to engage offboard from")
+        height = state.clearance_below_m()
+        if not state.in_air or height is None or height < altitude_m - TAKEOFF_TOLERANCE_M:
+            raise MissionError(f"not engaging offboard: the vehicle is not airborne at the take-off "
+                               f"height ({'in the air' if state.in_air else 'on the ground'}, "
+                               f"{pos[2]:.2f} m above home, range below "
+                               f"{'none' if state.range_down_m is None else f'{state.range_down_m:.2f} m'}, "
+                               f"{altitude_m:.2f} m needed)")
         self.hold_at(pos[:2], altitude_m)
+        sp = self.vehicle.offboard.status().setpoint
+        assert sp is not None
+        offset = math.dist(sp.position_ned_m, map_frame_of(state).to_ned(*pos))
+        if offset > ENGAGE_MAX_OFFSET_M:
+            raise MissionError(f"not engaging offboard: the first setpoint is {offset:.2f} m from the vehicle")
         await self.vehicle.offboard.engage()
 
     def hold_at(self, xy_m: NDArray[np.floating], altitude_m: float) -> None:
         """Replace the setpoint with a hold at ``xy_m`` (map frame) and ``altitude_m``, keeping yaw."""
-        yaw_ned = self.vehicle.snapshot().yaw_ned_rad
+        snap = self.vehicle.snapshot()
         self.vehicle.offboard.set_setpoint(PositionSetpoint(
-            enu_to_ned(float(xy_m[0]), float(xy_m[1]), altitude_m), yaw_rad=yaw_ned))
+            map_frame_of(snap).to_ned(float(xy_m[0]), float(xy_m[1]), altitude_m), yaw_rad=snap.yaw_ned_rad))
 
     async def _plan(self, start_xy: NDArray[np.float64], goal_xy: tuple[float, float],
                     snap_goal: bool = False, replan: bool = False) -> tuple[PlanResult, Costmap]:
@@ -373,6 +448,13 @@ class MissionRunner:
             if outcome == "reached":
                 rep.reached = True
                 break
+            if outcome == "tracking":
+                rep.tracking_faults += 1
+                if rep.tracking_faults >= MAX_TRACKING_FAULTS:
+                    raise MissionError(f"leg {leg.seq}: the vehicle did not follow its setpoints "
+                                       f"{rep.tracking_faults} times ({self.vehicle.offboard.failsafe.reason})")
+                log.warning("leg %d: the vehicle is not following its setpoints; re-planning from "
+                            "where it is", leg.seq)
             replanning = outcome == "invalid"
         rep.duration_s = time.monotonic() - t_leg
         pos = position_enu(self.vehicle.snapshot())
@@ -391,8 +473,9 @@ class MissionRunner:
         lies on the last checked path, and the vehicle brakes towards it without
         overshooting), else the vehicle's position."""
         sp = self.vehicle.offboard.status().setpoint
-        if sp is not None and self.vehicle.offboard.state.streams:
-            x, y, _z = ned_to_enu(*sp.position_ned_m)
+        frame = self.vehicle.snapshot().map_frame
+        if sp is not None and frame is not None and self.vehicle.offboard.state.streams:
+            x, y, _z = frame.from_ned(*sp.position_ned_m)
             xy = np.array([x, y])
             if np.linalg.norm(xy - pos_enu[:2]) < 0.5:
                 return xy
@@ -405,7 +488,8 @@ class MissionRunner:
 
     async def _follow(self, traj: Trajectory, leg: Leg, check: bool = True,
                       capture_mono_s: float | None = None, rep: LegReport | None = None) -> str:
-        """Feed the trajectory; "reached", "invalid" (re-plan from here) or "late".
+        """Feed the trajectory; "reached", "invalid" (re-plan from here), "tracking" (the
+        vehicle did not follow and is held where it is: re-plan from there) or "late".
         ``capture_mono_s``: capture time of the newest frame in the map the trajectory was
         planned on (its first setpoint's latency is recorded).
 
@@ -435,17 +519,16 @@ class MissionRunner:
                 st = ctl.state
                 if st is OffboardState.ACTIVE:
                     t_traj = min(t_traj + now - last, t_cap)
+                elif st is OffboardState.HOLDING and ctl.failsafe.tracking_fault:
+                    return "tracking"
                 elif st is OffboardState.LINK_LOST and self.vehicle.connected:
-                    log.warning("autopilot link back: re-engaging offboard")
-                    try:
-                        await ctl.engage()
-                    except Exception as exc:  # noqa: BLE001 - retried on the next tick
-                        log.warning("re-engaging offboard failed: %s", exc)
+                    await self._reengage(leg)
+                    return "invalid"  # PX4's failsafe moved the vehicle: re-plan from where it is
                 else:
                     self._check_offboard()
                 last = now
                 s = traj.sample(t_traj)
-                n, e, d = enu_to_ned(*(float(v) for v in s.position_m))
+                n, e, d = map_frame_of(self.vehicle.snapshot()).to_ned(*(float(v) for v in s.position_m))
                 vn, ve, vd = enu_to_ned(*(float(v) for v in s.velocity_m_s))
                 ctl.set_setpoint(PositionSetpoint((n, e, d), yaw_rad=yaw_enu_to_ned(s.yaw_rad),
                                                   velocity_ned_m_s=(vn, ve, vd)))
@@ -504,6 +587,25 @@ class MissionRunner:
             for task in (checking, replan):
                 if task is not None and not task.done():
                     task.cancel()
+
+    async def _reengage(self, leg: Leg) -> None:
+        """The link is back after a loss: PX4's offboard-loss failsafe has flown the vehicle
+        meanwhile (Position mode descends and lands without RC). Engage again only if it is
+        still airborne, with a hold where it is at the leg's altitude; a landed vehicle ends
+        the mission (PX4 would accept OFFBOARD on the ground, disarmed)."""
+        state = self.vehicle.snapshot()
+        pos = position_enu(state)
+        if not (state.in_air and state.armed) or pos is None:
+            raise MissionError(f"leg {leg.seq}: the vehicle landed during the link loss "
+                               f"({state.flight_mode.name if state.flight_mode else 'unknown mode'}, "
+                               f"{'armed' if state.armed else 'disarmed'}); not re-engaging offboard")
+        log.warning("autopilot link back with the vehicle in the air: holding at (%.2f, %.2f) m and "
+                    "re-engaging offboard", pos[0], pos[1])
+        self.hold_at(pos[:2], leg.altitude_m)
+        try:
+            await self.vehicle.offboard.engage()
+        except CompanionError as exc:
+            log.warning("re-engaging offboard failed: %s; retrying", exc)
 
     async def _check_ahead(self, traj: Trajectory, t_s: float) -> tuple[bool, float | None]:
         """Is the rest of ``traj`` from ``t_s`` free on the newest costmap? If not, also the

@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation, Slerp
 
+from companion.mavlink.state import MapFrame
 from companion.mavlink.vision import R_FLU_FRD, R_NED_ENU
 from companion.sources.base import FrameSource, WrappedSource
 from semmap.frames import Transform, make_transform, rotation_from_rpy, rpy_from_rotation
@@ -205,12 +206,16 @@ class BootClock:
     the event loop busy for a few tens of milliseconds): stamped on arrival, a pose taken
     while turning lands a tick late. The offset ``arrival - boot`` is smallest for the
     messages that waited least, so the estimate is its running minimum, allowed to rise by
-    ``drift_s_per_s`` (the two crystals' drift, 100 ppm) so it follows a slow clock. A boot
-    time that goes back by more than ``reboot_s`` (the autopilot rebooted) starts afresh."""
+    ``drift_s_per_s`` so it follows a slower clock (crystals: 100 ppm; the telemetry recorder
+    allows 1.5 %, as a lockstep simulation runs about 1 % slow). A boot time that goes back by more than ``reboot_s`` (the autopilot rebooted)
+    starts afresh. ``remote_to_local``: a better mapping when it has one (TIMESYNC round
+    trips, :class:`~companion.mavlink.timesync.AutopilotClock`), used instead."""
 
-    def __init__(self, drift_s_per_s: float = 1e-4, reboot_s: float = 1.0) -> None:
+    def __init__(self, drift_s_per_s: float = 1e-4, reboot_s: float = 1.0,
+                 remote_to_local: Callable[[float], float | None] | None = None) -> None:
         self.drift_s_per_s = drift_s_per_s
         self.reboot_s = reboot_s
+        self.remote_to_local = remote_to_local
         self._offset_s: float | None = None
         self._at_s = 0.0
         self._last_boot_s = -math.inf
@@ -227,7 +232,16 @@ class BootClock:
         else:
             self._offset_s = min(off, self._offset_s + self.drift_s_per_s * max(0.0, arrival_s - self._at_s))
         self._at_s = arrival_s
+        if self.remote_to_local is not None:
+            local = self.remote_to_local(boot_s)
+            if local is not None:
+                return local
         return boot_s + self._offset_s
+
+
+#: How fast the telemetry recorder's arrival-based clock mapping may follow a slower autopilot
+#: clock before TIMESYNC round trips give it the rate (or when the autopilot answers none).
+FALLBACK_DRIFT_S_PER_S = 0.015
 
 
 class TelemetryPoseRecorder:
@@ -251,13 +265,18 @@ class TelemetryPoseRecorder:
 
     def __init__(self, history: SharedPoseHistory, target_system: int = 1,
                  target_component: int = mavlink.MAV_COMP_ID_AUTOPILOT1, max_position_age_s: float = 0.2,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 remote_to_local: Callable[[float], float | None] | None = None,
+                 map_frame: Callable[[], MapFrame | None] | None = None) -> None:
         self.history = history
         self.target_system = target_system
         self.target_component = target_component
         self.max_position_age_s = max_position_age_s
         self.clock = clock
-        self.boot_clock = BootClock()
+        self.boot_clock = BootClock(drift_s_per_s=FALLBACK_DRIFT_S_PER_S, remote_to_local=remote_to_local)
+        #: The map frame (heights above home) from the vehicle's state; no pose without one.
+        #: None: PX4's local frame as it is (a recording or a test with the origin on the floor).
+        self.map_frame = map_frame
         self._pos: tuple[float, float, float, float, float, float, float] | None = None  # t, xyz, vxyz
         #: Dead-reckoned odometry (x_m, y_m, yaw_rad; ENU) at ``_odo_t``.
         self._odo: NDArray[np.float64] | None = None
@@ -276,14 +295,15 @@ class TelemetryPoseRecorder:
             if all(math.isfinite(v) for v in vals):
                 self._pos = (t_msg, *vals)
             return
-        if self._pos is None:
+        frame = self.map_frame() if self.map_frame is not None else MapFrame(0.0)
+        if self._pos is None or frame is None:
             return
         rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
         t, x, y, z, vx, vy, vz = self._pos
         dt = t_msg - t
         if not all(math.isfinite(v) for v in rpy) or abs(dt) > self.max_position_age_s:
             return
-        T = map_pose_from_ned((x + vx * dt, y + vy * dt, z + vz * dt), rpy)
+        T = map_pose_from_ned((x + vx * dt, y + vy * dt, z + vz * dt - frame.home_down_m), rpy)
         yaw_rate = float(msg.yawspeed)
         odo = self._dead_reckon(t_msg, T, (vy, vx), -yaw_rate if math.isfinite(yaw_rate) else 0.0)
         if self.history.push(t_msg, T, odo):

@@ -17,8 +17,8 @@ from semmap.semantic_map import SemanticMap
 
 
 @pytest.fixture(scope="module")
-def dining(shared_data: Path) -> Path:
-    return shared_data / "rgbd" / "diningroom"
+def dining(real_data: Path) -> Path:
+    return real_data / "rgbd" / "diningroom"
 
 
 def test_cli_builds_and_exports_the_dining_room(dining: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -12,6 +12,9 @@ import yaml
 from companion.cli import main
 from companion.config import load_config
 
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("open3d")
 
 SMALL = {

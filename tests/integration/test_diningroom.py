@@ -30,8 +30,8 @@ DEPTH_RANGE_M = (0.3, 6.0)
 
 
 @pytest.fixture(scope="module")
-def scene(shared_data: Path):
-    root = shared_data / "rgbd" / "diningroom"
+def scene(real_data: Path):
+    root = real_data / "rgbd" / "diningroom"
     meta = json.loads((root / "intrinsics.json").read_text())
     K = CameraIntrinsics(meta["fx"], meta["fy"], meta["cx"], meta["cy"], meta["width"], meta["height"])
     poses = []

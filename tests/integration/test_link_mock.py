@@ -67,12 +67,31 @@ class Flight:
     async def wait(self, pred: Callable[[VehicleState], bool], what: str, timeout_s: float = 20.0) -> VehicleState:
         return await self.tracker.wait_for(pred, timeout_s, what)
 
+    @property
+    def ground_z_m(self) -> float:
+        """Local NED z of home: PX4's local origin is not the floor (-0.86 m with GPS height)."""
+        home = self.tracker.snapshot().home
+        assert home is not None
+        return home.position_ned_m[2]
+
+    def ned(self, north_m: float, east_m: float, height_m: float) -> tuple[float, float, float]:
+        """Local NED of a point ``height_m`` above home."""
+        return (north_m, east_m, self.ground_z_m - height_m)
+
+    def true_ned(self, local_ned_m: tuple[float, float, float]) -> tuple[float, float, float]:
+        """A reported local NED point in the mock's floor-based truth frame."""
+        n, e, d = local_ned_m
+        return (n, e, d - self.ground_z_m)
+
     async def take_off(self) -> None:
         await self.cmds.arm()
         await self.cmds.takeoff(TAKEOFF_ALT_M)
-        await self.wait(lambda s: s.flight_mode is FlightMode.HOLD and s.in_air
-                        and s.position_ned_m is not None and s.position_ned_m[2] < -TAKEOFF_ALT_M + 0.2,
-                        "takeoff to hold")
+        top = self.ground_z_m - TAKEOFF_ALT_M + 0.15
+        await self.wait(lambda s: s.in_air and s.position_ned_m is not None and s.position_ned_m[2] < top,
+                        "takeoff height above home")
+        # PX4 heartbeats at 1 Hz: only a heartbeat sent after the climb shows Hold for sure.
+        await asyncio.sleep(1.1)
+        await self.wait(lambda s: s.flight_mode is FlightMode.HOLD, "takeoff done, Hold")
 
 
 def _near(target: tuple[float, float, float], tol_m: float) -> Callable[[VehicleState], bool]:
@@ -91,8 +110,9 @@ async def flight() -> AsyncIterator[Flight]:
             tracker.attach(link)
             cmds = VehicleCommands(CommandSender(link, timeout_s=0.5, retries=3), tracker)
             f = Flight(ap, link, tracker, cmds)
+            # PX4 has a home once its pre-flight checks pass: it can arm from then on.
             await f.wait(lambda s: s.home is not None and s.position_ned_m is not None
-                         and s.heartbeat_fresh(HB_TIMEOUT_S), "first telemetry", 10.0)
+                         and s.heartbeat_fresh(HB_TIMEOUT_S), "first telemetry and home", 10.0)
             yield f
 
 
@@ -101,8 +121,8 @@ async def test_telemetry_and_our_identity(flight: Flight) -> None:
     s = await flight.wait(lambda s: s.battery_v is not None and s.attitude_rpy_rad is not None, "telemetry")
     assert s.flight_mode is FlightMode.HOLD and not s.armed
     assert s.landed_state is LandedState.ON_GROUND
-    assert s.position_ned_m == pytest.approx((0.0, 0.0, 0.0), abs=0.05)
     assert s.home is not None and s.home.altitude_amsl_m == pytest.approx(flight.ap.home.alt_m)
+    assert s.position_ned_m == pytest.approx((0.0, 0.0, s.home.position_ned_m[2]), abs=0.05)
     assert 0.0 < (s.battery_remaining or 0.0) <= 1.0
     await flight.ap.wait_until(lambda: (1, 191) in flight.ap.peer_heartbeats, 5.0, "our heartbeat")
     async with flight.link.subscribe("AUTOPILOT_VERSION") as versions:
@@ -114,7 +134,7 @@ async def test_telemetry_and_our_identity(flight: Flight) -> None:
 @pytest.mark.asyncio
 async def test_arm_takeoff_offboard_and_land(flight: Flight) -> None:
     await flight.take_off()
-    target = (1.0, 0.5, -TAKEOFF_ALT_M)
+    target = flight.ned(1.0, 0.5, TAKEOFF_ALT_M)
     async with flight.controller() as ctl:
         ctl.set_setpoint(PositionSetpoint(target, yaw_rad=0.5, velocity_ned_m_s=(0.0, 0.0, 0.0)))
         await ctl.engage()
@@ -183,15 +203,16 @@ class _Uploader:
 async def test_mission_download_and_fly_it_leg_by_leg(flight: Flight) -> None:
     home = flight.tracker.snapshot().home
     assert home is not None
-    legs_ned = [(1.5, 0.0, -TAKEOFF_ALT_M), (1.5, 1.5, -TAKEOFF_ALT_M), (0.0, 1.5, -1.0)]
+    legs_ned = [flight.ned(1.5, 0.0, TAKEOFF_ALT_M), flight.ned(1.5, 1.5, TAKEOFF_ALT_M), flight.ned(0.0, 1.5, 1.0)]
     m = mavlink.MAVLink(None)
     items = []
     for seq, (n, e, d) in enumerate(legs_ned):
+        height_m = flight.ground_z_m - d
         lat = home.latitude_deg + math.degrees(n / 6378137.0)
         lon = home.longitude_deg + math.degrees(e / (6378137.0 * math.cos(math.radians(home.latitude_deg))))
         items.append(m.mission_item_int_encode(
             1, 1, seq, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mavlink.MAV_CMD_NAV_WAYPOINT,
-            int(seq == 0), 1, 0.0, 0.3, 0.0, math.nan, round(lat * 1e7), round(lon * 1e7), -d,
+            int(seq == 0), 1, 0.0, 0.3, 0.0, math.nan, round(lat * 1e7), round(lon * 1e7), height_m,
             mavlink.MAV_MISSION_TYPE_MISSION))
     await _Uploader(flight.ap.local_port).upload(items)
 
@@ -209,7 +230,7 @@ async def test_mission_download_and_fly_it_leg_by_leg(flight: Flight) -> None:
         for target in targets:
             ctl.set_setpoint(PositionSetpoint(target))
             await flight.wait(_near(target, 0.2), f"leg to {target}")
-            assert math.dist(flight.ap.position_ned_m, target) < 0.3
+            assert math.dist(flight.ap.position_ned_m, flight.true_ned(target)) < 0.3
         await ctl.release(FlightMode.LAND)
     await flight.wait(lambda s: s.landed_state is LandedState.ON_GROUND, "landing", 30.0)
 
@@ -218,7 +239,7 @@ async def test_mission_download_and_fly_it_leg_by_leg(flight: Flight) -> None:
 async def test_pilot_switching_mode_is_not_fought(flight: Flight) -> None:
     await flight.take_off()
     async with flight.controller() as ctl:
-        ctl.set_setpoint(PositionSetpoint((2.0, 0.0, -TAKEOFF_ALT_M)))
+        ctl.set_setpoint(PositionSetpoint(flight.ned(2.0, 0.0, TAKEOFF_ALT_M)))
         await ctl.engage()
         flight.ap.set_mode(FlightMode.POSCTL)  # the pilot flips the RC mode switch
         await flight.wait(lambda s: s.flight_mode is FlightMode.POSCTL, "pilot mode")
@@ -236,9 +257,10 @@ async def test_pilot_switching_mode_is_not_fought(flight: Flight) -> None:
 
 @pytest.mark.asyncio
 async def test_link_loss_stops_commanding_until_told(flight: Flight) -> None:
+    flight.ap.params.set("COM_OBL_RC_ACT", 5)  # PX4 holds on offboard loss (default: Position mode)
     await flight.take_off()
     async with flight.controller() as ctl:
-        ctl.set_setpoint(PositionSetpoint((0.5, 0.0, -TAKEOFF_ALT_M)))
+        ctl.set_setpoint(PositionSetpoint(flight.ned(0.5, 0.0, TAKEOFF_ALT_M)))
         await ctl.engage()
         flight.ap.faults.drop_link = True
         await flight.ap.wait_until(lambda: ctl.state is OffboardState.LINK_LOST, 5.0, "link loss")
@@ -261,7 +283,7 @@ async def test_setpoint_loss_hands_over_to_px4_failsafe(flight: Flight) -> None:
     await flight.take_off()
     ctl = flight.controller()
     async with ctl:
-        ctl.set_setpoint(PositionSetpoint((0.0, 0.5, -TAKEOFF_ALT_M)))
+        ctl.set_setpoint(PositionSetpoint(flight.ned(0.0, 0.5, TAKEOFF_ALT_M)))
         await ctl.engage()
     # The controller closed while in OFFBOARD (say, the service stopped): no more setpoints.
     await flight.ap.wait_until(lambda: bool(flight.ap.failsafes), 5.0, "offboard loss failsafe")
@@ -276,7 +298,7 @@ async def test_stale_pose_holds_position(flight: Flight) -> None:
     await flight.take_off()
     pose_ok = True
     async with flight.controller(is_pose_fresh=lambda: pose_ok) as ctl:
-        far = (6.0, 0.0, -TAKEOFF_ALT_M)
+        far = flight.ned(6.0, 0.0, TAKEOFF_ALT_M)
         ctl.set_setpoint(PositionSetpoint(far))
         await ctl.engage()
         await flight.wait(lambda s: s.position_ned_m is not None and s.position_ned_m[0] > 1.0, "moving north")
@@ -285,7 +307,8 @@ async def test_stale_pose_holds_position(flight: Flight) -> None:
         hold = ctl.failsafe.hold
         assert hold is not None and hold.position_ned_m[0] < 5.0
         await flight.ap.wait_until(
-            lambda: flight.ap.setpoints[-1].target.position_ned_m == pytest.approx(hold.position_ned_m, abs=1e-4),
+            lambda: flight.ap.setpoints[-1].target.position_ned_m == pytest.approx(flight.true_ned(hold.position_ned_m),
+                                                                                   abs=1e-4),
             3.0, "hold setpoint at the autopilot")
         # It brakes (overshooting by its stopping distance) and settles on the hold point,
         # never continuing to the 6 m target.
@@ -293,14 +316,14 @@ async def test_stale_pose_holds_position(flight: Flight) -> None:
 
         def settled() -> bool:
             max_north[0] = max(max_north[0], flight.ap.position_ned_m[0])
-            return math.dist(flight.ap.position_ned_m, hold.position_ned_m) < 0.15
+            return math.dist(flight.ap.position_ned_m, flight.true_ned(hold.position_ned_m)) < 0.15
 
         await flight.ap.wait_until(settled, 10.0, "settled on the hold point")
-        assert max_north[0] < 4.0
+        assert max_north[0] < far[0] - 0.5  # it never went on to the target
         assert flight.ap.mode is FlightMode.OFFBOARD and ctl.state is OffboardState.HOLDING
         # Fresh again and a new plan: flying resumes.
         pose_ok = True
-        back = (0.0, 0.0, -TAKEOFF_ALT_M)
+        back = flight.ned(0.0, 0.0, TAKEOFF_ALT_M)
         ctl.set_setpoint(PositionSetpoint(back))
         await flight.wait(_near(back, 0.25), "resumed")
         assert ctl.state is OffboardState.ACTIVE
@@ -392,6 +415,7 @@ async def test_vehicle_stack_from_config(caplog: pytest.LogCaptureFixture, tmp_p
             await ap.wait_until(lambda: ap.peer_clock.offset_s is not None, 5.0, "timesync answer")
             assert vehicle.timesync.answered >= 1
             assert ap.peer_clock.offset_s == pytest.approx(ap.now_s() - time.monotonic(), abs=0.005)
+            await vehicle.state.wait_for(lambda s: s.home is not None, 10.0, "home: PX4 ready to arm")
             await vehicle.commands.arm()
             await vehicle.offboard.engage()  # nothing planned: holds where it stands
             assert ap.mode is FlightMode.OFFBOARD
@@ -417,7 +441,9 @@ async def test_recorded_flight_replays_through_the_same_link(tmp_path: Path) -> 
             await live.wait_for(lambda s: s.home is not None, 10.0, "telemetry")
             await cmds.arm()
             await cmds.takeoff(1.0)
-            await live.wait_for(lambda s: s.flight_mode is FlightMode.HOLD and s.in_air, 20.0, "airborne")
+            # Heartbeats come at 1 Hz: wait for one that shows the vehicle armed and in Hold.
+            await live.wait_for(lambda s: s.flight_mode is FlightMode.HOLD and s.in_air and s.armed, 20.0,
+                                "airborne")
             ap.faults.drop_link = True  # freeze what gets recorded
             await asyncio.sleep(0.2)
             final = live.snapshot()

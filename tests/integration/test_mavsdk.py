@@ -61,6 +61,11 @@ async def _first(gen: AsyncIterator, pred, timeout_s: float = 10.0):  # type: ig
     raise AssertionError("subscription ended")
 
 
+async def _ready(c: MavsdkClient) -> None:
+    """Wait, as a client of real PX4 must, until it reports it can arm."""
+    await _first(c.telemetry.subscribe_health(), lambda h: h.is_armable, 15.0)
+
+
 async def test_connect_no_autopilot_is_a_link_error() -> None:
     with pytest.raises(LinkError, match="no autopilot heard"):
         async with MavsdkClient(f"udpin://127.0.0.1:{_free_udp_port()}", connect_timeout_s=0.5):
@@ -71,8 +76,8 @@ async def test_telemetry_health_arm_takeoff_land_and_faults(session) -> None:
     ap, c = session
     tel = c.telemetry
     health = await _first(tel.subscribe_health(),
-                          lambda h: h.is_home_position_ok and h.is_global_position_ok)
-    assert health.is_armable and health.is_local_position_ok
+                          lambda h: h.is_home_position_ok and h.is_global_position_ok and h.is_armable)
+    assert health.is_local_position_ok
     home = await c.home()
     assert home.lat_deg == pytest.approx(ap.home.lat_deg, abs=1e-7)
     assert await _first(tel.subscribe_flight_mode(), lambda m: True) == SdkFlightMode.HOLD
@@ -129,6 +134,7 @@ async def test_mission_upload_download_fly_and_reject(session, tmp_path) -> None
 
     # Garbage on the socket and corrupted packets while arming and starting: MAVSDK's
     # retries and the mock's duplicate handling get the commands through once each.
+    await _ready(c)
     ap.inject_garbage(300)
     ap.faults.corrupt_bytes_rate = 0.002
     await c.arm()
@@ -169,14 +175,19 @@ async def test_mission_upload_download_fly_and_reject(session, tmp_path) -> None
 
 async def test_offboard_position_setpoints_and_setpoint_loss(session) -> None:
     ap, c = session
+    ap.params.set("COM_OBL_RC_ACT", 5)  # Hold on offboard loss (PX4's default: Position mode)
     off = c.offboard
     with pytest.raises(OffboardError):
         await off.start()  # no setpoint yet: MAVSDK refuses before asking PX4
+    await _ready(c)
+    # PX4's local origin is not the floor: setpoint heights are taken from the ground's z.
+    ground = await _first(c.telemetry.subscribe_position_velocity_ned(), lambda p: True)
+    z0 = ground.position.down_m
     await c.arm()
-    await off.set_position_ned(PositionNedYaw(0.0, 0.0, -1.5, 0.0))
+    await off.set_position_ned(PositionNedYaw(0.0, 0.0, z0 - 1.5, 0.0))
     await off.start()
     assert ap.mode is FlightMode.OFFBOARD
-    await off.set_position_ned(PositionNedYaw(2.0, -1.0, -2.0, 90.0))
+    await off.set_position_ned(PositionNedYaw(2.0, -1.0, z0 - 2.0, 90.0))
     await ap.wait_until(lambda: math.dist(ap.position_ned_m, (2.0, -1.0, -2.0)) < 0.1
                         and abs(ap.vehicle.yaw_rad - math.pi / 2) < 0.05, 20.0,
                         "offboard setpoint reached")

@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import asyncio
 import math
-import socket
-import time
 from typing import Any
 
 import pytest
 import pytest_asyncio
 from pymavlink.dialects.v20 import common as mavlink
+from raw_mavlink_client import RawClient
 
 from companion import px4
 from companion.px4 import FlightMode
@@ -25,79 +24,6 @@ from companion.sim.autopilot.params import MAV_PARAM_TYPE_INT32, decode_value, e
 pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(60)]
 
 NAN = math.nan
-
-
-class RawClient:
-    """A minimal MAVLink endpoint: one UDP socket, a parser, a message log."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.setblocking(False)
-        self.port = self.sock.getsockname()[1]
-        self.mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
-        self.mav.robust_parsing = True
-        self.ap_addr: tuple[str, int] = ("127.0.0.1", 0)
-        self.log: list[Any] = []
-        self._since: int | None = None
-
-    def close(self) -> None:
-        self.sock.close()
-
-    def send(self, msg: Any) -> None:
-        if self._since is None:
-            self._since = self.mark()  # replies may arrive before recv() is called
-        self.sock.sendto(msg.pack(self.mav), self.ap_addr)
-        self.mav.seq = (self.mav.seq + 1) % 256
-
-    def send_raw(self, data: bytes) -> None:
-        self.sock.sendto(data, self.ap_addr)
-
-    def _drain(self) -> None:
-        while True:
-            try:
-                data = self.sock.recv(65535)
-            except BlockingIOError:
-                return
-            parser = mavlink.MAVLink(None)  # per datagram: garbage cannot eat the next one
-            parser.robust_parsing = True
-            for msg in parser.parse_buffer(data) or []:
-                if msg.get_type() != "BAD_DATA":
-                    self.log.append(msg)
-
-    def mark(self) -> int:
-        """Index into :attr:`log` from which :meth:`recv` should look."""
-        self._drain()
-        return len(self.log)
-
-    async def recv(self, mtype: str, timeout_s: float = 3.0, pred: Any = None,
-                   since: int | None = None) -> Any:
-        """Wait for the next ``mtype`` message matching ``pred`` (received after this call,
-        or after ``since`` from :meth:`mark`, or after the last :meth:`send`)."""
-        from_send, self._since = self._since, None
-        if since is None:
-            since = from_send
-        start = self.mark() if since is None else since
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self._drain()
-            for msg in self.log[start:]:
-                if msg.get_type() == mtype and (pred is None or pred(msg)):
-                    return msg
-            start = len(self.log)
-            await asyncio.sleep(0.005)
-        raise AssertionError(f"no {mtype} within {timeout_s} s")
-
-    async def command(self, cmd: int, *params: float, timeout_s: float = 2.0) -> int:
-        p = list(params) + [0.0] * (7 - len(params))
-        since = self.mark()
-        self.send(self.mav.command_long_encode(1, 1, cmd, 0, *p))
-        ack = await self.recv("COMMAND_ACK", timeout_s, lambda m: m.command == cmd, since)
-        return int(ack.result)
-
-    def count(self, mtype: str) -> int:
-        self._drain()
-        return sum(1 for m in self.log if m.get_type() == mtype)
 
 
 @pytest_asyncio.fixture
@@ -114,6 +40,7 @@ async def link():
                 await asyncio.sleep(0.01)
 
         reader = asyncio.create_task(keep_reading())
+        await client.wait_ready()  # as a client of real PX4 must before arming
         yield ap, client
         reader.cancel()
     client.close()
@@ -148,16 +75,16 @@ async def test_arm_takeoff_land_disarms(link) -> None:
     state = await c.recv("EXTENDED_SYS_STATE")
     assert state.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
     pos = await c.recv("LOCAL_POSITION_NED")
-    assert pos.z == pytest.approx(-2.5, abs=0.15)
+    home = await c.recv("HOME_POSITION", timeout_s=5.0)
+    # PX4's local origin is not the floor: the height is relative to home.
+    assert pos.z - home.z == pytest.approx(-2.5, abs=0.15)
     # Disarming in the air is refused without the force magic number.
     assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0) == mavlink.MAV_RESULT_DENIED
     assert await c.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
     await ap.wait_until(lambda: not ap.armed, 15.0, "land and auto-disarm")
     assert ap.position_ned_m[2] == pytest.approx(0.0, abs=0.02)
     # PX4-style STATUSTEXT reports the events a ground station shows.
-    c.mark()
-    texts = [m.text for m in c.log if m.get_type() == "STATUSTEXT"]
-    assert texts == ["Takeoff detected", "Disarming denied: not landed", "Landing detected",
+    assert c.status_texts() == ["Ready for takeoff!", "Takeoff detected", "Disarming denied: not landed", "Landing detected",
                      "Disarmed by landing"]
 
 
@@ -317,15 +244,18 @@ def _position_setpoint(c: RawClient, n: float, e: float, d: float, yaw: float = 
 async def test_offboard_refused_without_setpoints_then_failsafe_to_hold(link) -> None:
     ap, c = link
     offboard = px4.set_mode_params(FlightMode.OFFBOARD)
+    ap.params.set("COM_OBL_RC_ACT", 5)  # Hold on offboard loss (PX4's default: Position mode)
+    await _fly_to_hold(ap, c)
+    # Flying, Offboard needs the setpoint stream first (disarmed, PX4 accepts any mode).
     assert await c.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == \
         mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-    await _fly_to_hold(ap, c)
+    home = await c.recv("HOME_POSITION", timeout_s=5.0)  # setpoints 2 m above home
 
     stop = asyncio.Event()
 
     async def stream() -> None:
         while not stop.is_set():
-            c.send(_position_setpoint(c, 1.0, 1.0, -2.0, math.pi / 2))
+            c.send(_position_setpoint(c, 1.0, 1.0, home.z - 2.0, math.pi / 2))
             await asyncio.sleep(0.05)
 
     task = asyncio.create_task(stream())

@@ -8,6 +8,7 @@ import asyncio
 import math
 
 import numpy as np
+import pytest
 
 from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
@@ -18,6 +19,9 @@ from companion.sim.autopilot import MockAutopilot
 from planner.worker import PlanningService
 from semmap.costmap import LETHAL_OBSTACLE, Costmap
 from semmap.grid import GridSpec
+
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
 
 
 def _costmaps(cfg: CompanionConfig) -> tuple[Costmap, Costmap]:

@@ -20,6 +20,9 @@ from companion.service.demo import run_e2e
 from companion.service.sim_world import SimWorld
 from semmap.errors import ConfigError
 
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("open3d")
 
 SMALL: dict[str, Any] = {

@@ -8,6 +8,7 @@ import asyncio
 import math
 
 import numpy as np
+import pytest
 
 from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
@@ -16,6 +17,9 @@ from companion.service.mission_runner import MissionRunner, position_enu
 from companion.sim.autopilot import MockAutopilot
 from planner.worker import PlanningService
 from semmap.costmap import Costmap
+
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
 
 
 def _fly(turn_deg: float) -> tuple[list[float], list[np.ndarray]]:

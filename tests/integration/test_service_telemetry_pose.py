@@ -16,6 +16,9 @@ from companion.config import load_config
 from companion.service.demo import run_e2e
 from companion.sources.sim import room_from_config
 
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("open3d")
 
 SMALL: dict[str, Any] = {

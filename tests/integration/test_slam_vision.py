@@ -42,6 +42,27 @@ class Rig:
     async def wait(self, pred: object, what: str, timeout_s: float = 20.0) -> VehicleState:
         return await self.tracker.wait_for(pred, timeout_s, what)  # type: ignore[arg-type]
 
+    @property
+    def ground_z_m(self) -> float:
+        """Local NED z of home: PX4's local origin is not the floor."""
+        home = self.tracker.snapshot().home
+        assert home is not None
+        return home.position_ned_m[2]
+
+    def true_ned(self, local_ned_m: tuple[float, float, float]) -> tuple[float, float, float]:
+        """A reported local NED point in the mock's floor-based truth frame."""
+        n, e, d = local_ned_m
+        return (n, e, d - self.ground_z_m)
+
+    async def take_off(self) -> None:
+        await self.cmds.arm()
+        await self.cmds.takeoff(ALT_M)
+        top = self.ground_z_m - ALT_M + 0.15
+        await self.wait(lambda s: s.in_air and s.position_ned_m is not None and s.position_ned_m[2] < top,
+                        "takeoff height above home")
+        await asyncio.sleep(1.1)  # PX4 heartbeats at 1 Hz: the next one shows the take-off done
+        await self.wait(lambda s: s.flight_mode is FlightMode.HOLD, "takeoff done, Hold")
+
 
 @pytest_asyncio.fixture
 async def rig() -> AsyncIterator[Rig]:
@@ -73,10 +94,8 @@ def _truth_pose(ap: MockAutopilot) -> VisionPose:
 @pytest.mark.asyncio
 async def test_mock_records_and_fuses_the_vision_stream(rig: Rig) -> None:
     ap = rig.ap
-    await rig.cmds.arm()
-    await rig.cmds.takeoff(ALT_M)
-    await rig.wait(lambda s: s.in_air and s.flight_mode is FlightMode.HOLD, "takeoff")
-    await asyncio.sleep(2.0)
+    await rig.take_off()
+    await asyncio.sleep(1.0)
     # The link sees the drifting estimate, not the truth.
     s = rig.tracker.snapshot()
     assert _yaw_error_deg(s.yaw_ned_rad, ap.state().yaw_rad) > 5.0
@@ -88,13 +107,14 @@ async def test_mock_records_and_fuses_the_vision_stream(rig: Rig) -> None:
         await rig.wait(lambda s: _yaw_error_deg(s.yaw_ned_rad, ap.state().yaw_rad) < 1.5, "the estimate to converge", 5.0)
         s = rig.tracker.snapshot()
         assert s.position_ned_m is not None
-        assert math.dist(s.position_ned_m, ap.position_ned_m) < 0.05
+        assert math.dist(rig.true_ned(s.position_ned_m), ap.position_ned_m) < 0.05
         # Offboard with vision: the vehicle goes where it was told.
-        target = (1.5, -1.0, -ALT_M)
+        target = (1.5, -1.0, rig.ground_z_m - ALT_M)
         async with OffboardController(rig.link, rig.tracker, rig.cmds, rate_hz=30.0) as ctl:
             ctl.set_setpoint(PositionSetpoint(target, yaw_rad=0.0))
             await ctl.engage()
-            await ap.wait_until(lambda: math.dist(ap.position_ned_m, target) < 0.1, 15.0, "the true target")
+            await ap.wait_until(lambda: math.dist(ap.position_ned_m, rig.true_ned(target)) < 0.1, 15.0,
+                                "the true target")
             await ctl.release(FlightMode.HOLD)
     assert stream.sent > 60
     assert 20.0 < rate < 40.0
@@ -107,10 +127,8 @@ async def test_mock_records_and_fuses_the_vision_stream(rig: Rig) -> None:
 async def test_without_vision_the_drift_moves_the_vehicle_off_target(rig: Rig) -> None:
     # The same flight with no vision: PX4 flies its drifting estimate to the setpoint.
     ap = rig.ap
-    await rig.cmds.arm()
-    await rig.cmds.takeoff(ALT_M)
-    await rig.wait(lambda s: s.in_air and s.flight_mode is FlightMode.HOLD, "takeoff")
-    target = (2.0, 0.0, -ALT_M)
+    await rig.take_off()
+    target = (2.0, 0.0, rig.ground_z_m - ALT_M)
     async with OffboardController(rig.link, rig.tracker, rig.cmds, rate_hz=30.0) as ctl:
         ctl.set_setpoint(PositionSetpoint(target, yaw_rad=0.0))
         await ctl.engage()
@@ -118,5 +136,5 @@ async def test_without_vision_the_drift_moves_the_vehicle_off_target(rig: Rig) -
                        "the reported pose on the target")
         await asyncio.sleep(1.0)
         await ctl.release(FlightMode.HOLD)
-    assert math.dist(ap.position_ned_m, target) > 0.1
+    assert math.dist(ap.position_ned_m, rig.true_ned(target)) > 0.1
     assert ap.estimator.vision_fused == 0

@@ -15,9 +15,9 @@ from semmap.icp import register_depth_frames
 
 
 @pytest.mark.parametrize("case", ["case_1", "case_2"])
-def test_icp_on_tum_fr1_xyz_is_within_2cm_and_1deg(shared_data: Path, case: str) -> None:
+def test_icp_on_tum_fr1_xyz_is_within_2cm_and_1deg(real_data: Path, case: str) -> None:
     # The folder's intrinsics.json is a ROS default; the official fr1 calibration is used.
-    prev, curr = load_tum_pair(shared_data / "rgbd" / "tum_fr1_xyz" / case, intrinsics=TUM_INTRINSICS["freiburg1"])
+    prev, curr = load_tum_pair(real_data / "rgbd" / "tum_fr1_xyz" / case, intrinsics=TUM_INTRINSICS["freiburg1"])
     T_prev_curr_true = invert(prev.T_map_camera) @ curr.T_map_camera
     res = register_depth_frames(curr.depth_m, prev.depth_m, prev.intrinsics)
     err = invert(T_prev_curr_true) @ res.T_target_source

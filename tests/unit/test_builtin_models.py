@@ -111,12 +111,12 @@ def test_a_model_without_side_files_reads_its_metadata() -> None:
     assert d.class_names is None and d.class_map == {}
 
 
-def test_the_coco_model_runs_on_a_real_frame_and_finds_the_dining_room_furniture() -> None:
-    """A real colour frame of the dining room kept in tests/data (slambook2, MIT): the COCO
-    model must find chairs and the dining table in it, through our runtime."""
+def test_the_coco_model_runs_on_a_real_frame_and_finds_the_dining_room_furniture(real_data: Path) -> None:
+    """A real colour frame of the dining room (tests/data/real): the COCO model must find
+    chairs and the dining table in it, through our runtime."""
     import cv2
 
-    rgb = cv2.cvtColor(cv2.imread(str(REPO / "tests" / "data" / "diningroom_1.jpg")), cv2.COLOR_BGR2RGB)
+    rgb = cv2.cvtColor(cv2.imread(str(real_data / "rgbd" / "diningroom" / "color" / "1.png")), cv2.COLOR_BGR2RGB)
     det = detector_from_config(DetectorConfig(model_path="builtin:coco", providers=CPU), OURS)
     assert isinstance(det, OnnxDetector)
     dets = det.detect(rgb)

@@ -13,8 +13,8 @@ from semmap.tracking.cmc import IDENTITY, SparseFlowCMC
 
 
 @pytest.fixture(scope="module")
-def room_rgb(shared_data: Path) -> np.ndarray:
-    bgr = cv2.imread(str(shared_data / "rgbd" / "diningroom" / "color" / "1.png"))
+def room_rgb(real_data: Path) -> np.ndarray:
+    bgr = cv2.imread(str(real_data / "rgbd" / "diningroom" / "color" / "1.png"))
     assert bgr is not None
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 

@@ -166,11 +166,30 @@ def test_items_insert_speed_changes_and_map_back() -> None:
 
 
 def test_items_to_plan_rejects_unknown_command() -> None:
-    imap = plan_to_items(MissionPlan((Waypoint("land"),), None, "m"))
+    imap = plan_to_items(MissionPlan((Waypoint("land"),), HOME, "m"))
     assert imap.items[0].command == CMD_LAND
     bad = [imap.items[0].__class__(**{**imap.items[0].__dict__, "command": 31000})]
     with pytest.raises(MissionError, match="vehicle: item 0: unsupported command 31000"):
         items_to_plan(bad, HOME, "vehicle")
+
+
+def test_square_mission_never_encodes_latitude_0() -> None:
+    """PX4 flies an INT item's 0/0 literally (SITL flew our square to latitude 0): take-off
+    and land without a position take home's and the previous step's, as QGC does."""
+    plan = load_mission(REPO / "config" / "missions" / "square.yaml").resolved(HOME)
+    items = plan_to_items(plan).items
+    assert all(it.x != 0 and it.y != 0 for it in items if it.command != CMD_CHANGE_SPEED)
+    takeoff = next(it for it in items if it.command == CMD_TAKEOFF)
+    land = next(it for it in items if it.command == CMD_LAND)
+    last_wp = [it for it in items if it.command == CMD_WAYPOINT][-1]
+    assert takeoff.lat_deg == pytest.approx(HOME.lat_deg, abs=1e-7)
+    assert takeoff.lon_deg == pytest.approx(HOME.lon_deg, abs=1e-7)
+    assert (land.x, land.y) == (last_wp.x, last_wp.y)
+
+
+def test_step_without_position_and_no_home_is_an_error() -> None:
+    with pytest.raises(MissionError, match=r"m: waypoint 0 \(takeoff\) has no position"):
+        plan_to_items(MissionPlan((Waypoint("takeoff", rel_alt_m=1.5),), None, "m"))
 
 
 _coord = st.tuples(st.floats(-30, 30), st.floats(-30, 30), st.floats(0.5, 10))

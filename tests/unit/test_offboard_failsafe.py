@@ -208,3 +208,47 @@ def test_invariants_under_any_event_sequence(events: list[str]) -> None:
         if fs.state in (OffboardState.ACTIVE, OffboardState.HOLDING):
             assert mode is FlightMode.OFFBOARD
             assert sp is not None
+
+
+def test_tracking_monitor_holds_a_vehicle_that_does_not_follow() -> None:
+    """On PX4 SITL OFFBOARD was engaged on the ground: the vehicle sat landed while the
+    setpoints moved 4 m away, then took off towards them through a desk. A vehicle farther
+    than tracking_error_m from its setpoint for tracking_timeout_s is held where it is."""
+    fs = OffboardFailsafe(HB_TIMEOUT_S, POS_TIMEOUT_S, tracking_error_m=1.0, tracking_timeout_s=2.0)
+    fs.set_setpoint(PositionSetpoint((1.0, 2.0, -1.5)), 0.0)
+    fs.start_engage(0.0, _vehicle())
+    fs.step(0.0, _vehicle(), True, True)
+    fs.engaged(1.0)
+    stuck = _vehicle(flight_mode=FlightMode.OFFBOARD, landed_state=LandedState.ON_GROUND,
+                     position_ned_m=(1.0, 2.0, 0.0))
+    far = PositionSetpoint((5.0, 2.0, -1.5))
+    t = 1.0
+    while t < 2.9:  # 4 m away: tolerated for less than 2 s
+        fs.set_setpoint(far, t)
+        assert fs.step(t, stuck, True, True) == far
+        t += 0.05
+    fs.set_setpoint(far, t)
+    fs.step(t, stuck, True, True)
+    t += 0.2
+    fs.set_setpoint(far, t)
+    sp = fs.step(t, stuck, True, True)
+    assert fs.state is OffboardState.HOLDING and fs.tracking_fault
+    assert sp == PositionSetpoint((1.0, 2.0, 0.0), yaw_rad=0.3)  # held where it is
+    # A new plan from where the vehicle is resumes flight and clears the fault.
+    near = PositionSetpoint((1.2, 2.0, -0.2))
+    fs.set_setpoint(near, t + 0.1)
+    assert fs.step(t + 0.1, stuck, True, True) == near
+    assert fs.state is OffboardState.ACTIVE and not fs.tracking_fault
+
+
+def test_tracking_monitor_tolerates_a_vehicle_that_lags_within_the_distance() -> None:
+    fs = OffboardFailsafe(HB_TIMEOUT_S, POS_TIMEOUT_S, tracking_error_m=1.0, tracking_timeout_s=2.0)
+    fs.set_setpoint(PositionSetpoint((1.0, 2.0, -1.5)), 0.0)
+    fs.start_engage(0.0, _vehicle())
+    fs.step(0.0, _vehicle(), True, True)
+    fs.engaged(1.0)
+    for k in range(200):  # 10 s with the setpoint 0.8 m ahead of the vehicle
+        t = 1.0 + 0.05 * k
+        fs.set_setpoint(PositionSetpoint((1.8, 2.0, -1.5)), t)
+        fs.step(t, _vehicle(flight_mode=FlightMode.OFFBOARD), True, True)
+    assert fs.state is OffboardState.ACTIVE

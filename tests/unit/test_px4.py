@@ -53,3 +53,65 @@ def test_disarmed_heartbeat() -> None:
 def test_out_of_range_rejected() -> None:
     with pytest.raises(ValueError, match="out of range"):
         px4.encode_custom_mode(256, 0)
+
+
+def test_map_frame_heights_are_above_home_not_the_local_origin() -> None:
+    """PX4's local z is -0.86 m on the ground with GPS height: the map's z is above home."""
+    import dataclasses
+
+    from companion.mavlink.state import HomePosition, LandedState, MapFrame, VehicleState
+
+    frame = MapFrame(home_down_m=-0.86)
+    assert frame.from_ned(1.0, 2.0, -0.86) == pytest.approx((2.0, 1.0, 0.0))
+    assert frame.to_ned(2.0, 1.0, 1.0) == pytest.approx((1.0, 2.0, -1.86))
+    state = VehicleState(heartbeat_age_s=0.1, armed=False, flight_mode=None, landed_state=LandedState.ON_GROUND,
+                         position_ned_m=(0.0, 0.0, -0.86), velocity_ned_m_s=None, position_age_s=0.0,
+                         attitude_rpy_rad=None, battery_v=None, battery_remaining=None, home=None,
+                         global_position=None, autopilot_system_status=None)
+    assert state.position_map_m is None and not state.ready_to_arm  # no home yet
+    state = dataclasses.replace(state, home=HomePosition(47.0, 8.0, 488.0, (0.0, 0.0, -0.86)),
+                                home_down_on_ground_m=-0.86)
+    assert state.height_above_home_m == pytest.approx(0.0) and state.ready_to_arm
+    assert not dataclasses.replace(state, prearm_ok=False).ready_to_arm
+
+
+def test_a_downward_range_sensor_must_agree_that_the_vehicle_is_high_enough() -> None:
+    import dataclasses
+
+    from companion.mavlink.state import HomePosition, LandedState, VehicleState
+    from companion.service.mission_runner import took_off
+
+    state = VehicleState(heartbeat_age_s=0.1, armed=True, flight_mode=FlightMode.HOLD, landed_state=LandedState.IN_AIR,
+                         position_ned_m=(0.0, 0.0, -1.86), velocity_ned_m_s=None, position_age_s=0.0,
+                         attitude_rpy_rad=None, battery_v=None, battery_remaining=None,
+                         home=HomePosition(47.0, 8.0, 488.0, (0.0, 0.0, -0.86)), global_position=None,
+                         autopilot_system_status=None, home_down_on_ground_m=-0.86)
+    assert took_off(state, 1.0)
+    # The estimate says 1 m above home; the range finder sees 0.3 m: not airborne enough.
+    assert not took_off(dataclasses.replace(state, range_down_m=0.3, range_down_age_s=0.05), 1.0)
+    assert took_off(dataclasses.replace(state, range_down_m=0.3, range_down_age_s=5.0), 1.0)  # stale
+
+
+def test_the_map_frame_keeps_the_home_height_it_took_off_with() -> None:
+    """PX4 moves home's z in flight as its height estimate drifts; the floor does not move."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from companion.mavlink.state import VehicleStateTracker
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    tracker = VehicleStateTracker()
+
+    def feed(msg: mavlink.MAVLink_message) -> None:
+        tracker.handle(mavlink.MAVLink(None).decode(bytearray(msg.pack(mav))))
+
+    def home(z: float) -> mavlink.MAVLink_message:
+        return mav.home_position_encode(473977420, 85455940, 488000, 0.0, 0.0, z, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0)
+
+    feed(mav.extended_sys_state_encode(0, mavlink.MAV_LANDED_STATE_ON_GROUND))
+    feed(home(-0.86))
+    assert tracker.snapshot().map_frame.home_down_m == pytest.approx(-0.86)
+    feed(mav.extended_sys_state_encode(0, mavlink.MAV_LANDED_STATE_IN_AIR))
+    feed(home(-1.20))  # moved in flight
+    assert tracker.snapshot().map_frame.home_down_m == pytest.approx(-0.86)
+    feed(mav.extended_sys_state_encode(0, mavlink.MAV_LANDED_STATE_ON_GROUND))
+    assert tracker.snapshot().map_frame.home_down_m == pytest.approx(-1.20)  # landed: the new home

@@ -51,8 +51,8 @@ def reprojection_error_m(a: Frame, b: Frame) -> float:
 
 # --- recorded folders ---------------------------------------------------------------------
 
-def test_diningroom_folder_layout(shared_data: Path) -> None:
-    src = RecordedFrameSource(shared_data / "rgbd" / "diningroom")
+def test_diningroom_folder_layout(real_data: Path) -> None:
+    src = RecordedFrameSource(real_data / "rgbd" / "diningroom")
     with src:
         frames = list(src)
     assert src.layout == "folders" and len(frames) == 5 and src.frames_read == 5
@@ -70,19 +70,19 @@ def test_diningroom_folder_layout(shared_data: Path) -> None:
     assert reprojection_error_m(frames[0], frames[1]) < 0.12
     assert reprojection_error_m(frames[3], frames[4]) < 0.12
     # Colour is RGB, not OpenCV's BGR.
-    bgr = cv2.imread(str(shared_data / "rgbd" / "diningroom" / "color" / "1.png"))
+    bgr = cv2.imread(str(real_data / "rgbd" / "diningroom" / "color" / "1.png"))
     assert np.array_equal(frames[0].rgb, bgr[:, :, ::-1])
 
 
-def test_depth_range_is_applied(shared_data: Path) -> None:
-    src = RecordedFrameSource(shared_data / "rgbd" / "diningroom", depth_min_m=1.0, depth_max_m=3.0)
+def test_depth_range_is_applied(real_data: Path) -> None:
+    src = RecordedFrameSource(real_data / "rgbd" / "diningroom", depth_min_m=1.0, depth_max_m=3.0)
     d = src.frame_at(0).depth_m
     valid = d[d > 0]
     assert valid.min() >= 1.0 and valid.max() <= 3.0
 
 
-def test_tum_pairs_layout(shared_data: Path) -> None:
-    src = RecordedFrameSource(shared_data / "rgbd" / "tum_fr2_desk")
+def test_tum_pairs_layout(real_data: Path) -> None:
+    src = RecordedFrameSource(real_data / "rgbd" / "tum_fr2_desk")
     frames = list(src)
     assert src.layout == "pairs" and len(frames) == 2 and src.depth_scale == 5000.0
     assert src.intrinsics.fx_px == pytest.approx(520.9)
@@ -92,9 +92,9 @@ def test_tum_pairs_layout(shared_data: Path) -> None:
     assert src.read() is None
 
 
-def make_tum_folder(shared_data: Path, dst: Path) -> Path:
+def make_tum_folder(real_data: Path, dst: Path) -> Path:
     """A TUM RGB-D layout (rgb.txt, depth.txt, groundtruth.txt) made of the real fr2 frames."""
-    src = shared_data / "rgbd" / "tum_fr2_desk"
+    src = real_data / "rgbd" / "tum_fr2_desk"
     (dst / "rgb").mkdir(parents=True)
     (dst / "depth").mkdir()
     stamps = [1311868164.363181, 1311868164.399454]
@@ -116,8 +116,8 @@ def make_tum_folder(shared_data: Path, dst: Path) -> Path:
     return dst
 
 
-def test_tum_layout_associates_and_interpolates_ground_truth(shared_data: Path, tmp_path: Path) -> None:
-    src = RecordedFrameSource(make_tum_folder(shared_data, tmp_path / "tum"))
+def test_tum_layout_associates_and_interpolates_ground_truth(real_data: Path, tmp_path: Path) -> None:
+    src = RecordedFrameSource(make_tum_folder(real_data, tmp_path / "tum"))
     frames = list(src)
     assert src.layout == "tum" and len(frames) == 2
     assert frames[0].stamp_s == pytest.approx(1311868164.363181)
@@ -129,14 +129,14 @@ def test_tum_layout_associates_and_interpolates_ground_truth(shared_data: Path, 
     assert yaw == pytest.approx(10.0 * 0.63181, abs=0.05)
     # The second colour frame is 0.6 ms before the last ground truth: interpolated as well.
     assert frames[1].T_map_camera is not None
-    ref = RecordedFrameSource(shared_data / "rgbd" / "tum_fr2_desk").frame_at(0)
+    ref = RecordedFrameSource(real_data / "rgbd" / "tum_fr2_desk").frame_at(0)
     assert np.array_equal(frames[0].depth_m, ref.depth_m)
 
 
 def test_tum_folder_named_after_its_camera_gets_the_published_calibration(
-    shared_data: Path, tmp_path: Path,
+    real_data: Path, tmp_path: Path,
 ) -> None:
-    folder = make_tum_folder(shared_data, tmp_path / "rgbd_dataset_freiburg2_desk")
+    folder = make_tum_folder(real_data, tmp_path / "rgbd_dataset_freiburg2_desk")
     (folder / "intrinsics.json").unlink()
     src = RecordedFrameSource(folder, default_intrinsics=CameraIntrinsics(1, 1, 1, 1, 640, 480))
     assert src.intrinsics == CameraIntrinsics(520.9, 521.0, 325.1, 249.7, 640, 480)
@@ -153,17 +153,17 @@ def test_associate_is_one_to_one_and_respects_max_dt() -> None:
     assert associate(a, np.array([]), 0.02) == []
 
 
-def test_tum_fr1_case_pairs_have_consistent_poses(shared_data: Path) -> None:
-    prev, curr = load_tum_pair(shared_data / "rgbd" / "tum_fr1_xyz" / "case_1")
+def test_tum_fr1_case_pairs_have_consistent_poses(real_data: Path) -> None:
+    prev, curr = load_tum_pair(real_data / "rgbd" / "tum_fr1_xyz" / "case_1")
     assert prev.rgb.shape == (480, 640, 3) and prev.T_map_camera is not None
     assert np.linalg.norm(prev.T_map_camera[:3, 3] - curr.T_map_camera[:3, 3]) < 0.2
     assert reprojection_error_m(prev, curr) < 0.1
 
 
 @pytest.fixture
-def dining_copy(shared_data: Path, tmp_path: Path) -> Path:
+def dining_copy(real_data: Path, tmp_path: Path) -> Path:
     dst = tmp_path / "dining"
-    shutil.copytree(shared_data / "rgbd" / "diningroom", dst)
+    shutil.copytree(real_data / "rgbd" / "diningroom", dst)
     return dst
 
 
@@ -271,11 +271,11 @@ def test_sim_source_stops_after_max_frames() -> None:
     assert len(list(src)) == 2
 
 
-def test_factory_picks_the_configured_source(shared_data: Path) -> None:
+def test_factory_picks_the_configured_source(real_data: Path) -> None:
     with pytest.raises(ConfigError, match="pose provider"):
         make_frame_source(CompanionConfig())
     rec = make_frame_source(CompanionConfig.model_validate(
-        {"camera": {"source": "recorded", "recorded_path": str(shared_data / "rgbd" / "diningroom")}}
+        {"camera": {"source": "recorded", "recorded_path": str(real_data / "rgbd" / "diningroom")}}
     ))
     assert isinstance(rec, RecordedFrameSource) and len(rec) == 5
     live = make_frame_source(CompanionConfig.model_validate({"camera": {"source": "realsense", "realsense_serial": "123"}}))

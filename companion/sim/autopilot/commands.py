@@ -20,13 +20,25 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion import px4
 from companion.px4 import FlightMode
+from companion.sim.autopilot.guided import DEFAULT_ORBIT_SPEED_M_S, Orbit
 
 if TYPE_CHECKING:
     from companion.sim.autopilot.mock import MockAutopilot
 
+#: Modes PX4 refuses to arm in (``mode_req_prevent_arming``).
+PREVENTS_ARMING = frozenset({FlightMode.LAND, FlightMode.RTL, FlightMode.PRECLAND, FlightMode.ORBIT,
+                             FlightMode.FOLLOW_TARGET})
+#: MAV_CMD_INJECT_FAILURE units the mock simulates (sensors whose health bit it clears).
+FAILURE_UNITS = frozenset({
+    mavlink.FAILURE_UNIT_SENSOR_GYRO, mavlink.FAILURE_UNIT_SENSOR_ACCEL, mavlink.FAILURE_UNIT_SENSOR_MAG,
+    mavlink.FAILURE_UNIT_SENSOR_BARO, mavlink.FAILURE_UNIT_SENSOR_GPS,
+})
+
 log = logging.getLogger(__name__)
 
 DUPLICATE_WINDOW_S = 1.5
+#: COMMAND_INT's "no value" for x/y (MAVLink: INT32_MAX).
+INT32_MAX = 2**31 - 1
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
 DENIED = mavlink.MAV_RESULT_DENIED
@@ -34,6 +46,9 @@ TEMPORARILY_REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
 UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
 CRITICAL = mavlink.MAV_SEVERITY_CRITICAL
 FAILED = mavlink.MAV_RESULT_FAILED
+
+#: What PX4 says when its health and arming checks refuse to arm (not ready, mode not armable).
+HEALTH_DENIAL = "Arming denied: Resolve system health failures first"
 
 #: Modes PX4 lets you arm in (without RC; POSCTL etc. hold position in the mock).
 ARMABLE_MODES = frozenset({
@@ -132,6 +147,13 @@ class CommandHandler:
             if ap.faults.prearm_fail:
                 ap.announce(CRITICAL, "Arming denied: pre-arm checks failed")
                 return DENIED
+            if not ap.ready:
+                ap.announce(CRITICAL, HEALTH_DENIAL)
+                return TEMPORARILY_REJECTED
+            if ap.behaviour.mode_after_disarm and (ap.mode in PREVENTS_ARMING or (
+                    ap.mode is FlightMode.OFFBOARD and not ap.offboard_available())):
+                ap.announce(CRITICAL, HEALTH_DENIAL)
+                return TEMPORARILY_REJECTED
             if ap.mode not in ARMABLE_MODES:
                 ap.announce(CRITICAL, f"Arming denied: not armable in {ap.mode.name.title()}")
                 return DENIED
@@ -185,16 +207,24 @@ class CommandHandler:
         ap = self._ap
         if mode is ap.mode:
             return ACCEPTED
-        if mode is FlightMode.OFFBOARD and not ap.offboard_available():
+        # PX4 accepts any mode while disarmed and checks it when arming.
+        disarmed_choice = ap.behaviour.mode_after_disarm and not ap.armed
+        if mode is FlightMode.OFFBOARD and not ap.offboard_available() and not disarmed_choice:
             ap.announce(CRITICAL, "Switching to Offboard is currently not available")
             return TEMPORARILY_REJECTED
+        if mode is FlightMode.OFFBOARD and ap.mode is FlightMode.TAKEOFF and \
+                ap.behaviour.offboard_during_takeoff_dropped:
+            log.info("Offboard requested during take-off: acknowledged, take-off continues")
+            return ACCEPTED
         if mode is FlightMode.MISSION and ap.navigator.mission_count == 0:
             ap.announce(CRITICAL, "Switching to Mission: no valid mission")
             return TEMPORARILY_REJECTED
-        if mode in (FlightMode.RTL, FlightMode.LAND, FlightMode.TAKEOFF) and not ap.armed:
+        if mode in (FlightMode.RTL, FlightMode.LAND, FlightMode.TAKEOFF, FlightMode.FOLLOW_TARGET,
+                    FlightMode.ORBIT) and not ap.armed:
             return TEMPORARILY_REJECTED
-        if mode in (FlightMode.FOLLOW_TARGET, FlightMode.PRECLAND, FlightMode.ACRO,
-                    FlightMode.RATTITUDE):
+        if mode is FlightMode.ORBIT and ap.navigator.orbit is None:
+            return TEMPORARILY_REJECTED  # an orbit starts with MAV_CMD_DO_ORBIT
+        if mode in (FlightMode.PRECLAND, FlightMode.ACRO, FlightMode.RATTITUDE):
             return TEMPORARILY_REJECTED
         ap.set_mode(mode)
         return ACCEPTED
@@ -212,6 +242,8 @@ class CommandHandler:
         return ACCEPTED if self._ap.navigator.set_current(int(p[0])) else DENIED
 
     def _request_message(self, p: tuple[float, ...], is_int: bool) -> int:
+        if int(p[0]) == mavlink.MAVLINK_MSG_ID_HOME_POSITION and not self._ap.ready:
+            return FAILED  # PX4 has no home before its pre-flight checks pass
         return ACCEPTED if self._ap.send_message_by_id(int(p[0])) else UNSUPPORTED
 
     def _request_capabilities(self, p: tuple[float, ...], is_int: bool) -> int:
@@ -244,6 +276,51 @@ class CommandHandler:
         return ACCEPTED
 
 
+    def _orbit(self, p: tuple[float, ...], is_int: bool) -> int:
+        """MAV_CMD_DO_ORBIT: radius, tangential speed (> 0 clockwise), yaw behaviour, centre
+        lat/lon (NaN or INT32_MAX in COMMAND_INT: here) and altitude AMSL (NaN: current)."""
+        ap = self._ap
+        if not ap.armed or not ap.in_air:
+            return TEMPORARILY_REJECTED
+        n, e, d = ap.position_ned_m
+        lat, lon = (_deg_of_int(p[4]), _deg_of_int(p[5])) if is_int else (p[4], p[5])
+        prev = ap.navigator.orbit if ap.mode is FlightMode.ORBIT else None
+        center = (n, e) if prev is None else prev.center_ne_m
+        if math.isfinite(lat) and math.isfinite(lon):
+            center = ap.home.to_ned(lat, lon, ap.home.alt_m)[:2]
+        radius = p[0] if math.isfinite(p[0]) else (prev.radius_m if prev else math.hypot(n - center[0], e - center[1]))
+        if not 0.0 < abs(radius) <= ap.params.get("MC_ORBIT_RAD_MAX"):
+            return DENIED
+        speed = p[1] if math.isfinite(p[1]) else (prev.speed_m_s if prev else DEFAULT_ORBIT_SPEED_M_S)
+        yaw = int(p[2]) if math.isfinite(p[2]) else mavlink.ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TO_CIRCLE_CENTER
+        down = ap.home.alt_m - p[6] if math.isfinite(p[6]) else d
+        # A negative radius orbits counter-clockwise (as a negative speed does).
+        ap.navigator.orbit = Orbit(center, abs(radius), speed if radius > 0 else -speed, down, yaw)
+        ap.set_mode(FlightMode.ORBIT)
+        return ACCEPTED
+
+    def _inject_failure(self, p: tuple[float, ...], is_int: bool) -> int:
+        """MAV_CMD_INJECT_FAILURE (unit, type, instance), only with SYS_FAILURE_EN set."""
+        ap = self._ap
+        if int(ap.params.get("SYS_FAILURE_EN")) != 1:
+            ap.announce(CRITICAL, "Failure injection disabled")
+            return DENIED
+        unit, kind, instance = int(p[0]), int(p[1]), int(p[2])
+        if unit not in FAILURE_UNITS:
+            return UNSUPPORTED
+        if kind == mavlink.FAILURE_TYPE_OK:
+            ap.failures.pop((unit, instance), None)
+        else:
+            ap.failures[(unit, instance)] = kind
+        log.info("failure injected: unit %d instance %d type %d", unit, instance, kind)
+        return ACCEPTED
+
+
+def _deg_of_int(value: float) -> float:
+    """Degrees of a COMMAND_INT x/y (degE7); INT32_MAX means "not given" (NaN)."""
+    return math.nan if value == INT32_MAX else value * 1e-7
+
+
 def _same(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
     return all((x == y) or (math.isnan(x) and math.isnan(y)) for x, y in zip(a, b, strict=True))
 
@@ -261,4 +338,6 @@ _HANDLERS = {
     mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: CommandHandler._set_message_interval,
     mavlink.MAV_CMD_DO_CHANGE_SPEED: CommandHandler._change_speed,
     mavlink.MAV_CMD_DO_REPOSITION: CommandHandler._reposition,
+    mavlink.MAV_CMD_DO_ORBIT: CommandHandler._orbit,
+    mavlink.MAV_CMD_INJECT_FAILURE: CommandHandler._inject_failure,
 }

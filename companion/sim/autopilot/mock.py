@@ -4,12 +4,14 @@ One UDP socket bound to ``local_port`` (PX4: 14580) sends every message to the c
 remote ports (PX4: 14540 for the onboard/API link, 14550 for a ground station) and to any
 address that has sent it a packet, which is how PX4 learns a partner (see :mod:`.transport`).
 
-Behaviour follows PX4 v1.14/1.15 where clients can observe it: heartbeats with PX4 custom
+Behaviour follows PX4 v1.16 where clients can observe it: heartbeats with PX4 custom
 modes, the command protocol (acks within one physics tick, duplicates re-acked without
 re-executing), parameters with byte-wise encoding, the mission protocol, offboard that is
-refused without a setpoint stream and falls back to Hold when setpoints stop for
-``COM_OF_LOSS_T``, auto-disarm after landing (``COM_DISARM_LAND``) and when not taking off after
-arming (``COM_DISARM_PRFLT``).
+refused in the air without a setpoint stream and takes the ``COM_OBL_RC_ACT`` failsafe when
+setpoints stop for ``COM_OF_LOSS_T``, auto-disarm after landing (``COM_DISARM_LAND``) and when
+not taking off after arming (``COM_DISARM_PRFLT``). Where PX4 surprises a naive client (local
+origin below the floor, readiness delay, 1 Hz heartbeat, ...) the mock does the same, each
+behaviour switchable in :class:`~.behaviour.Px4Behaviour`.
 
 Faults for tests are set on :attr:`MockAutopilot.faults` while it runs.
 """
@@ -26,14 +28,24 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import SimulationError
 from companion.geo import GeoOrigin
 from companion.px4 import FlightMode
 from companion.sim.autopilot import offboard, telemetry
-from companion.sim.autopilot.commands import CommandHandler
+from companion.sim.autopilot.behaviour import (
+    Px4Behaviour,
+    Wobble,
+    accept_target,
+    ekf_origin,
+    report_ned,
+    report_state,
+)
+from companion.sim.autopilot.commands import PREVENTS_ARMING, CommandHandler
 from companion.sim.autopilot.estimator import SimEstimator, T_map_body_of
+from companion.sim.autopilot.guided import FollowTarget
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
 from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
@@ -51,6 +63,14 @@ from semmap.frames import Transform
 log = logging.getLogger(__name__)
 
 _LANDED = mavlink.MAV_LANDED_STATE_ON_GROUND
+#: PX4's ``COM_OBL_RC_ACT`` values (6 terminate and 7 disarm stop the motors).
+OFFBOARD_LOSS_ACTIONS = {0: FlightMode.POSCTL, 1: FlightMode.ALTCTL, 2: FlightMode.MANUAL,
+                         3: FlightMode.RTL, 4: FlightMode.LAND, 5: FlightMode.HOLD}
+MANUAL_MODES = frozenset({FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.MANUAL})
+#: Mode names as PX4 words them in messages.
+MODE_NAMES = {FlightMode.POSCTL: "Position", FlightMode.ALTCTL: "Altitude", FlightMode.RTL: "Return"}
+#: A changed parameter is broadcast again this long after the set (PX4: at least 5 ms).
+PARAM_CHANGE_BROADCAST_S = 0.02
 #: MISSION_ITEM_REACHED is sent again this long after the first time.
 REACHED_RESEND_S = 0.5
 
@@ -81,6 +101,7 @@ class MockAutopilot:
     vehicle starts on the floor facing ``start_yaw_rad`` (NED yaw, from north, clockwise).
     ``odometry_drift``: the reported pose drifts (None = it is the truth); ``vision_gain``:
     how strongly external vision corrects it (0 = received vision is recorded only).
+    ``behaviour``: which of PX4's ways to follow (default: all, see :class:`Px4Behaviour`).
     """
 
     def __init__(
@@ -99,6 +120,7 @@ class MockAutopilot:
         start_yaw_rad: float = 0.0,
         odometry_drift: OdometryDriftModel | None = None,
         vision_gain: float = 0.0,
+        behaviour: Px4Behaviour | None = None,
     ) -> None:
         if physics_rate_hz <= 0:
             raise SimulationError(f"physics_rate_hz must be > 0 (got {physics_rate_hz})")
@@ -107,7 +129,10 @@ class MockAutopilot:
             raise SimulationError(f"unknown telemetry streams {sorted(unknown)} "
                                   f"(known: {sorted(telemetry.STREAMS)})")
         self.host = host
+        self.behaviour = behaviour or Px4Behaviour()
         self.home = home or GeoOrigin()
+        #: The origin of the local frame the mock reports (PX4's EKF origin, below the floor).
+        self.ekf_origin = ekf_origin(self.home, self.behaviour.floor_z_ned_m)
         self.system_id = system_id
         self.params = ParamStore({"MAV_SYS_ID": system_id, **(params or {})})
         self.faults = Faults()
@@ -124,6 +149,7 @@ class MockAutopilot:
         #: by external vision (see :mod:`.estimator`).
         self.estimator = SimEstimator(odometry_drift, vision_gain)
         self._mode = FlightMode.HOLD
+        self._mode_after_disarm = FlightMode.HOLD
         self._armed = False
         self._armed_at_s = 0.0
         self._has_flown = False
@@ -133,7 +159,8 @@ class MockAutopilot:
                                       self._on_set_current)
         self.missions.reject_seq = lambda: self.faults.reject_mission_seq
         self.navigator = Navigator(self.vehicle, self.params, self.home, self.set_mode,
-                                   self._on_item_reached, self._on_current_changed)
+                                   self._on_item_reached, self._on_current_changed,
+                                   null_island_items=self.behaviour.null_island_items)
         self.navigator.enter(FlightMode.HOLD)
         self.commands = CommandHandler(self)
         # offboard
@@ -159,7 +186,16 @@ class MockAutopilot:
         self._streams: dict[str, list[float]] = {
             n: [1.0 / r if r > 0 else 0.0, 0.0] for n, r in rates.items()}
         self._default_rates = dict(rates)
+        #: Changed parameters to broadcast: (due on the mock clock, name).
+        self._params_changed: deque[tuple[float, str]] = deque()
         self._battery_pct = 100.0
+        self._wobble = Wobble(self.behaviour.wobble_m, seed)
+        #: Received offboard targets waiting out ``tracking_delay_s``: (apply at s, target).
+        self._delayed_targets: deque[tuple[float, Target]] = deque()
+        #: Injected failures (MAV_CMD_INJECT_FAILURE): (FAILURE_UNIT, instance) -> FAILURE_TYPE.
+        self.failures: dict[tuple[int, int], int] = {}
+        #: PX4's pre-flight checks pass (EKF and GPS converged): arming allowed, home valid.
+        self.ready = self.behaviour.ready_after_s <= 0.0
 
     # --- lifecycle -----------------------------------------------------------------------
 
@@ -208,12 +244,13 @@ class MockAutopilot:
     # --- state for tests and the simulator -----------------------------------------------
 
     def now_s(self) -> float:
-        """Seconds since the mock started (its clock for every recorded stamp)."""
-        return time.monotonic() - self._t0
+        """Seconds since the mock started on its own clock (``clock_rate`` x wall clock), the
+        clock of every stamp it sends or records."""
+        return (time.monotonic() - self._t0) * self.behaviour.clock_rate
 
     def stamp_of_monotonic(self, monotonic_s: float) -> float:
         """A ``time.monotonic`` instant on the mock's clock (what TIMESYNC estimates)."""
-        return monotonic_s - self._t0
+        return (monotonic_s - self._t0) * self.behaviour.clock_rate
 
     @property
     def tick_monotonic_s(self) -> float:
@@ -293,24 +330,29 @@ class MockAutopilot:
         log.log(level, "%s", text)
         self.status_texts.append(text)
         if self._link.is_open:
-            self.send(self._mav.statustext_encode(severity, text.encode("ascii", "replace")[:50]))
+            for chunk in telemetry.statustext_chunks(self._mav, severity, text):
+                self.send(chunk)
 
     # --- mode and arming (used by the command handler and the navigator) ----------------
 
     def set_mode(self, mode: FlightMode, *, takeoff_alt_m: float | None = None,
-                 hold_at_ned_m: tuple[float, float, float] | None = None) -> None:
-        """Switch mode unconditionally (checks live in the command handler)."""
+                 hold_at_ned_m: tuple[float, float, float] | None = None,
+                 failsafe: bool = False) -> None:
+        """Switch mode unconditionally (checks live in the command handler); ``failsafe``: a
+        failsafe action, which PX4 does not take as the user's choice of mode."""
         if mode is not self._mode:
             log.info("mode %s -> %s", self._mode.name, mode.name)
             self.mode_changes.append((self.now_s(), mode))
         self._mode = mode
+        if not failsafe and mode not in PREVENTS_ARMING and mode is not FlightMode.TAKEOFF:
+            self._mode_after_disarm = mode
         self.navigator.enter(mode, takeoff_alt_m=takeoff_alt_m, hold_at_ned_m=hold_at_ned_m)
         if mode is FlightMode.OFFBOARD:
             if self._offboard_target is not None:
                 self.vehicle.set_target(self._offboard_target)
         elif not mode.is_auto:
             self.vehicle.hold_here()
-        self._send_now("HEARTBEAT")
+        self._heartbeat_on_change()
 
     def arm(self) -> None:
         if not self._armed:
@@ -328,14 +370,22 @@ class MockAutopilot:
             self.navigator.enter(self._mode)
         elif self._mode is not FlightMode.OFFBOARD:
             self.vehicle.hold_here()
-        self._send_now("HEARTBEAT")
+        self._heartbeat_on_change()
 
     def disarm(self) -> None:
         if self._armed:
             log.info("disarmed")
         self._armed = False
         self.vehicle.motors_on = False
-        self._send_now("HEARTBEAT")
+        if self.behaviour.mode_after_disarm and self._mode is not self._mode_after_disarm:
+            # PX4 goes back to the last mode chosen that allows arming (UserModeIntention).
+            self.set_mode(self._mode_after_disarm)
+        self._heartbeat_on_change()
+
+    def _heartbeat_on_change(self) -> None:
+        # PX4 sends HEARTBEAT on its 1 Hz schedule only: a change is seen up to 1 s late.
+        if self.behaviour.heartbeat_on_change:
+            self._send_now("HEARTBEAT")
 
     def offboard_available(self) -> bool:
         """True when setpoints arrived within COM_OF_LOSS_T (PX4's offboard signal check)."""
@@ -364,9 +414,10 @@ class MockAutopilot:
 
     def _tick(self, dt_s: float) -> None:
         now = self.now_s()
-        self._tick_monotonic_s = now + self._t0
+        self._tick_monotonic_s = self._t0 + now / self.behaviour.clock_rate
         # Physics steps at most 0.1 s after a stall; the state's stamp stays on our clock
         # (what TIMESYNC and the telemetry's time_boot_ms report).
+        self._track(now)
         self.vehicle.step(dt_s, clock_s=now)
         self.estimator.update(self.vehicle.state(), armed=self._armed)
         self.navigator.tick(self.vehicle.stamp_s)
@@ -378,22 +429,42 @@ class MockAutopilot:
             self._reached_resend = None
         if self._armed:
             self._battery_pct = max(0.0, self._battery_pct - dt_s * 100.0 / 1200.0)
+        while self._params_changed and self._params_changed[0][0] <= now:
+            self._send_param(self._params_changed.popleft()[1])
+        if not self.ready and now >= self.behaviour.ready_after_s:
+            self._become_ready()
         self._stream(now)
         if self.peer_clock.request_due(now):
             self.send(self._mav.timesync_encode(0, int(now * 1e9)))
 
+    def _become_ready(self) -> None:
+        self.ready = True
+        self.announce(mavlink.MAV_SEVERITY_INFO, "Ready for takeoff!")
+        self._send_now("HOME_POSITION")
+
     def _check_offboard(self, now: float) -> None:
-        if self._mode is not FlightMode.OFFBOARD:
-            return
+        if self._mode is not FlightMode.OFFBOARD or not self._armed:
+            return  # PX4's failsafes act only while armed
         if now - self._last_setpoint_s > self.params.get("COM_OF_LOSS_T"):
-            action = {3: FlightMode.RTL, 4: FlightMode.LAND}.get(
-                int(self.params.get("COM_OBL_RC_ACT")), FlightMode.HOLD)
+            act = int(self.params.get("COM_OBL_RC_ACT"))
+            if self.behaviour.offboard_loss_px4_actions:
+                action = OFFBOARD_LOSS_ACTIONS.get(act, FlightMode.HOLD)
+            else:
+                action = {3: FlightMode.RTL, 4: FlightMode.LAND}.get(act, FlightMode.HOLD)
             if action is FlightMode.RTL and not self.in_air:
                 action = FlightMode.HOLD
-            self.announce(mavlink.MAV_SEVERITY_WARNING,
-                          f"Failsafe: offboard signal lost, {action.name.title()}")
+            disarm = self.behaviour.offboard_loss_px4_actions and act in (6, 7)  # terminate, disarm
+            self.announce(mavlink.MAV_SEVERITY_WARNING, "Failsafe: offboard signal lost, "
+                          + ("Disarm" if disarm else MODE_NAMES.get(action, action.name.title())))
             self.failsafes.append(FailsafeEvent(now, "offboard setpoint loss", action))
-            self.set_mode(action)
+            self.set_mode(action, failsafe=True)
+            if disarm:
+                self.disarm()
+            elif action in MANUAL_MODES:
+                # No RC: nothing holds the sticks, PX4 descends until it detects the landing.
+                n, e, _d = self.vehicle.position_ned_m
+                self.vehicle.set_target(Target(position_ned_m=(n, e, math.nan),
+                                               velocity_ned_m_s=(0.0, 0.0, self.params.get("MPC_LAND_SPEED"))))
 
     def _wants_climb(self) -> bool:
         tgt = self.vehicle.target
@@ -433,7 +504,7 @@ class MockAutopilot:
                 self.announce(mavlink.MAV_SEVERITY_INFO, "Disarmed by landing")
                 self.disarm()
                 if self._mode in (FlightMode.LAND, FlightMode.RTL):
-                    self.set_mode(FlightMode.HOLD)
+                    self.set_mode(FlightMode.HOLD)  # the naive autopilot's way
         else:
             limit = self.params.get("COM_DISARM_PRFLT")
             if limit > 0 and now - self._armed_at_s >= limit:
@@ -445,21 +516,27 @@ class MockAutopilot:
     def snapshot(self) -> telemetry.Snapshot:
         now = self.now_s()
         health = telemetry.SENSORS_OK
-        if self.faults.prearm_fail:
+        if self.faults.prearm_fail or not self.ready:
             health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        for unit, _instance in self.failures:
+            health &= ~telemetry.FAILURE_UNIT_SENSOR_BITS[unit]
         nav = self.navigator
+        floor_z = self.behaviour.floor_z_ned_m
         return telemetry.Snapshot(
-            time_boot_ms=int(now * 1000), time_usec=int(now * 1e6), vehicle=self.estimated_state(),
-            home=self.home, home_ned_m=self.navigator.home_ned_m, mode=self._mode, armed=self._armed, landed_state=self.landed_state,
+            time_boot_ms=int(now * 1000), time_usec=int(now * 1e6),
+            vehicle=report_state(self.estimated_state(), floor_z), home=self.ekf_origin,
+            home_ned_m=report_ned(self.navigator.home_ned_m, floor_z), mode=self._mode,
+            armed=self._armed, landed_state=self.landed_state,
             sensors_health=health, mission_seq=nav.mission_seq, mission_total=nav.mission_count,
             mission_state=int(nav.mission_state), battery_remaining_pct=int(self._battery_pct),
-            system_id=self.system_id)
+            system_id=self.system_id,
+            gps_fix=not any(u == mavlink.FAILURE_UNIT_SENSOR_GPS for u, _i in self.failures))
 
     def _stream(self, now: float) -> None:
         snap: telemetry.Snapshot | None = None
         for name, sched in self._streams.items():
             interval, due = sched
-            if interval <= 0 or now < due:
+            if interval <= 0 or now < due or (name == "HOME_POSITION" and not self.ready):
                 continue
             sched[1] = due + interval if now - due < interval else now + interval
             snap = snap or self.snapshot()
@@ -550,6 +627,8 @@ class MockAutopilot:
             self._on_param_set(msg)
         elif mtype == "TIMESYNC":
             self._on_timesync(msg, now)
+        elif mtype == "FOLLOW_TARGET":
+            self._on_follow_target(msg, now)
 
     def _on_timesync(self, msg: Any, now: float) -> None:
         """Answer a request on our clock; learn from an answer to ours (PX4's ``MavlinkTimesync``)."""
@@ -557,6 +636,17 @@ class MockAutopilot:
             self.send(self._mav.timesync_encode(int(now * 1e9), msg.ts1))
         else:
             self.peer_clock.add_answer(msg.ts1, msg.tc1, now)
+
+    def _on_follow_target(self, msg: Any, now: float) -> None:
+        """A target to follow (lat/lon degE7, alt AMSL, NED velocity), in Follow Target mode."""
+        pos = self.home.to_ned(msg.lat * 1e-7, msg.lon * 1e-7, float(msg.alt))
+        vel = tuple(float(v) for v in msg.vel)
+        if not all(math.isfinite(v) for v in pos):
+            log.warning("FOLLOW_TARGET with a non-finite position ignored")
+            return
+        if self.navigator.follow_target is None:
+            self.navigator.follow_target = FollowTarget(pos, vel, now)  # type: ignore[arg-type]
+        self.navigator.follow_target.update(pos, vel, now)  # type: ignore[arg-type]
 
     def _send_param(self, name: str) -> None:
         spec = self.params.spec(name)
@@ -578,7 +668,10 @@ class MockAutopilot:
         else:
             value = decode_value(msg.param_value, spec.param_type)
             if math.isfinite(value):
-                self.params.set(name, value)
+                old = self.params.get(name)
+                if self.params.set(name, value) != old:
+                    # PX4 broadcasts a changed parameter again shortly after (send_untransmitted).
+                    self._params_changed.append((self.now_s() + PARAM_CHANGE_BROADCAST_S, name))
                 self.vehicle.limits = self._limits_from_params()
             else:
                 log.warning("PARAM_SET %s: non-finite value ignored", name)
@@ -596,8 +689,10 @@ class MockAutopilot:
         mtype = msg.get_type()
         try:
             if mtype == "SET_POSITION_TARGET_LOCAL_NED":
-                est = self.estimated_state()
-                target = offboard.target_from_local_ned(msg, est.position_ned_m, est.yaw_rad)
+                floor_z = self.behaviour.floor_z_ned_m
+                est = report_state(self.estimated_state(), floor_z)
+                target = accept_target(
+                    offboard.target_from_local_ned(msg, est.position_ned_m, est.yaw_rad), floor_z)
             elif mtype == "SET_POSITION_TARGET_GLOBAL_INT":
                 target = offboard.target_from_global_int(msg, self.home)
             else:
@@ -611,9 +706,22 @@ class MockAutopilot:
         self.setpoints.append(offboard.ReceivedSetpoint(now, mtype, frame, int(msg.type_mask),
                                                         target))
         self._last_setpoint_s = now
+        if self.behaviour.tracking_delay_s > 0.0:
+            self._delayed_targets.append((now + self.behaviour.tracking_delay_s, target))
+        else:
+            self._apply_offboard_target(target)
+
+    def _apply_offboard_target(self, target: Target) -> None:
         self._offboard_target = target
         if self._mode is FlightMode.OFFBOARD:
             self.vehicle.set_target(target)
+
+    def _track(self, now: float) -> None:
+        """PX4's tracking: offboard setpoints take effect late, the vehicle wobbles in the air."""
+        while self._delayed_targets and self._delayed_targets[0][0] <= now:
+            self._apply_offboard_target(self._delayed_targets.popleft()[1])
+        flying = self.vehicle.motors_on and not self.vehicle.on_ground
+        self.vehicle.target_offset_ned_m = self._wobble.offset_ned_m(now) if flying else np.zeros(3)
 
     def _on_vision(self, msg: Any, now: float) -> None:
         if msg.get_type() == "ODOMETRY":
@@ -648,6 +756,11 @@ class MockAutopilot:
         if mission_type == mavlink.MAV_MISSION_TYPE_MISSION:
             self.navigator.set_mission(self.missions.items(mission_type))
             self.reached_items.clear()
+            first_m = self.navigator.first_waypoint_distance_m()
+            if first_m is not None and first_m > self.params.get("MIS_DIST_1WP") > 0:
+                # PX4's feasibility check warns and still accepts the mission.
+                self.announce(mavlink.MAV_SEVERITY_WARNING, f"First waypoint far away from home: "
+                              f"{first_m:.0f}m. Correct mission loaded?")
 
     def _on_set_current(self, seq: int) -> bool:
         ok = self.navigator.set_current(seq)

@@ -22,6 +22,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.geo import GeoOrigin
 from companion.px4 import FlightMode
+from companion.sim.autopilot.guided import FollowParams, FollowTarget, Orbit
 from companion.sim.autopilot.mission_server import GLOBAL_FRAMES, MissionItem
 from companion.sim.autopilot.params import ParamStore
 from companion.sim.autopilot.vehicle import KinematicMulticopter, Target
@@ -29,6 +30,11 @@ from companion.sim.autopilot.vehicle import KinematicMulticopter, Target
 log = logging.getLogger(__name__)
 
 _NAN3 = (math.nan, math.nan, math.nan)
+#: Mission commands whose item holds a position (PX4's ``item_contains_position``).
+POSITION_COMMANDS = frozenset({
+    mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_LOITER_UNLIM, mavlink.MAV_CMD_NAV_LOITER_TIME,
+    mavlink.MAV_CMD_NAV_LOITER_TURNS, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
+})
 
 
 class MissionState(enum.IntEnum):
@@ -77,8 +83,12 @@ class Navigator:
         set_mode: Callable[[FlightMode], None],
         item_reached: Callable[[int], None],
         current_changed: Callable[[int], None],
+        *,
+        null_island_items: bool = False,
     ) -> None:
         self._vehicle = vehicle
+        #: PX4 flies an item's lat/lon 0/0 as given (True) instead of taking it as "here".
+        self.null_island_items = null_island_items
         self._params = params
         self.home = home  # the local NED origin, for lat/lon conversions
         #: Home (where the vehicle last armed) in local NED: RTL target, relative altitudes.
@@ -95,6 +105,10 @@ class Navigator:
         self._speed_xy_m_s: float | None = None
         self.landed_by_navigator = False
         self._last_goto_ned_m: tuple[float, float, float] | None = None
+        #: The orbit being flown in ORBIT mode (set by MAV_CMD_DO_ORBIT).
+        self.orbit: Orbit | None = None
+        #: The latest FOLLOW_TARGET (followed in FOLLOW_TARGET mode).
+        self.follow_target: FollowTarget | None = None
 
     # --- mission storage -----------------------------------------------------------------
 
@@ -160,6 +174,9 @@ class Navigator:
                 # altitude the vehicle happens to pass through.
                 target = (target[0], target[1], prev[2])
             self._legs = [_Leg(_Phase.WAIT, target, yaw, until_s=math.inf)]
+        elif mode is FlightMode.FOLLOW_TARGET:
+            # Holds until a FOLLOW_TARGET arrives, then follows it (see tick).
+            self._legs = [_Leg(_Phase.WAIT, (n, e, d), yaw, until_s=math.inf)]
         elif mode is FlightMode.LAND:
             self._legs = [_Leg(_Phase.LAND, (n, e, math.nan), yaw)]
         elif mode is FlightMode.RTL:
@@ -206,7 +223,7 @@ class Navigator:
     # --- mission items -------------------------------------------------------------------
 
     def _item_ned(self, it: MissionItem) -> tuple[float, float, float]:
-        """Local NED of an item; lat/lon 0 means "here" (PX4 convention for takeoff/land)."""
+        """Local NED of an item; lat/lon 0/0 is "here" unless :attr:`null_island_items`."""
         n, e, d = self._pos()
         if it.frame not in GLOBAL_FRAMES:
             return (n, e, d)
@@ -214,10 +231,20 @@ class Navigator:
             alt_d = self.home.alt_m - it.z  # AMSL
         else:
             alt_d = self.home_ned_m[2] - it.z  # relative to home
-        if it.x != 0 or it.y != 0:
+        if it.x != 0 or it.y != 0 or self.null_island_items:
             tn, te, _ = self.home.to_ned(it.lat_deg, it.lon_deg, self.home.alt_m)
             return (tn, te, alt_d)
         return (n, e, alt_d)
+
+    def first_waypoint_distance_m(self) -> float | None:
+        """Horizontal distance from home to the mission's first item with a position (what
+        PX4's feasibility check compares with ``MIS_DIST_1WP``); None without one."""
+        for it in self._mission:
+            if it.command in POSITION_COMMANDS and it.frame in GLOBAL_FRAMES:
+                n, e, _ = (self.home.to_ned(it.lat_deg, it.lon_deg, self.home.alt_m)
+                           if it.x != 0 or it.y != 0 or self.null_island_items else self._pos())
+                return math.hypot(n - self.home_ned_m[0], e - self.home_ned_m[1])
+        return None
 
     def _accept_radius(self, it: MissionItem) -> float:
         return it.param2 if it.param2 > 0 else self._params.get("NAV_ACC_RAD")
@@ -259,10 +286,13 @@ class Navigator:
             return [_Leg(_Phase.GOTO, tgt, yaw, self._accept_radius(it), hold_s=max(0.0, hold))]
         if c == mavlink.MAV_CMD_NAV_TAKEOFF:
             # Straight up where the vehicle is; already higher = reached (PX4 does the same).
-            _tn, _te, td = self._item_ned(it)
+            tn, te, td = self._item_ned(it)
             n, e, d = self._pos()
-            return [_Leg(_Phase.CLIMB, (n, e, min(td, d)), self._vehicle.yaw_rad,
-                         accept_radius_m=0.2)]
+            legs = [_Leg(_Phase.CLIMB, (n, e, min(td, d)), self._vehicle.yaw_rad, accept_radius_m=0.2)]
+            if self.null_island_items and it.frame in GLOBAL_FRAMES:
+                # Then on to the item's position, as PX4 does (0/0 included).
+                legs.append(_Leg(_Phase.GOTO, (tn, te, min(td, d)), None, self._accept_radius(it)))
+            return legs
         if c == mavlink.MAV_CMD_NAV_LAND:
             n, e, d = self._item_ned(it)
             cur_d = self._pos()[2]
@@ -334,9 +364,17 @@ class Navigator:
 
     def tick(self, now_s: float) -> None:
         """Advance the active auto mode (call once per physics step, after the vehicle moved)."""
-        if self.mode is None or not self.mode.is_auto or not self._legs:
-            return
         if not self._vehicle.motors_on:
+            return
+        if self.mode is FlightMode.ORBIT and self.orbit is not None:
+            self._vehicle.set_target(self.orbit.target(self._pos()))
+            return
+        if self.mode is FlightMode.FOLLOW_TARGET and self.follow_target is not None:
+            p = self._params.get
+            params = FollowParams(p("FLW_TGT_HT"), p("FLW_TGT_DST"), p("FLW_TGT_FA"), int(p("FLW_TGT_ALT_M")))
+            self._vehicle.set_target(self.follow_target.setpoint(params, self.home_ned_m[2]))
+            return
+        if self.mode is None or not self.mode.is_auto or not self._legs:
             return
         leg = self._legs[0]
         n, e, d = self._pos()

@@ -9,6 +9,7 @@ stream would only load a test machine: ATTITUDE_QUATERNION, GLOBAL_POSITION_INT)
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -38,6 +39,17 @@ SENSORS_OK = (
     | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
     | mavlink.MAV_SYS_STATUS_PREARM_CHECK
 )
+
+#: The SYS_STATUS health bit each simulated sensor failure clears (MAV_CMD_INJECT_FAILURE).
+FAILURE_UNIT_SENSOR_BITS = {
+    mavlink.FAILURE_UNIT_SENSOR_GYRO: mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO,
+    mavlink.FAILURE_UNIT_SENSOR_ACCEL: mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL,
+    mavlink.FAILURE_UNIT_SENSOR_MAG: mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG,
+    mavlink.FAILURE_UNIT_SENSOR_BARO: mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE,
+    mavlink.FAILURE_UNIT_SENSOR_GPS: mavlink.MAV_SYS_STATUS_SENSOR_GPS,
+}
+#: Earth's magnetic field at PX4 SITL's home (Zurich), NED, gauss.
+MAG_FIELD_NED_GAUSS = (0.21, 0.01, 0.43)
 
 CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
@@ -75,6 +87,7 @@ class Snapshot:
     mission_state: int  # MISSION_STATE_*
     battery_remaining_pct: int
     system_id: int
+    gps_fix: bool = True  # False while a GPS failure is injected
 
 
 def quaternion_wxyz(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, ...]:
@@ -152,16 +165,18 @@ def gps_raw_int(mav: mavlink.MAVLink, s: Snapshot) -> Any:
     (n, e, d), (vn, ve, _vd) = s.vehicle.position_ned_m, s.vehicle.velocity_ned_m_s
     lat, lon, alt = s.home.to_global(n, e, d)
     cog = int(round(math.degrees(math.atan2(ve, vn)) % 360.0 * 100)) % 36000
+    fix = mavlink.GPS_FIX_TYPE_3D_FIX if s.gps_fix else mavlink.GPS_FIX_TYPE_NO_FIX
     return mav.gps_raw_int_encode(
-        s.time_usec, mavlink.GPS_FIX_TYPE_3D_FIX, int(round(lat * 1e7)), int(round(lon * 1e7)),
-        int(round(alt * 1000)), 80, 120, int(round(math.hypot(vn, ve) * 100)), cog, 14)
+        s.time_usec, fix, int(round(lat * 1e7)), int(round(lon * 1e7)),
+        int(round(alt * 1000)), 80, 120, int(round(math.hypot(vn, ve) * 100)), cog, 14 if s.gps_fix else 0)
 
 
 def altitude(mav: mavlink.MAVLink, s: Snapshot) -> Any:
     d = s.vehicle.position_ned_m[2]
     amsl = s.home.alt_m - d
     rel = s.home_ned_m[2] - d
-    return mav.altitude_encode(s.time_usec, amsl, amsl, -d, rel, -d, -d)
+    # Terrain and bottom clearance: the height above the floor, which home stands on.
+    return mav.altitude_encode(s.time_usec, amsl, amsl, -d, rel, rel, rel)
 
 
 def vfr_hud(mav: mavlink.MAVLink, s: Snapshot) -> Any:
@@ -200,10 +215,46 @@ def odometry(mav: mavlink.MAVLink, s: Snapshot) -> Any:
         mavlink.MAV_ESTIMATOR_TYPE_NAIVE, 100)
 
 
+def highres_imu(mav: mavlink.MAVLink, s: Snapshot) -> Any:
+    """The IMU as a hovering vehicle's would read it: specific force and the earth's field in
+    FRD body axes, the yaw rate, ISA pressure at the altitude."""
+    v = s.vehicle
+    cr, sr = math.cos(v.roll_rad), math.sin(v.roll_rad)
+    cp, sp = math.cos(v.pitch_rad), math.sin(v.pitch_rad)
+    cy, sy = math.cos(v.yaw_rad), math.sin(v.yaw_rad)
+    # Rows of R_frd_ned (ZYX Euler): NED vectors into the body.
+    rows = ((cp * cy, cp * sy, -sp),
+            (sr * sp * cy - cr * sy, sr * sp * sy + cr * cy, sr * cp),
+            (cr * sp * cy + sr * sy, cr * sp * sy - sr * cy, cr * cp))
+    gravity = 9.80665
+    acc = [-gravity * r[2] for r in rows]  # specific force holds the vehicle up: -g in NED
+    mag = [sum(r[i] * MAG_FIELD_NED_GAUSS[i] for i in range(3)) for r in rows]
+    alt_m = s.home.alt_m - v.position_ned_m[2]
+    pressure_hpa = 1013.25 * (1.0 - 2.25577e-5 * alt_m) ** 5.25588
+    return mav.highres_imu_encode(s.time_usec, acc[0], acc[1], acc[2], 0.0, 0.0, v.yaw_rate_rad_s,
+                                  mag[0], mag[1], mag[2], pressure_hpa, 0.0, alt_m, 25.0, 0x1FFF, 0)
+
+
 def autopilot_version(mav: mavlink.MAVLink, s: Snapshot) -> Any:
     return mav.autopilot_version_encode(
         CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x0011,
         0x4D4F434B00000000 + s.system_id)
+
+
+_statustext_ids = itertools.count(1)
+
+
+def statustext_chunks(mav: mavlink.MAVLink, severity: int, text: str) -> list[Any]:
+    """STATUSTEXT for ``text``: one message, or for more than 50 characters numbered chunks
+    sharing an ``id`` (MAVLink 2; PX4 sends up to 127 characters this way)."""
+    data = text.encode("ascii", "replace")[:127]
+    if len(data) <= 50:
+        return [mav.statustext_encode(severity, data)]
+    msg_id = next(_statustext_ids) % 65535 + 1
+    chunks = [data[i:i + 50] for i in range(0, len(data), 50)]
+    if len(data) % 50 == 0:
+        chunks.append(b"")  # the terminating chunk a multiple of 50 characters needs
+    return [mav.statustext_encode(severity, c, msg_id, seq) for seq, c in enumerate(chunks)]
 
 
 Encoder = Callable[[mavlink.MAVLink, Snapshot], Any]
@@ -224,6 +275,7 @@ STREAMS: dict[str, tuple[int, Encoder, float]] = {
     "VFR_HUD": (mavlink.MAVLINK_MSG_ID_VFR_HUD, vfr_hud, 4.0),
     "BATTERY_STATUS": (mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, battery_status, 1.0),
     "MISSION_CURRENT": (mavlink.MAVLINK_MSG_ID_MISSION_CURRENT, mission_current, 1.0),
+    "HIGHRES_IMU": (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, highres_imu, 0.0),
 }
 
 #: Messages that can be requested once (MAV_CMD_REQUEST_MESSAGE) but are not streamed.

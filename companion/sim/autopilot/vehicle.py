@@ -115,6 +115,8 @@ class KinematicMulticopter:
         self._roll = 0.0
         self._pitch = 0.0
         self._target = Target(position_ned_m=tuple(self._p), yaw_rad=self._yaw)  # type: ignore[arg-type]
+        #: (3,) NED m added to the target position: the controller's imperfect tracking.
+        self.target_offset_ned_m: NDArray[np.float64] = np.zeros(3)
 
     # --- inputs --------------------------------------------------------------------------
 
@@ -220,7 +222,7 @@ class KinematicMulticopter:
             v = np.nan_to_num(np.array(tgt.velocity_ned_m_s, dtype=np.float64))
         if tgt.position_ned_m is not None:
             # NaN components leave that axis to the velocity (PX4 trajectory_setpoint style).
-            err = np.array(tgt.position_ned_m, dtype=np.float64) - self._p
+            err = np.array(tgt.position_ned_m, dtype=np.float64) + self.target_offset_ned_m - self._p
             d_xy = float(np.linalg.norm(err[:2]))
             if math.isfinite(d_xy) and d_xy > 1e-6:
                 s = _approach_speed(d_xy, v_xy_max, lim.max_accel_xy_m_s2, lim.position_gain_1_s)

@@ -1,0 +1,137 @@
+"""The mission runner against a mock that behaves like PX4: local origin off the floor,
+readiness after boot, OFFBOARD dropped during TAKEOFF, the landed mode kept, a clock at
+another rate. Each test fails with the runner that flew PX4 SITL through a desk."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Awaitable, Callable
+
+import pytest
+
+from companion.config import CompanionConfig
+from companion.mavlink.vehicle import Vehicle
+from companion.px4 import FlightMode
+from companion.service.demo import free_udp_port
+from companion.service.mission_runner import MissionRunner
+from companion.sim.autopilot import MockAutopilot
+from companion.sim.autopilot.behaviour import Px4Behaviour
+from companion.sources.poses import SharedPoseHistory, TelemetryPoseRecorder
+from planner.worker import PlanningService
+from semmap.costmap import Costmap
+
+#: A closed-loop flight: the full suite runs it, `make check` does not.
+pytestmark = pytest.mark.slow
+
+ALTITUDE_M = 1.0
+
+
+def _no_map() -> Costmap:
+    raise AssertionError("taking off needs no map")
+
+
+def _fly(behaviour: Px4Behaviour,
+         body: Callable[[MockAutopilot, Vehicle, MissionRunner], Awaitable[None]]) -> None:
+    cfg = CompanionConfig()
+    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"takeoff_survey_deg": 0.0})})
+    link_port = free_udp_port()
+    link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}", "ready_timeout_s": 20.0})
+
+    async def main() -> None:
+        async with MockAutopilot(local_port=0, remote_ports=(link_port,), behaviour=behaviour,
+                                 params={"COM_DISARM_PRFLT": -1.0}) as ap, Vehicle(link) as v:
+            runner = MissionRunner(v, PlanningService(cfg.planner), _no_map, cfg.planner)
+            await v.wait_connected(timeout_s=15.0)
+            await body(ap, v, runner)
+
+    asyncio.run(main())
+
+
+def test_offboard_engaged_only_when_airborne_at_the_take_off_height() -> None:
+    """With the local origin 1.5 m below the floor's reading, 'z above altitude - 0.1' held on
+    the ground, and OFFBOARD was engaged there. Now it is engaged only in the air, at the
+    take-off height above home."""
+    engaged_at_height: list[float] = []
+
+    async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
+        done = asyncio.Event()
+
+        async def watch() -> None:
+            while not done.is_set():
+                if ap.mode is FlightMode.OFFBOARD and not engaged_at_height:
+                    engaged_at_height.append(-ap.vehicle.position_ned_m[2])  # truth: above the floor
+                await asyncio.sleep(0.01)
+
+        watcher = asyncio.create_task(watch())
+        try:
+            await runner.take_off(ALTITUDE_M)
+            await asyncio.sleep(0.2)  # the watcher samples every 10 ms: let it see the switch
+        finally:
+            done.set()
+            await watcher
+        assert ap.in_air
+        await runner.finish()
+
+    _fly(Px4Behaviour(floor_z_ned_m=-1.5), body)
+    assert engaged_at_height and engaged_at_height[0] >= ALTITUDE_M - 0.15
+
+
+def test_take_off_waits_for_readiness_and_ends_the_take_off_before_offboard() -> None:
+    """PX4 refuses to arm before 'Ready for takeoff!' and drops an OFFBOARD request made
+    during TAKEOFF (the take-off then ends in Hold)."""
+
+    async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
+        assert not ap.ready
+        await runner.take_off(ALTITUDE_M)
+        assert ap.ready and ap.mode is FlightMode.OFFBOARD and ap.in_air
+        modes = [m for _, m in ap.mode_changes]
+        assert modes.index(FlightMode.TAKEOFF) < modes.index(FlightMode.HOLD) < modes.index(FlightMode.OFFBOARD)
+        await runner.finish()
+
+    _fly(Px4Behaviour(ready_after_s=3.0), body)
+
+
+def test_a_landed_vehicle_left_in_offboard_takes_off_again() -> None:
+    """PX4 accepts OFFBOARD while disarmed (from any ground station) and then refuses to arm;
+    it also keeps OFFBOARD after an offboard landing. The runner puts it in Hold first."""
+
+    async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
+        await runner.take_off(ALTITUDE_M)
+        await runner.finish(FlightMode.LAND)
+        await v.state.wait_for(lambda s: not s.armed, 60.0, "the vehicle to land and disarm")
+        ap.set_mode(FlightMode.OFFBOARD)  # what a ground station's mode switch does
+        await v.state.wait_for(lambda s: s.flight_mode is FlightMode.OFFBOARD, 3.0, "OFFBOARD reported")
+        await runner.take_off(ALTITUDE_M)
+        assert ap.in_air and ap.mode is FlightMode.OFFBOARD
+        await runner.finish()
+
+    _fly(Px4Behaviour(ready_after_s=0.0), body)
+
+
+@pytest.mark.parametrize("clock_rate", [0.99, 1.02])
+def test_telemetry_poses_stay_on_time_with_an_autopilot_clock_at_another_rate(clock_rate: float) -> None:
+    """Lockstep PX4 SITL ran at 0.993x wall clock and every frame lost its telemetry pose
+    within 15 s. TIMESYNC round trips give the rate: the pose stamps stay on our clock."""
+    history = SharedPoseHistory()
+    lags: list[float] = []
+
+    async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
+        recorder = TelemetryPoseRecorder(history, remote_to_local=v.autopilot_clock.to_local,
+                                         map_frame=lambda: v.snapshot().map_frame)
+        remove = v.link.add_listener(recorder.handle, recorder.MESSAGES)
+        try:
+            await v.state.wait_for(lambda s: s.home is not None, 10.0, "home")
+            t_end = time.monotonic() + 20.0
+            while time.monotonic() < t_end:
+                await asyncio.sleep(0.5)
+                newest = history.latest_stamp_s()
+                if newest is not None:
+                    lags.append(time.monotonic() - newest)
+        finally:
+            remove()
+
+    _fly(Px4Behaviour(ready_after_s=0.0, clock_rate=clock_rate), body)
+    # Telemetry streams at tens of Hz: the newest pose is always from the last fraction of a
+    # second, never drifting 1-2 % of the run away (0.2-0.4 s after 20 s).
+    assert len(lags) > 30 and max(abs(x) for x in lags[10:]) < 0.15
