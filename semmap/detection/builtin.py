@@ -13,8 +13,9 @@ Two ship (see their model cards in ``semmap/models/``):
 
 A shipped model may carry two side files beside ``NAME_*.onnx``: ``<stem>.classes.txt`` (its
 class names, one per line, for a model whose ONNX file has no ``names`` metadata) and
-``<stem>.classmap.json`` (``{"class_map": {model class: our class}}``, used when the config's
-``detector.class_map`` is empty). The config overrides both.
+``<stem>.classmap.json`` (``{"class_map": {model class: our class or [ours, ...]},
+"operating_point": {"score_threshold", "class_score_thresholds", "nms_iou"}}``, used where the
+config's ``detector`` keys are empty or null). The config overrides them.
 """
 
 from __future__ import annotations
