@@ -209,12 +209,15 @@ def map_room(
     seed: int, n_frames: int, noise: OracleNoise | None = None,
     geometry: GeometryConfig | None = None, map_cfg: MapConfig | None = None,
     classes: list[ClassConfig] | None = None, vote_groups: dict[str, tuple[str, ...]] | None = None,
+    class_weights: dict[str, float] | None = None,
 ) -> tuple[Room, ObjectMap, dict[int, int], list[float]]:
     """Fly one seeded room and build its object map (``classes``: the object map's, default
-    :func:`default_classes`; ``vote_groups`` as :class:`ObjectMap` takes them). Returns the room, the map, how many frames each ground-truth
+    :func:`default_classes`; ``vote_groups`` as :class:`ObjectMap` takes them;
+    ``class_weights``: the room's furniture mix, default the generator's). Returns the room, the map, how many frames each ground-truth
     object was seen whole in, and per-frame geometry times (ms)."""
     rng = np.random.default_rng(seed)
-    room = generate_room(seed, width_m=float(rng.uniform(6.0, 8.0)), depth_m=float(rng.uniform(5.0, 6.5)))
+    room = generate_room(seed, width_m=float(rng.uniform(6.0, 8.0)), depth_m=float(rng.uniform(5.0, 6.5)),
+                         class_weights=class_weights)
     classes = classes or default_classes()
     cfg_by_name = {c.name: c for c in classes}
     renderer = RoomRenderer(room, [c.name for c in classes], INTRINSICS,
