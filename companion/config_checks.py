@@ -56,7 +56,7 @@ def _signing_key(path: str | None, problems: list[str]) -> None:
 
 
 def _detector_model(cfg: CompanionConfig, problems: list[str]) -> None:
-    path = resolve_model_path(cfg.detector.model_path, real_camera=cfg.camera.source != "sim")
+    path = resolve_model_path(cfg.detector.model_path, real_camera=cfg.camera.is_real)
     if cfg.detector.kind != "onnx" or path is None or path.startswith("builtin:"):
         return  # built-in models ship with the package (a test keeps them loadable)
     _readable_file("detector.model_path", path, problems)

@@ -295,5 +295,5 @@ def parse_lat_lon(text: str) -> tuple[float, float]:
     return lat, lon
 
 
-__all__ = ["COCO_TO_CLASSES", "MapError", "detections_class_map", "OfflineMapOptions", "OfflineMapResult", "build_offline_map",
-           "estimate_map_alignment", "load_detections_file", "parse_lat_lon"]
+__all__ = ["COCO_TO_CLASSES", "MapError", "OfflineMapOptions", "OfflineMapResult", "build_offline_map",
+           "detections_class_map", "estimate_map_alignment", "load_detections_file", "parse_lat_lon"]

@@ -188,6 +188,11 @@ class CameraConfig(StageConfig):
             raise ValueError("source 'recorded' needs recorded_path")
         return self
 
+    @property
+    def is_real(self) -> bool:
+        """Real images (a RealSense, a recording), not the simulator's renders."""
+        return self.source != "sim"
+
     def intrinsics(self) -> CameraIntrinsics:
         return CameraIntrinsics(
             self.fx_px, self.fy_px, self.cx_px, self.cy_px, self.width_px, self.height_px

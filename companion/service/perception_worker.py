@@ -54,7 +54,7 @@ def new_object_map(cfg: CompanionConfig) -> ObjectMap:
     """An empty object map for ``cfg``, weighing class votes as its detector needs (a model
     class standing for several of ours votes for all of them)."""
     groups = detector_vote_groups(cfg.detector, [c.name for c in cfg.classes],
-                                  real_camera=cfg.camera.source != "sim")
+                                  real_camera=cfg.camera.is_real)
     return ObjectMap(cfg.classes, cfg.map, vote_groups=groups)
 
 
@@ -133,7 +133,7 @@ class PerceptionPipeline:
         """The configured detector (``builtin:`` models from the package) and tracker."""
         detector = detector_from_config(cfg.detector, [c.name for c in cfg.classes],
                                         object_classes=object_classes, seed=cfg.sim.seed,
-                                        real_camera=cfg.camera.source != "sim")
+                                        real_camera=cfg.camera.is_real)
         return cls(cfg, smap, detector)
 
     def process(self, frame: Frame) -> dict[str, float]:
