@@ -8,7 +8,7 @@
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
-DEB_PACKAGES := mosquitto libusb-1.0-0 libgomp1 systemd openssl
+DEB_PACKAGES := mosquitto libusb-1.0-0 libgomp1 systemd openssl libstdc++6 libgcc-s1
 DEMO_OUT ?= out/demo
 
 .PHONY: demo test check lint bench-quick deps-debian clean

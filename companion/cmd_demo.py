@@ -36,6 +36,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    "oracle: the simulator's noisy oracle detector; auto: the model if it loads, else the oracle")
     p.add_argument("--no-broker", action="store_true", help="do not start Mosquitto (no ground link)")
     p.add_argument("--timeout", type=float, default=170.0, help="give up the mission after this many seconds")
+    p.add_argument("--autopilot", default="mock", metavar="mock|px4-sitl|URL",
+                   help="who flies: mock (default), the in-process mock PX4; px4-sitl, real PX4 SITL "
+                   "started from ../shared/px4-sitl (or $COMPANION_PX4_SITL) on free ports; or the MAVLink "
+                   "URL of an autopilot already running (the service's link, e.g. udpin://0.0.0.0:14540)")
+    p.add_argument("--gcs-url", default=None,
+                   help="with --autopilot URL: where MAVSDK uploads the mission (default udpin://0.0.0.0:14550, "
+                   "the port PX4's GCS link sends to)")
     p.add_argument("--scripted", action="store_true",
                    help="the foundation demo: a scripted flight rendered into frame pictures")
     p.add_argument("--frames", type=int, default=40, help="--scripted: frames to render (default 40)")
@@ -75,6 +82,8 @@ def _run(args: argparse.Namespace) -> int:
     from companion.service.demo import run_e2e
 
     cfg = choose_detector(cfg, args.detector)
+    if args.autopilot != "mock":
+        return _real_autopilot(cfg, args)
     result = asyncio.run(run_e2e(cfg, args.out, use_broker=not args.no_broker, timeout_s=args.timeout))
     s = result.summary
     print(f"demo: room seed {s['seed']}, detector {cfg.detector.kind}, "
@@ -89,6 +98,43 @@ def _run(args: argparse.Namespace) -> int:
         if role in result.files:
             print(f"  {role}: {result.files[role]}")
     print(f"  flight log: {result.out_dir / 'flight_log.csv'}")
+    return 0 if s["waypoints_reached"] == s["waypoints_total"] and not s.get("mission_error") else 1
+
+
+def _real_autopilot(cfg: CompanionConfig, args: argparse.Namespace) -> int:
+    """The demo flown by PX4 SITL started here, or by the autopilot on the URL ``--autopilot``."""
+    from companion.service.demo_px4 import DEFAULT_GCS_URL, fly_px4
+    from companion.sim.px4_sitl import Px4Sitl
+
+    timeout = max(args.timeout, 240.0)
+    if args.autopilot == "px4-sitl":
+        s = cfg.sim
+        with Px4Sitl(home_lat_lon_alt=(s.home_lat_deg, s.home_lon_deg, s.home_alt_m)) as sitl:
+            print(f"PX4 SITL instance {sitl.instance} ready after {sitl.ready_after_s:.0f} s "
+                  f"(onboard {sitl.onboard_url}, GCS {sitl.gcs_url})")
+            flight = asyncio.run(fly_px4(cfg, args.out, sitl=sitl, use_broker=not args.no_broker, timeout_s=timeout))
+    else:
+        from companion.errors import DataError, LinkError
+        from companion.mavlink.urls import parse_url
+
+        try:
+            parse_url(args.autopilot)
+        except LinkError as exc:
+            raise DataError(f"--autopilot: {exc}") from exc
+        flight = asyncio.run(fly_px4(cfg, args.out, link_url=args.autopilot, gcs_url=args.gcs_url or DEFAULT_GCS_URL,
+                                     use_broker=not args.no_broker, timeout_s=timeout))
+    s = flight.summary
+    rates = ", ".join(f"{t} {v['median']} Hz" for t, v in s.get("px4_uorb_hz", {}).items())
+    print(f"demo ({s['autopilot']}): room seed {s['seed']}, detector {cfg.detector.kind}, "
+          f"{s['waypoints_reached']}/{s['waypoints_total']} waypoints reached, {s['collisions']} collisions, "
+          f"min clearance {s['min_clearance_m']} m, {len(s['objects_found'])} objects mapped "
+          f"({s['objects_true']} in the room), {s['elapsed_s']} s" + (f"; PX4 sees {rates}" if rates else ""))
+    if s.get("mission_error"):
+        print(f"mission error: {s['mission_error']}")
+    print(f"outputs in {flight.out_dir}:")
+    for role in ("picture", "map_objects", "summary", "config", "px4_log"):
+        if role in flight.files:
+            print(f"  {role}: {flight.files[role]}")
     return 0 if s["waypoints_reached"] == s["waypoints_total"] and not s.get("mission_error") else 1
 
 

@@ -3,7 +3,8 @@
 This is what ``systemd/companion.service`` starts. With ``camera.source: sim`` (the embedded
 default) the simulated world runs in the same process: the mock PX4 autopilot on the
 ``sim`` ports (the link's default ``udpin://0.0.0.0:14540`` hears it) and the simulated
-camera riding on it. ``--fly-mission`` downloads the autopilot's mission once connected and
+camera riding on it; with ``sim.autopilot: external`` as well, the autopilot on ``link.url``
+(PX4 SITL) flies and the simulated camera renders the room from the pose it reports. ``--fly-mission`` downloads the autopilot's mission once connected and
 flies it; otherwise missions start with a ``cmd/mission`` ``start`` over MQTT and goals come
 on ``cmd/goal``. SIGTERM ends cleanly: hold or land (``service.on_sigterm``), stop
 streaming, save the map.
@@ -54,7 +55,16 @@ async def _serve(cfg: Any, fly_mission: bool, out: str | None) -> None:
         loop.add_signal_handler(sig, stop.set)
     async with contextlib.AsyncExitStack() as stack:
         object_classes = None
-        if cfg.camera.source == "sim":
+        world_px4 = None
+        if cfg.camera.source == "sim" and cfg.sim.autopilot == "external":
+            from companion.sim.px4_world import Px4World, vehicle_start_map_xy
+
+            # The autopilot on link.url flies; the simulated room is placed around where it stands.
+            world_px4 = Px4World(cfg, await vehicle_start_map_xy(cfg.link), target_system=cfg.link.target_system,
+                                 target_component=cfg.link.target_component)
+            source = world_px4.frame_source()
+            object_classes = {o.object_id: o.class_name for o in world_px4.room.objects}
+        elif cfg.camera.source == "sim":
             from companion.service.sim_world import SimWorld
 
             world = await stack.enter_async_context(SimWorld(cfg))
@@ -64,5 +74,13 @@ async def _serve(cfg: Any, fly_mission: bool, out: str | None) -> None:
             source = make_frame_source(cfg)
         service = CompanionService(cfg, source, out_dir=out, object_classes=object_classes,
                                    fly_mission=fly_mission, land_after_mission=False)
+        if world_px4 is not None:
+            follower = world_px4
+
+            def follow(svc: CompanionService) -> None:
+                assert svc.vehicle is not None
+                follower.follow(svc.vehicle.link)
+
+            service.on_active = follow
         log.info("companion service starting (camera %s, link %s)", cfg.camera.source, cfg.link.url)
         await service.run(stop)

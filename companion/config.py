@@ -206,6 +206,10 @@ class SimConfig(StageConfig):
     depth_noise_coeff: float = Field(default=0.003, ge=0.0)
     #: Fraction of pixels near depth edges invalidated.
     depth_edge_dropout: float = Field(default=0.5, ge=0.0, le=1.0)
+    #: Who flies the vehicle the simulated camera rides on: ``mock``, the in-process mock PX4
+    #: on the ports below; ``external``, the autopilot on ``link.url`` (PX4 SITL, a real
+    #: vehicle on the bench): the camera renders the room from the pose it reports.
+    autopilot: Literal["mock", "external"] = "mock"
     #: Mock autopilot UDP ports (PX4 layout).
     autopilot_local_port: int = Field(default=14580, ge=1, le=65535)
     autopilot_offboard_port: int = Field(default=14540, ge=1, le=65535)
