@@ -13,7 +13,7 @@ pixels are marked ``iscrowd`` (ignored: neither required nor counted as false po
 detected), the same rule the training labels use. AP@0.5 per class is COCO's 101-point
 interpolated AP at IoU 0.5 (detections kept down to score 0.001, COCO's protocol); mAP@0.5 is
 its mean over classes. Precision and recall are at the runtime's operating point
-(``detector.score_threshold``, 0.25 by default), greedy matching at IoU 0.5 per class
+(``detector.score_threshold``, 0.25 for this model), greedy matching at IoU 0.5 per class
 (``bench/_detection_eval.py``), with where the errors are: missed objects and false positives by
 kind, class confusions, recall of border-cut vs whole objects and by COCO box-area range, and
 mAP@0.5 by area range; a 95 % percentile-bootstrap interval of mAP@0.5 over rooms (a room's
@@ -35,6 +35,11 @@ the held-out protocol's poses): how well the model fits its own training rooms. 
 validation figure it tells an under-fitting model (both low: more rooms of the same kind will
 not help) from an over-fitting one (training rooms much higher: more varied rooms will). Only
 rooms rendered without ``--class-weights`` come out the same (the weights change the furniture).
+
+``--real`` scores both shipped models (``builtin:coco``, ``builtin:furniture``) on the
+hand-labelled real colour frames of ``../shared/data/rgbd`` instead (``bench/_detector_real.py``
+says how): precision and recall at the operating point, AP@0.5 per class, detections on
+objects no class of ours names, and the inference time with one thread.
 
 The last line printed is one JSON object with every figure.
 """
@@ -68,6 +73,7 @@ from bench._detection_eval import (  # noqa: E402
 from companion.config import CompanionConfig  # noqa: E402
 from companion.sim.dataset import DatasetSpec, generate, room_seeds  # noqa: E402
 from semmap.detection import BUILTIN_MODELS_DIR, detector_from_config  # noqa: E402
+from semmap.detection.builtin import DEFAULT_SCORE_THRESHOLD  # noqa: E402
 from semmap.detection.onnx_detector import OnnxDetector  # noqa: E402
 from semmap.types import Detection  # noqa: E402
 
@@ -93,7 +99,18 @@ def main() -> None:
                          "train (how well a model fits rooms it trained on)")
     ap.add_argument("--room-start", type=int, default=0,
                     help="first room within the split (as for `companion dataset --room-start`)")
+    ap.add_argument("--real", action="store_true",
+                    help="score builtin:coco and builtin:furniture on the hand-labelled real frames")
+    ap.add_argument("--score-threshold", type=float, default=None,
+                    help="--real: the operating point (default: the config's detector.score_threshold)")
+    ap.add_argument("--data", default=None, help="--real: the real data folder (default ../shared/data)")
     args = ap.parse_args()
+    if args.real:
+        from bench._detector_real import SHARED_DATA, run_real
+
+        data = Path(args.data) if args.data else SHARED_DATA
+        print(json.dumps(run_real(args.score_threshold, repeats=1 if args.quick else 3, data_dir=data)))
+        return
     if args.resamples < 1:  # checked before minutes of rendering, not after
         ap.error(f"--resamples must be at least 1 (got {args.resamples})")
     if args.room_start < 0:
@@ -105,11 +122,13 @@ def main() -> None:
     class_names = [c.name for c in cfg.classes]
     dcfg = cfg.detector.model_copy(update={
         "kind": "onnx", "model_path": args.model, "providers": ["CPUExecutionProvider"],
-        "intra_op_threads": 1, "score_threshold": 0.001, "class_score_thresholds": {},
+        "intra_op_threads": 1, "score_threshold": 0.001,
+        "class_score_thresholds": {c: 0.001 for c in class_names},
     })
     detector = detector_from_config(dcfg, class_names)
     assert isinstance(detector, OnnxDetector)
-    operating_threshold = cfg.detector.score_threshold
+    operating_threshold = (DEFAULT_SCORE_THRESHOLD if cfg.detector.score_threshold is None
+                           else cfg.detector.score_threshold)
 
     spec = DatasetSpec(split=args.split, n_rooms=n_rooms, images_per_room=per_room, seed=args.seed,
                        class_names=tuple(class_names), intrinsics=cfg.camera.intrinsics(),

@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from companion.sim.groundtruth import clearance_m  # noqa: E402
 from companion.sim.render import DepthNoise, RoomRenderer  # noqa: E402
 from companion.sim.world import Room, generate_room  # noqa: E402
-from semmap.config import ExtrinsicsConfig, GeometryConfig, MapConfig, default_classes  # noqa: E402
+from semmap.config import ClassConfig, ExtrinsicsConfig, GeometryConfig, MapConfig, default_classes  # noqa: E402
 from semmap.frames import pose_from_xyz_rpy  # noqa: E402
 from semmap.geometry import observe_object  # noqa: E402
 from semmap.grid import GridSpec, rasterize_polygon  # noqa: E402
@@ -66,6 +66,8 @@ class OracleNoise:
     min_visible_px: int = 400
     #: A track id is retired after the object was unseen for this many frames.
     lost_after_frames: int = 8
+    #: Classes the detector reports as another, (ours, reported): COCO's one table class.
+    merge_classes: tuple[tuple[str, str], ...] = ()
 
 
 def _loop(room: Room, inset_m: float, n: int) -> list[np.ndarray]:
@@ -132,6 +134,7 @@ class MaskOracle:
             cls = self.room.object_by_id(oid).class_name
             if self.rng.random() < nz.confusion_rate:
                 cls = self.class_names[int(self.rng.integers(len(self.class_names)))]
+            cls = dict(nz.merge_classes).get(cls, cls)
             tid, last = self._track_of.get(oid, (0, -10**9))
             if frame.index - last > nz.lost_after_frames:
                 tid = self._next_track
@@ -143,6 +146,7 @@ class MaskOracle:
             w, h = self.rng.uniform(40, 200, 2)
             u, v = self.rng.uniform(0, W - w), self.rng.uniform(0, H - h)
             cls = self.class_names[int(self.rng.integers(len(self.class_names)))]
+            cls = dict(nz.merge_classes).get(cls, cls)
             self._fp_track += 1
             out.append(Track(self._fp_track, (u, v, u + w, v + h), float(self.rng.uniform(0.3, 0.6)), cls))
         return out
@@ -204,18 +208,23 @@ def well_seen(inst: np.ndarray, room: Room, T_map_camera: np.ndarray, min_px: in
 def map_room(
     seed: int, n_frames: int, noise: OracleNoise | None = None,
     geometry: GeometryConfig | None = None, map_cfg: MapConfig | None = None,
+    classes: list[ClassConfig] | None = None, vote_groups: dict[str, tuple[str, ...]] | None = None,
+    class_weights: dict[str, float] | None = None,
 ) -> tuple[Room, ObjectMap, dict[int, int], list[float]]:
-    """Fly one seeded room and build its object map. Returns the room, the map, how many
-    frames each ground-truth object was seen whole in, and per-frame geometry times (ms)."""
+    """Fly one seeded room and build its object map (``classes``: the object map's, default
+    :func:`default_classes`; ``vote_groups`` as :class:`ObjectMap` takes them;
+    ``class_weights``: the room's furniture mix, default the generator's). Returns the room, the map, how many frames each ground-truth
+    object was seen whole in, and per-frame geometry times (ms)."""
     rng = np.random.default_rng(seed)
-    room = generate_room(seed, width_m=float(rng.uniform(6.0, 8.0)), depth_m=float(rng.uniform(5.0, 6.5)))
-    classes = default_classes()
+    room = generate_room(seed, width_m=float(rng.uniform(6.0, 8.0)), depth_m=float(rng.uniform(5.0, 6.5)),
+                         class_weights=class_weights)
+    classes = classes or default_classes()
     cfg_by_name = {c.name: c for c in classes}
     renderer = RoomRenderer(room, [c.name for c in classes], INTRINSICS,
                             noise=DepthNoise(min_m=DEPTH_RANGE_M[0], max_m=DEPTH_RANGE_M[1]), seed=seed)
     oracle = MaskOracle(room, noise or OracleNoise(), rng)
     geo = geometry or GeometryConfig()
-    omap = ObjectMap(classes, map_cfg or MapConfig())
+    omap = ObjectMap(classes, map_cfg or MapConfig(), vote_groups=vote_groups)
     seen: dict[int, int] = {}
     times: list[float] = []
     for i, T in enumerate(flight_poses(room, n_frames, rng)):
@@ -353,11 +362,13 @@ def objects_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]
 #: The occupancy-grid agreement figure is a section of its own, registered here beside
 #: ``objects``.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _class_prior import class_prior_section  # noqa: E402  (table kinds from geometry)
 from _grid import grid_section  # noqa: E402  (occupancy grid agreement, stage times, memory)
 
 SECTIONS: dict[str, Callable[[argparse.Namespace], tuple[list[str], dict[str, Any]]]] = {
     "objects": objects_section,
     "grid": grid_section,
+    "class_prior": class_prior_section,
 }
 
 

@@ -57,9 +57,11 @@ def choose_detector(cfg: CompanionConfig, which: str) -> CompanionConfig:
     oracle = cfg.model_copy(update={"detector": cfg.detector.model_copy(update={"kind": "oracle"})})
     if which == "oracle":
         return oracle
+    from semmap.detection import detector_from_config, resolve_model_path
+
+    model_path = resolve_model_path(cfg.detector.model_path, real_camera=False) or "builtin:furniture"
     onnx = cfg.model_copy(update={"detector": cfg.detector.model_copy(
-        update={"kind": "onnx", "model_path": cfg.detector.model_path or "builtin:furniture"})})
-    from semmap.detection import detector_from_config
+        update={"kind": "onnx", "model_path": model_path})})
 
     try:
         detector_from_config(onnx.detector, [c.name for c in onnx.classes])

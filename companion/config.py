@@ -265,11 +265,14 @@ class CompanionConfig(StageConfig):
             raise ValueError(f"classes: duplicate class names {dupes}")
         if not names:
             raise ValueError("classes: at least one class is needed")
-        for target in self.detector.class_map.values():
-            if target not in names:
-                raise ValueError(
-                    f"detector.class_map maps to unknown class {target!r} (classes: {names})"
-                )
+        for key, value in self.detector.class_map.items():
+            for target in [value] if isinstance(value, str) else value:
+                if target not in names:
+                    raise ValueError(
+                        f"detector.class_map[{key!r}] maps to unknown class {target!r} (classes: {names})"
+                    )
+            if not value:
+                raise ValueError(f"detector.class_map[{key!r}] is an empty list")
         for key in self.detector.class_score_thresholds:
             if key not in names:
                 raise ValueError(

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from companion.config import CompanionConfig
 from companion.errors import ConfigError
+from semmap.detection.builtin import resolve_model_path
 
 
 def _readable_file(key: str, path: str | None, problems: list[str], *,
@@ -55,7 +56,7 @@ def _signing_key(path: str | None, problems: list[str]) -> None:
 
 
 def _detector_model(cfg: CompanionConfig, problems: list[str]) -> None:
-    path = cfg.detector.model_path
+    path = resolve_model_path(cfg.detector.model_path, real_camera=cfg.camera.is_real)
     if cfg.detector.kind != "onnx" or path is None or path.startswith("builtin:"):
         return  # built-in models ship with the package (a test keeps them loadable)
     _readable_file("detector.model_path", path, problems)

@@ -35,6 +35,7 @@ from companion.config import CompanionConfig, write_effective_config
 from companion.sources.recorded import RecordedFrameSource
 from semmap.costmap import VerticalBand
 from semmap.detection import Detector, detector_from_config
+from semmap.detection.builtin import detector_vote_groups, vote_groups
 from semmap.errors import ConfigError, DataError, FrameError, MapError
 from semmap.export import export_all
 from semmap.frames import transform_points
@@ -49,8 +50,9 @@ from semmap.types import Detection, Frame, Track
 log = logging.getLogger(__name__)
 
 #: COCO detector names -> our classes, used for detections files when ``detector.class_map``
-#: is empty. A dining table is open underneath like a desk.
-COCO_TO_CLASSES: dict[str, str] = {"chair": "chair", "couch": "sofa", "dining table": "desk"}
+#: is empty. COCO's one table class votes for our three; the geometric prior chooses.
+COCO_TO_CLASSES: dict[str, str | list[str]] = {
+    "chair": "chair", "couch": "sofa", "dining table": ["desk", "coffee_table", "conference_table"]}
 
 #: Called after each frame with (frames done, frames total).
 Progress = Callable[[int, int], None]
@@ -87,18 +89,16 @@ class OfflineMapResult:
 
 
 def load_detections_file(
-    path: Path, class_names: Sequence[str], class_map: Mapping[str, str] | None = None,
+    path: Path, class_names: Sequence[str], class_map: Mapping[str, str | list[str]] | None = None,
     score_threshold: float = 0.0,
 ) -> dict[str, list[Detection]]:
-    """Detections per colour file name, mapped to our classes (others dropped).
+    """Detections per colour file name, mapped to our classes (others dropped; a list target
+    reports its first class, see :func:`detections_class_map`).
 
     Raises :class:`DataError` naming the file and the bad entry.
     """
-    mapping = dict(class_map) if class_map else dict(COCO_TO_CLASSES)
-    bad_targets = sorted({t for t in mapping.values() if t not in class_names})
-    if class_map and bad_targets:
-        raise ConfigError(f"detector.class_map maps to unknown classes {bad_targets} (classes: {list(class_names)})")
-    mapping = {k: v for k, v in mapping.items() if v in class_names}
+    mapping = {k: v if isinstance(v, str) else v[0]
+               for k, v in detections_class_map(class_names, class_map).items()}
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError as exc:
@@ -126,6 +126,26 @@ def load_detections_file(
                 continue
             dets.append(Detection((xyxy[0], xyxy[1], xyxy[2], xyxy[3]), score, target))
         out[str(name)] = sorted(dets, key=lambda d: -d.score)
+    return out
+
+
+def detections_class_map(
+    class_names: Sequence[str], class_map: Mapping[str, str | list[str]] | None = None,
+) -> dict[str, str | list[str]]:
+    """The class map a detections file is read with: the config's, else
+    :data:`COCO_TO_CLASSES` restricted to the configured classes. Raises
+    :class:`ConfigError` for a configured target that is not a class."""
+    if class_map:
+        targets = {t for v in class_map.values() for t in ([v] if isinstance(v, str) else v)}
+        bad = sorted(t for t in targets if t not in class_names)
+        if bad:
+            raise ConfigError(f"detector.class_map maps to unknown classes {bad} (classes: {list(class_names)})")
+        return dict(class_map)
+    out: dict[str, str | list[str]] = {}
+    for k, v in COCO_TO_CLASSES.items():
+        kept = [t for t in ([v] if isinstance(v, str) else v) if t in class_names]
+        if kept:
+            out[k] = kept if isinstance(v, list) else kept[0]
     return out
 
 
@@ -193,20 +213,23 @@ def build_offline_map(
     detections: dict[str, list[Detection]] | None = None
     detector: Detector | None = None
     if opts.detections_path is not None:
+        # A detections file was already thresholded by whoever wrote it, unless the config says.
         detections = load_detections_file(Path(opts.detections_path), class_names, cfg.detector.class_map,
-                                          cfg.detector.score_threshold)
+                                          cfg.detector.score_threshold or 0.0)
     elif cfg.detector.kind == "oracle":
         raise ConfigError("detector.kind 'oracle' needs the simulator; for a recording give "
                           "--detections FILE or configure detector.kind: onnx")
     else:
-        detector = detector_from_config(cfg.detector, class_names)
+        detector = detector_from_config(cfg.detector, class_names, real_camera=True)
 
     T_map_world = (estimate_map_alignment(source, depth_range, opts.floor_sample_frames)
                    if opts.align_floor else np.eye(4))
     p = cfg.planner
     band = VerticalBand.for_altitude(p.flight_altitude_m, p.vehicle_height_m, p.vertical_margin_m)
     settings = SemanticMapSettings.from_config(cfg.map, cfg.classes, band, *depth_range)
-    omap = ObjectMap(cfg.classes, cfg.map)
+    groups = (vote_groups(detections_class_map(class_names, cfg.detector.class_map)) if detections is not None
+              else detector_vote_groups(cfg.detector, class_names, real_camera=True))
+    omap = ObjectMap(cfg.classes, cfg.map, vote_groups=groups)
     smap = SemanticMap(settings, omap)
     tracker: BoTSORT | _OneTrackPerBox = (BoTSORT.from_config(cfg.tracker) if opts.use_tracker
                                           else _OneTrackPerBox())
@@ -273,4 +296,4 @@ def parse_lat_lon(text: str) -> tuple[float, float]:
 
 
 __all__ = ["COCO_TO_CLASSES", "MapError", "OfflineMapOptions", "OfflineMapResult", "build_offline_map",
-           "estimate_map_alignment", "load_detections_file", "parse_lat_lon"]
+           "detections_class_map", "estimate_map_alignment", "load_detections_file", "parse_lat_lon"]

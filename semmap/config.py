@@ -46,6 +46,24 @@ class StageConfig(BaseModel):
 HollowKind = Literal["full", "partial", "none"]
 
 
+class GeometricPrior(StageConfig):
+    """What an object of a class measures (metres; null: no constraint): the height of its top
+    above the floor (its top plane where one is found: a table top, a chair seat; else its
+    highest point), and its footprint's long and short side. The object map weighs detector
+    class votes by how well the measured object fits (see :mod:`semmap.class_prior`)."""
+
+    height_m: tuple[float, float] | None = None
+    footprint_long_m: tuple[float, float] | None = None
+    footprint_short_m: tuple[float, float] | None = None
+
+    @field_validator("height_m", "footprint_long_m", "footprint_short_m")
+    @classmethod
+    def _ranges(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and not (0.0 <= v[0] <= v[1] <= 50.0):
+            raise ValueError(f"must be [low, high] metres with 0 <= low <= high <= 50 (got {list(v)})")
+        return v
+
+
 class ClassConfig(StageConfig):
     """One semantic class. Classes are configuration, not code."""
 
@@ -65,6 +83,8 @@ class ClassConfig(StageConfig):
     #: :func:`semmap.polygons.grow_to_least_size`). The exported map keeps what was measured.
     #: ``null``: no such prior (thin or free-form objects).
     min_footprint_m: tuple[float, float] | None = None
+    #: The sizes objects of this class come in (null: any); see :class:`GeometricPrior`.
+    prior: GeometricPrior | None = None
 
     @field_validator("min_footprint_m")
     @classmethod
@@ -90,16 +110,32 @@ def default_classes() -> list[ClassConfig]:
     room 1012: a 2.1 x 1.3 m table mapped 1.7 x 0.8 m, the path rounded the missing corner).
     Chairs and desks show enough of themselves in the band; on the safety bench growing them
     too (chair 0.4 x 0.4, desk 1.0 x 0.5 m) closed passages (two of 50 rooms boxed in, 94 %
-    success) and avoided no collision."""
+    success) and avoided no collision.
+
+    Their geometric priors are the sizes of common furniture (a dining table is a desk here:
+    same height and size; a conference table is longer than 1.9 m or deeper than 0.85 m).
+    Chairs and sofas span seat to backrest: their top plane, where found, is the seat."""
     return [
-        ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75)),
+        ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75),
+                    prior=GeometricPrior(height_m=(0.38, 1.3), footprint_long_m=(0.3, 0.9),
+                                         footprint_short_m=(0.3, 0.8))),
         ClassConfig(name="coffee_table", hollow="full", margin_m=0.20, color_rgb=(60, 180, 75),
-                    min_footprint_m=(0.75, 0.45)),
+                    min_footprint_m=(0.75, 0.45),
+                    prior=GeometricPrior(height_m=(0.25, 0.58), footprint_long_m=(0.4, 1.6),
+                                         footprint_short_m=(0.3, 1.0))),
         ClassConfig(name="conference_table", hollow="partial", margin_m=0.25, color_rgb=(0, 130, 200),
-                    min_footprint_m=(1.8, 0.9)),
-        ClassConfig(name="sofa", hollow="none", margin_m=0.15, color_rgb=(245, 130, 48)),
-        ClassConfig(name="whiteboard", hollow="full", margin_m=0.25, color_rgb=(145, 30, 180)),
-        ClassConfig(name="desk", hollow="full", margin_m=0.25, color_rgb=(70, 240, 240)),
+                    min_footprint_m=(1.8, 0.9),
+                    prior=GeometricPrior(height_m=(0.68, 0.82), footprint_long_m=(1.9, 8.0),
+                                         footprint_short_m=(0.85, 2.5))),
+        ClassConfig(name="sofa", hollow="none", margin_m=0.15, color_rgb=(245, 130, 48),
+                    prior=GeometricPrior(height_m=(0.35, 1.1), footprint_long_m=(1.0, 3.2),
+                                         footprint_short_m=(0.6, 1.2))),
+        ClassConfig(name="whiteboard", hollow="full", margin_m=0.25, color_rgb=(145, 30, 180),
+                    prior=GeometricPrior(height_m=(1.4, 2.4), footprint_long_m=(0.5, 2.5),
+                                         footprint_short_m=(0.0, 0.8))),
+        ClassConfig(name="desk", hollow="full", margin_m=0.25, color_rgb=(70, 240, 240),
+                    prior=GeometricPrior(height_m=(0.62, 0.9), footprint_long_m=(0.7, 2.0),
+                                         footprint_short_m=(0.4, 0.95))),
     ]
 
 
@@ -152,6 +188,11 @@ class CameraConfig(StageConfig):
             raise ValueError("source 'recorded' needs recorded_path")
         return self
 
+    @property
+    def is_real(self) -> bool:
+        """Real images (a RealSense, a recording), not the simulator's renders."""
+        return self.source != "sim"
+
     def intrinsics(self) -> CameraIntrinsics:
         return CameraIntrinsics(
             self.fx_px, self.fy_px, self.cx_px, self.cy_px, self.width_px, self.height_px
@@ -164,20 +205,29 @@ class DetectorConfig(StageConfig):
     #: ``onnx`` (default): the model at ``model_path``. ``oracle``: boxes from the simulated
     #: world's ground truth (the simulator only; unit tests and reference runs).
     kind: Literal["onnx", "oracle"] = "onnx"
-    #: Path of the .onnx file; ``builtin:furniture`` (default) names the model shipped in the
-    #: package (six furniture classes; see its model card). Bring your own for your drone.
-    model_path: str | None = "builtin:furniture"
+    #: Path of the .onnx file, or a model shipped in the package: ``builtin:coco`` (COCO-trained
+    #: YOLOX-nano, for real cameras) or ``builtin:furniture`` (trained on our simulated rooms).
+    #: ``auto`` (default): ``builtin:coco`` on a real camera (``camera.source`` realsense or
+    #: recorded, ``companion map``), ``builtin:furniture`` in the simulator.
+    model_path: str | None = "auto"
     head: Literal["auto", "yolov8", "yolox"] = "auto"
     input_size_px: int = Field(default=320, ge=32, le=2048)
     #: Model class names in output order; None reads them from the model's metadata.
     model_class_names: list[str] | None = None
     #: Model class name (or id as a string) -> our semantic class. Names not listed are ignored.
-    #: Empty means identity for names that are our classes.
-    class_map: dict[str, str] = Field(default_factory=dict)
-    score_threshold: float = Field(default=0.25, ge=0.0, le=1.0)
-    #: Per-class overrides of score_threshold, keyed by our class name.
+    #: Empty means identity for names that are our classes (or a shipped model's own map). A
+    #: list of our classes means the model cannot tell them apart (COCO's one table class):
+    #: detections report the first, and the object map counts each as a vote for all of
+    #: them, leaving the choice to the measured geometry (``classes[].prior``).
+    class_map: dict[str, str | list[str]] = Field(default_factory=dict)
+    #: The operating point. None: the shipped model's own (its ``.classmap.json`` side file;
+    #: for ``builtin:coco`` score 0.35, tables 0.2, NMS IoU 0.45, see its model card), and
+    #: score 0.25, NMS IoU 0.6 for any other model.
+    score_threshold: float | None = Field(default=None, ge=0.0, le=1.0)
+    #: Per-class overrides of score_threshold, keyed by our class name (empty: the shipped
+    #: model's, if any).
     class_score_thresholds: dict[str, float] = Field(default_factory=dict)
-    nms_iou: float = Field(default=0.6, gt=0.0, le=1.0)
+    nms_iou: float | None = Field(default=None, gt=0.0, le=1.0)
     max_detections: int = Field(default=100, gt=0)
     #: ONNX Runtime execution providers in order of preference; missing ones are skipped.
     providers: list[str] = Field(

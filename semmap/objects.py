@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.class_prior import ClassPrior
 from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
 from semmap.errors import MapError
@@ -228,17 +229,25 @@ class ObjectMap:
     """Persistent objects from per-frame observations (see the module doc).
 
     ``classes``: the configured classes (their order is the class-probability order, their
-    ``miss_decay`` the per-class existence decay). ``config``: the object-map fields of
-    :class:`~semmap.config.MapConfig`.
+    ``miss_decay`` the per-class existence decay, their ``prior`` the geometric class prior).
+    ``config``: the object-map fields of :class:`~semmap.config.MapConfig`. ``vote_groups``:
+    reported class -> the classes a detection of it votes for (the detector cannot tell them
+    apart; the geometric prior does).
     """
 
-    def __init__(self, classes: Sequence[ClassConfig], config: MapConfig | None = None) -> None:
+    def __init__(self, classes: Sequence[ClassConfig], config: MapConfig | None = None,
+                 vote_groups: Mapping[str, Sequence[str]] | None = None) -> None:
         if not classes:
             raise MapError("the object map needs at least one class")
         self.config = config if config is not None else MapConfig()
         self.classes = list(classes)
         self.class_names = [c.name for c in self.classes]
         self._class_index = {n: i for i, n in enumerate(self.class_names)}
+        self._prior = ClassPrior(self.classes)
+        #: Reported class -> class indices its detections vote for (a detector's class that
+        #: stands for several of ours, see semmap.detection.builtin.vote_groups).
+        self._votes_for = {k: [self._class_index[c] for c in v if c in self._class_index]
+                           for k, v in (vote_groups or {}).items()}
         self._objects: dict[int, _State] = {}
         self._track_to_object: dict[int, int] = {}
         self._next_id = 1
@@ -262,7 +271,8 @@ class ObjectMap:
 
     def class_probabilities(self) -> dict[int, NDArray[np.float32]]:
         """Object id -> (K,) class probabilities in ``class_names`` order (for the class layer)."""
-        return {oid: s.class_probs.astype(np.float32) for oid, s in self._objects.items()}
+        return {oid: np.fromiter(self._snapshot(s).class_probs.values(), np.float32, len(self.class_names))
+                for oid, s in self._objects.items()}
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dump of every object."""
@@ -498,7 +508,7 @@ class ObjectMap:
                 return oid
             log.debug("track %d jumped %.2f m from object %d: new object", o.track_id,
                       float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m)), oid)
-        k = self._class_index[o.class_name]
+        ks = self._votes_for.get(o.class_name) or [self._class_index[o.class_name]]
         best: tuple[float, float, int] | None = None
         fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
         for cand in self._nearby(fp.min(axis=0), fp.max(axis=0), o.centroid_xy_m):
@@ -507,7 +517,7 @@ class ObjectMap:
             s = self._objects[cand]
             iou, contained = _overlaps(s.hull_xy_m, fp)
             dist = float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m))
-            same_class = int(np.argmax(s.class_probs)) == k
+            same_class = int(np.argmax(s.class_probs)) in ks
             ok = (same_class and (iou >= cfg.reassociate_iou or contained >= _CONTAINED
                                   or dist <= cfg.reassociate_distance_m)) or (
                 iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou)
@@ -551,7 +561,7 @@ class ObjectMap:
         # A detection below chance would count *against* its own class; floor it at chance.
         s = min(max(float(score), 1.0 / k + 1e-3), 0.999)
         lik = np.full(k, (1.0 - s) / (k - 1))
-        lik[self._class_index[class_name]] = s
+        lik[self._votes_for.get(class_name) or self._class_index[class_name]] = s
         return lik
 
     def _sigma2(self, o: ObjectObservation) -> float:
@@ -685,11 +695,14 @@ class ObjectMap:
         z_max = _quantile(s.z_max_hist, 0.8)
         z_min = _quantile(s.z_min_hist, 0.2)
         top = _quantile(s.top_hist, 0.5) if s.top_hist else None
-        k = int(np.argmax(s.class_probs))
+        # The votes weighed by the measured geometry (semmap.class_prior); not fused per frame.
+        # The top plane, where found, is the height: things stand on tables.
+        probs = self._prior.posterior(s.class_probs, top if top is not None else max(z_max, z_min), footprint)
+        k = int(np.argmax(probs))
         s.snapshot_cache = MappedObject(
             object_id=s.object_id,
             class_name=self.class_names[k],
-            class_probs={n: float(v) for n, v in zip(self.class_names, s.class_probs, strict=True)},
+            class_probs={n: float(v) for n, v in zip(self.class_names, probs, strict=True)},
             existence=p,
             position_map_m=(float(s.position_m[0]), float(s.position_m[1]), float(s.position_m[2])),
             position_std_m=math.sqrt(s.position_var_m2),

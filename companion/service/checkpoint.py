@@ -13,9 +13,9 @@ from types import TracebackType
 import numpy as np
 
 from companion.config import CompanionConfig
+from companion.service.perception_worker import new_object_map
 from semmap.errors import ConfigError, MapError
 from semmap.grid import GridSpec
-from semmap.objects import ObjectMap
 from semmap.semantic_map import SemanticMap
 
 log = logging.getLogger(__name__)
@@ -92,7 +92,7 @@ def restore_map(cfg: CompanionConfig, path: Path) -> SemanticMap | None:
     if mismatch is not None:
         raise ConfigError(mismatch)
     try:
-        smap = SemanticMap.load(path, object_map=ObjectMap(cfg.classes, cfg.map))
+        smap = SemanticMap.load(path, object_map=new_object_map(cfg))
     except MapError as exc:
         bad = path.with_suffix(path.suffix + ".bad")
         log.error("map checkpoint %s unusable (%s); moved to %s, starting with an empty map", path, exc, bad)

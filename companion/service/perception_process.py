@@ -44,6 +44,7 @@ from companion.service.perception_worker import (
     PerceptionPipeline,
     PerceptionWorker,
     flight_band,
+    new_object_map,
     new_semantic_map,
 )
 from companion.sources.base import FrameSource, WrappedSource
@@ -51,7 +52,6 @@ from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import MapError, PerceptionError
 from semmap.grid import GridSpec
 from semmap.kernels import warm_up
-from semmap.objects import ObjectMap
 from semmap.semantic_map import SemanticMap
 from semmap.types import Frame
 
@@ -316,7 +316,7 @@ class PerceptionProcess:
         if path.is_file():
             try:
                 self.final_map = await asyncio.to_thread(SemanticMap.load, path,
-                                                         object_map=ObjectMap(self.cfg.classes, self.cfg.map))
+                                                         object_map=new_object_map(self.cfg))
             except MapError as exc:
                 log.error("the perception process's final map %s cannot be loaded: %s", path, exc)
 

@@ -24,6 +24,7 @@ from companion.sources.base import FrameSource
 from companion.sources.stream import FrameStream
 from semmap.costmap import Costmap, VerticalBand
 from semmap.detection import Detector, detector_from_config
+from semmap.detection.builtin import detector_vote_groups
 from semmap.errors import FrameError
 from semmap.geometry import observe_object
 from semmap.objects import ObjectMap
@@ -49,9 +50,17 @@ def semantic_map_settings(cfg: CompanionConfig) -> SemanticMapSettings:
                                            cfg.camera.depth_min_m, cfg.camera.depth_max_m)
 
 
+def new_object_map(cfg: CompanionConfig) -> ObjectMap:
+    """An empty object map for ``cfg``, weighing class votes as its detector needs (a model
+    class standing for several of ours votes for all of them)."""
+    groups = detector_vote_groups(cfg.detector, [c.name for c in cfg.classes],
+                                  real_camera=cfg.camera.is_real)
+    return ObjectMap(cfg.classes, cfg.map, vote_groups=groups)
+
+
 def new_semantic_map(cfg: CompanionConfig) -> SemanticMap:
     """An empty semantic map with an object map, configured from ``cfg``."""
-    return SemanticMap(semantic_map_settings(cfg), ObjectMap(cfg.classes, cfg.map))
+    return SemanticMap(semantic_map_settings(cfg), new_object_map(cfg))
 
 
 @dataclass
@@ -123,7 +132,8 @@ class PerceptionPipeline:
                     object_classes: Mapping[int, str] | None = None) -> PerceptionPipeline:
         """The configured detector (``builtin:`` models from the package) and tracker."""
         detector = detector_from_config(cfg.detector, [c.name for c in cfg.classes],
-                                        object_classes=object_classes, seed=cfg.sim.seed)
+                                        object_classes=object_classes, seed=cfg.sim.seed,
+                                        real_camera=cfg.camera.is_real)
         return cls(cfg, smap, detector)
 
     def process(self, frame: Frame) -> dict[str, float]:

@@ -47,9 +47,10 @@ class ClassMap:
         self,
         model_names: Sequence[str],
         semantic_names: Sequence[str],
-        class_map: Mapping[str, str] | None = None,
+        class_map: Mapping[str, str | Sequence[str]] | None = None,
     ) -> None:
-        """Resolve ``class_map`` (model name or index string -> semantic name).
+        """Resolve ``class_map`` (model name or index string -> semantic name, or a list of
+        semantic names the model cannot tell apart: the first is reported).
 
         Raises :class:`PerceptionError` if a key names no model class, a value is not one of
         ``semantic_names``, or no model class maps to anything (the detector would be mute).
@@ -60,12 +61,15 @@ class ClassMap:
         lookup = np.full(len(self.model_names), -1, dtype=np.int64)
         if class_map:
             by_name = {n: i for i, n in enumerate(self.model_names)}
-            for key, target in class_map.items():
-                if target not in sem_index:
+            for key, value in class_map.items():
+                targets = [value] if isinstance(value, str) else list(value)
+                bad = [t for t in targets if t not in sem_index]
+                if bad or not targets:
                     raise PerceptionError(
-                        f"detector.class_map[{key!r}] = {target!r} is not a semantic class "
-                        f"(classes: {self.semantic_names})"
+                        f"detector.class_map[{key!r}] = {value!r}: {bad or 'nothing'} is not a semantic "
+                        f"class (classes: {self.semantic_names})"
                     )
+                target = targets[0]
                 if key in by_name:
                     idx = by_name[key]
                 elif key.isdigit() and int(key) < len(self.model_names):

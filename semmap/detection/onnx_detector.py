@@ -22,6 +22,14 @@ import onnxruntime as ort
 from numpy.typing import NDArray
 
 from semmap.config import DetectorConfig
+from semmap.detection.builtin import (
+    BUILTIN_PREFIX,
+    BuiltinDefaults,
+    builtin_defaults,
+    builtin_model_file,
+    effective_class_map,
+    effective_operating_point,
+)
 from semmap.detection.classmap import ClassMap, parse_names_metadata
 from semmap.detection.decode import (
     Candidates,
@@ -45,7 +53,6 @@ _GRAPH_OPT = {
     "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
 }
 
-BUILTIN_PREFIX = "builtin:"
 _INPUT_DTYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16}
 
 
@@ -84,15 +91,6 @@ def _provider_entries(
     return out
 
 
-def builtin_model_file(folder: Path, name: str) -> Path:
-    """The file ``builtin:NAME`` names in ``folder``: ``NAME.onnx``, else the only
-    ``NAME_*.onnx`` (a shipped model's file name also states its architecture and input size,
-    e.g. ``furniture_yolov8n_320.onnx``). A missing file is reported when it is loaded."""
-    exact = folder / f"{name}.onnx"
-    variants = sorted(folder.glob(f"{name}_*.onnx"))
-    return exact if exact.exists() or len(variants) != 1 else variants[0]
-
-
 def _static_dim(dim: Any) -> int | None:
     return dim if isinstance(dim, int) and dim > 0 else None
 
@@ -108,7 +106,7 @@ class OnnxDetector:
         head: str = "auto",
         input_size_px: int = 320,
         model_class_names: Sequence[str] | None = None,
-        class_map: Mapping[str, str] | None = None,
+        class_map: Mapping[str, str | list[str]] | None = None,
         score_threshold: float = 0.25,
         class_score_thresholds: Mapping[str, float] | None = None,
         nms_iou: float = 0.6,
@@ -227,26 +225,32 @@ class OnnxDetector:
         semantic_classes: Sequence[str],
         builtin_dir: str | Path | None = None,
     ) -> OnnxDetector:
-        """Build from :class:`DetectorConfig`. ``builtin:NAME`` resolves in ``builtin_dir`` (see
-        :func:`builtin_model_file`)."""
+        """Build from :class:`DetectorConfig` (``model_path`` already resolved from ``auto``,
+        see :func:`semmap.detection.builtin.resolve_model_path`). ``builtin:NAME`` resolves in
+        ``builtin_dir`` (see :func:`builtin_model_file`), with the class names and class map
+        its side files give where the config gives none."""
         if cfg.model_path is None:
             raise PerceptionError("detector.kind is 'onnx' but detector.model_path is not set")
         path = Path(cfg.model_path)
+        defaults = BuiltinDefaults()
         if cfg.model_path.startswith(BUILTIN_PREFIX):
             name = cfg.model_path[len(BUILTIN_PREFIX):]
             if builtin_dir is None:
                 raise PerceptionError(f"detector.model_path {cfg.model_path!r}: no built-in model folder given")
             path = builtin_model_file(Path(builtin_dir), name)
+            defaults = builtin_defaults(path)
+        score, per_class, nms_iou = effective_operating_point(
+            cfg.score_threshold, cfg.class_score_thresholds, cfg.nms_iou, defaults, semantic_classes)
         return cls(
             path,
             semantic_classes,
             head=cfg.head,
             input_size_px=cfg.input_size_px,
-            model_class_names=cfg.model_class_names,
-            class_map=cfg.class_map,
-            score_threshold=cfg.score_threshold,
-            class_score_thresholds=cfg.class_score_thresholds,
-            nms_iou=cfg.nms_iou,
+            model_class_names=cfg.model_class_names if cfg.model_class_names is not None else defaults.class_names,
+            class_map=effective_class_map(cfg.class_map, defaults, semantic_classes),
+            score_threshold=score,
+            class_score_thresholds=per_class,
+            nms_iou=nms_iou,
             max_detections=cfg.max_detections,
             providers=cfg.providers,
             intra_op_threads=cfg.intra_op_threads,

@@ -70,3 +70,15 @@ def test_the_shipped_detector_maps_a_recording(dining: Path, tmp_path: Path) -> 
     result = build_offline_map(dining, out, cfg, OfflineMapOptions(use_tracker=True))
     assert (out / "map.yaml").is_file() and (out / "objects.json").is_file()
     assert result.frames_used == 5 and result.frames_skipped == 0
+
+
+def test_a_recording_is_mapped_with_the_coco_model_by_default(dining: Path, tmp_path: Path) -> None:
+    """No detector configured and no detections file: a recording is a real camera, so the
+    default ``model_path: auto`` runs ``builtin:coco``, which finds the dining-room chairs."""
+    result = build_offline_map(dining, tmp_path / "coco", load_config(None), OfflineMapOptions(use_tracker=False))
+    cfg_used = (tmp_path / "coco" / "effective-config.yaml").read_text()
+    assert "model_path: auto" in cfg_used
+    confirmed = result.object_map.objects(confirmed_only=True)
+    assert len([o for o in confirmed if o.class_name == "chair"]) >= 2
+    # No phantom up at the ceiling fan (the furniture model's): everything stands below 1.6 m.
+    assert all(o.z_max_m < 1.6 for o in confirmed)
