@@ -62,14 +62,17 @@ SURVEY_SETTLE_S = 2.0
 #: about 1.5 planning times, so the plan is back before the vehicle gets there.
 MIN_REPLAN_LOOKAHEAD_S = 0.6
 MAX_REPLAN_LOOKAHEAD_S = 2.0
-#: The take-off has finished when the vehicle is this close below the take-off height.
-TAKEOFF_TOLERANCE_M = 0.15
+#: OFFBOARD is engaged only this high above the floor, at least (and at least half the
+#: take-off altitude): PX4's take-off aims at its home, whose height can be off by tens of
+#: centimetres, so the last part of the climb to the flight altitude is flown in OFFBOARD.
+MIN_ENGAGE_HEIGHT_M = 0.3
+#: The climb from the engage height to the flight altitude (m/s), and when it is done (m).
+CLIMB_SPEED_M_S = 0.5
+CLIMB_DONE_M = 0.1
 #: OFFBOARD is engaged only with the first setpoint this close to the vehicle (metres).
 ENGAGE_MAX_OFFSET_M = 0.5
 #: Pause between refused arming attempts (PX4 re-runs its checks at about 1 Hz).
 ARM_RETRY_S = 2.0
-#: Modes PX4 will not arm in, which it keeps after landing or accepts while disarmed.
-NOT_ARMABLE = frozenset({FlightMode.OFFBOARD, FlightMode.LAND, FlightMode.RTL, FlightMode.TAKEOFF})
 #: A leg is given up after this many holds for a vehicle that did not follow its setpoints.
 MAX_TRACKING_FAULTS = 3
 
@@ -120,13 +123,19 @@ def map_frame_of(state: VehicleState) -> MapFrame:
     return frame
 
 
+def min_engage_height_m(altitude_m: float) -> float:
+    """How high above the floor the vehicle must be before OFFBOARD is engaged."""
+    return max(MIN_ENGAGE_HEIGHT_M, 0.5 * altitude_m)
+
+
 def took_off(state: VehicleState, altitude_m: float) -> bool:
-    """PX4's take-off has finished at ``altitude_m`` above home: in the air, out of TAKEOFF
-    (PX4 ends it in Hold, and drops an OFFBOARD request made before), high enough by the
-    estimate and by a downward range sensor where there is one."""
+    """PX4's take-off to ``altitude_m`` has finished: in the air, out of TAKEOFF (PX4 ends
+    it in Hold, and drops an OFFBOARD request made before), and clear of the floor by
+    :func:`min_engage_height_m`, by the estimate and by a downward range sensor where there
+    is one."""
     height = state.clearance_below_m()
     return (state.in_air and state.flight_mode is not FlightMode.TAKEOFF and height is not None
-            and height >= altitude_m - TAKEOFF_TOLERANCE_M)
+            and height >= min_engage_height_m(altitude_m))
 
 
 class SurveyTurn:
@@ -253,19 +262,17 @@ class MissionRunner:
     # --- vehicle steps ------------------------------------------------------------------
 
     async def take_off(self, altitude_m: float, timeout_s: float = 30.0) -> None:
-        """Arm once PX4 is ready, take off to ``altitude_m`` above home, wait until the
-        take-off has finished and engage OFFBOARD holding there."""
+        """Arm once PX4 is ready, take off to ``altitude_m`` above PX4's home (set where it
+        armed), wait until the take-off has finished, engage OFFBOARD holding where the vehicle
+        is, and climb (or descend) on the spot to ``altitude_m`` above the floor."""
         v = self.vehicle
         if not v.snapshot().in_air:
             await self.arm_when_ready()
-            state = v.snapshot()
-            assert state.home is not None  # ready_to_arm waited for it
-            # PX4 takes the take-off altitude above home, whose z need not be the floor's.
-            home_above_floor_m = map_frame_of(state).from_ned(*state.home.position_ned_m)[2]
-            await v.commands.takeoff(altitude_m - home_above_floor_m)
+            await v.commands.takeoff(altitude_m)
             await v.state.wait_for(lambda s: took_off(s, altitude_m), timeout_s,
-                                   f"the take-off to {altitude_m:.2f} m above home to finish")
+                                   f"the take-off to {altitude_m:.2f} m to finish")
         await self.engage_here(altitude_m)
+        await self.climb_to(altitude_m)
         await self.survey(altitude_m)
 
     async def arm_when_ready(self) -> None:
@@ -289,10 +296,12 @@ class MissionRunner:
         await v.state.wait_for(lambda s: s.armed, v.cfg.heartbeat_timeout_s, "the vehicle to report armed")
 
     async def make_armable(self) -> None:
-        """Put a vehicle on the ground into Hold when its mode is one PX4 will not arm in."""
+        """Put a vehicle on the ground into Hold, the one mode it is armed in here: PX4 keeps
+        OFFBOARD or Land after a landing, refuses Position and Altitude without RC, and
+        armed in Mission flies its own uploaded mission."""
         v = self.vehicle
         state = v.snapshot()
-        if state.in_air or state.armed or state.flight_mode not in NOT_ARMABLE:
+        if state.in_air or state.armed or state.flight_mode is FlightMode.HOLD:
             return
         assert state.flight_mode is not None
         log.info("vehicle on the ground in %s: switching to HOLD so it can arm", state.flight_mode.name)
@@ -328,27 +337,46 @@ class MissionRunner:
         self.vehicle.offboard.set_setpoint(PositionSetpoint(target, yaw_rad=turn.final_yaw_rad))
 
     async def engage_here(self, altitude_m: float) -> None:
-        """Hold the current horizontal position at ``altitude_m`` and engage OFFBOARD; only
-        in the air at the take-off height above home and with that hold near the vehicle, so
-        OFFBOARD never starts on the ground or with a setpoint somewhere else."""
+        """Hold where the vehicle is and engage OFFBOARD; only in the air, clear of the floor
+        (:func:`took_off`), with that hold near the vehicle, so OFFBOARD never starts on the
+        ground or with a setpoint somewhere else."""
         state = self.vehicle.snapshot()
         pos = position_enu(state)
         if pos is None:
-            raise MissionError("no vehicle position (or no home) to engage offboard from")
-        height = state.clearance_below_m()
-        if not state.in_air or height is None or height < altitude_m - TAKEOFF_TOLERANCE_M:
-            raise MissionError(f"not engaging offboard: the vehicle is not airborne at the take-off "
-                               f"height ({'in the air' if state.in_air else 'on the ground'}, "
-                               f"{pos[2]:.2f} m above home, range below "
+            raise MissionError("no vehicle position (or no floor height) to engage offboard from")
+        if not state.in_air or not took_off(state, altitude_m):
+            raise MissionError(f"not engaging offboard: the vehicle is not airborne clear of the floor "
+                               f"({'in the air' if state.in_air else 'on the ground'}, "
+                               f"{pos[2]:.2f} m above the floor, range below "
                                f"{'none' if state.range_down_m is None else f'{state.range_down_m:.2f} m'}, "
-                               f"{altitude_m:.2f} m needed)")
-        self.hold_at(pos[:2], altitude_m)
+                               f"{min_engage_height_m(altitude_m):.2f} m needed)")
+        self.hold_at(pos[:2], float(pos[2]))
         sp = self.vehicle.offboard.status().setpoint
         assert sp is not None
         offset = math.dist(sp.position_ned_m, map_frame_of(state).to_ned(*pos))
         if offset > ENGAGE_MAX_OFFSET_M:
             raise MissionError(f"not engaging offboard: the first setpoint is {offset:.2f} m from the vehicle")
         await self.vehicle.offboard.engage()
+
+    async def climb_to(self, altitude_m: float, timeout_s: float = 20.0) -> None:
+        """Climb (or descend) on the spot, in OFFBOARD, to ``altitude_m`` above the floor, the
+        setpoint moving at :data:`CLIMB_SPEED_M_S` so the vehicle never lags it far."""
+        pos = position_enu(self.vehicle.snapshot())
+        if pos is None:
+            raise MissionError("no vehicle position to climb from")
+        z0 = float(pos[2])
+        t0 = time.monotonic()
+        while True:
+            self._check_offboard()
+            z_sp = z0 + math.copysign(min(abs(altitude_m - z0), CLIMB_SPEED_M_S * (time.monotonic() - t0)),
+                                      altitude_m - z0)
+            self.hold_at(pos[:2], z_sp)
+            now = position_enu(self.vehicle.snapshot())
+            if z_sp == altitude_m and now is not None and abs(float(now[2]) - altitude_m) <= CLIMB_DONE_M:
+                return
+            if time.monotonic() - t0 > timeout_s:
+                raise MissionError(f"the climb to {altitude_m:.2f} m did not end within {timeout_s:.0f} s")
+            await asyncio.sleep(FEED_PERIOD_S)
 
     def hold_at(self, xy_m: NDArray[np.floating], altitude_m: float) -> None:
         """Replace the setpoint with a hold at ``xy_m`` (map frame) and ``altitude_m``, keeping yaw."""
