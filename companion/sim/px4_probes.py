@@ -40,6 +40,7 @@ from companion.config import CompanionConfig, LinkConfig
 from companion.errors import CommandError, LinkError
 from companion.mavlink.link import MavlinkLink
 from companion.px4 import FlightMode, set_mode_params
+from companion.service.mission_runner import min_engage_height_m
 from companion.sim.px4_sitl import Px4Sitl
 from companion.sim.px4_world import FlightEvent, FlightTimeline
 
@@ -69,10 +70,13 @@ PX4_EVENT_PATTERN = (r"WARN|ERROR|[Ff]ailsafe|[Aa]rm|[Dd]isarm|[Ll]and|[Tt]akeof
                      r"[Mm]ission|[Pp]osition mode|Hold|denied")
 
 
-def engage_check(events: list[FlightEvent], altitude_m: float, tolerance_m: float = 0.15,
+def engage_check(events: list[FlightEvent], altitude_m: float, tolerance_m: float = 0.05,
                  path: list[tuple[float, float, float, float]] | None = None) -> tuple[bool, str]:
-    """Whether the vehicle was first reported armed in OFFBOARD while in the air at no less
-    than ``altitude_m - tolerance_m`` above the floor (False also when it never was). OFFBOARD
+    """Whether the vehicle was first reported armed in OFFBOARD while in the air, clear of the
+    floor by the service's engage height for a take-off to ``altitude_m`` less ``tolerance_m``
+    (:func:`~companion.service.mission_runner.min_engage_height_m`: PX4's take-off aims at its
+    home, which can sit tens of centimetres off the floor, and the service climbs the rest in
+    OFFBOARD; False also when it never was engaged). OFFBOARD
     while disarmed (PX4 keeps the mode a landing left) is not an engagement. PX4 reports modes
     in its 1 Hz heartbeat, so with the flight's ``path`` ((t_s, x, y, z) samples) the lowest
     height in the :data:`HEARTBEAT_LAG_S` before that report counts: the engagement happened
@@ -89,9 +93,10 @@ def engage_check(events: list[FlightEvent], altitude_m: float, tolerance_m: floa
         where = f"lowest {where} in the {HEARTBEAT_LAG_S:.1f} s before the report"
     if first.height_above_home_m is not None:
         where += f" ({first.height_above_home_m:.2f} m above home at the report)"
-    ok = first.landed == "IN_AIR" and first.armed and z is not None and z >= altitude_m - tolerance_m
+    need = min_engage_height_m(altitude_m)
+    ok = first.landed == "IN_AIR" and first.armed and z is not None and z >= need - tolerance_m
     return ok, (f"first OFFBOARD {'armed' if first.armed else 'disarmed'}, {first.landed}, {where} "
-                f"(take-off height {altitude_m:.2f} m)")
+                f"(take-off height {altitude_m:.2f} m, engage height {need:.2f} m)")
 
 
 def _companion(*args: str, timeout_s: float, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
