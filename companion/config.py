@@ -180,6 +180,10 @@ class SimConfig(StageConfig):
     wall_height_m: float = Field(default=2.6, ge=2.0, le=6.0)
     n_objects: int = Field(default=8, ge=0, le=60)
     n_doorways: int = Field(default=2, ge=1, le=4)
+    #: Room generator: ``realistic`` (furniture in groups as people arrange it: chairs pushed
+    #: under tables, desks against walls, clutter; :mod:`companion.sim.layouts`) or
+    #: ``scattered`` (each piece alone at a random spot, 0.25 m from the next).
+    layout: Literal["realistic", "scattered"] = "realistic"
     #: D455-like depth noise: sigma = depth_noise_coeff * z^2 (metres).
     depth_noise_coeff: float = Field(default=0.003, ge=0.0)
     #: Fraction of pixels near depth edges invalidated.

@@ -2,7 +2,7 @@
 
 One ray per pixel is cast with Open3D's tensor ``RaycastingScene`` (Embree) against a triangle
 mesh per primitive box (walls, floor, ceiling and every furniture part). Each primitive keeps
-its owner (object id, 0 for the building) and class index, so the instance and class masks
+its owner (object id, 0 for the building, negative for clutter) and class index, so the instance and class masks
 come straight from the noise-free geometry.
 
 Pixel convention: pixel ``(u, v)`` samples the ray through image coordinates ``(u, v)`` with
@@ -47,6 +47,8 @@ log = logging.getLogger(__name__)
 #: Material (texture) indices.
 MAT_WALL, MAT_FLOOR, MAT_CEILING, MAT_WOOD, MAT_FABRIC, MAT_BOARD = range(6)
 _CLASS_MATERIAL = {
+    "plant": MAT_FABRIC,
+    "box": MAT_BOARD,
     "chair": MAT_WOOD,
     "desk": MAT_WOOD,
     "coffee_table": MAT_WOOD,
@@ -316,8 +318,10 @@ class RoomRenderer:
         entries: list[tuple[Box, int, int, int, tuple[int, int, int]]] = [
             (b, 0, -1, mat, col) for b, mat, col in self._building_boxes()
         ]
-        for obj in self.room.objects:
+        for obj in (*self.room.objects, *self.room.clutter):
             cls = self.class_names.index(obj.class_name) if obj.class_name in self.class_names else -1
+            if obj.object_id < 0:
+                cls = -1  # clutter is never one of our classes, whatever it is called
             mat = _CLASS_MATERIAL.get(obj.class_name, MAT_WOOD)
             entries.extend((p, obj.object_id, cls, mat, obj.color_rgb) for p in obj.parts)
         n = len(entries)
