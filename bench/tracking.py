@@ -111,8 +111,9 @@ def bench_mot() -> dict[str, dict[str, dict[str, float]]]:
 
 # --- simulated flights --------------------------------------------------------------------
 
-def bench_sim(quick: bool) -> dict[str, object]:
-    """Identity switches per 100 frames on simulated flights with 60 deg/s yaw turns."""
+def bench_sim(quick: bool, layout: str = "realistic") -> dict[str, object]:
+    """Identity switches per 100 frames on simulated flights with 60 deg/s yaw turns, in rooms
+    laid out ``layout``."""
     from bench._sim_flight import fly, scripted_flight
     from companion.config import CompanionConfig
     from companion.sim.world import generate_room
@@ -128,11 +129,11 @@ def bench_sim(quick: bool) -> dict[str, object]:
     reference = cfg.tracker.model_copy(update={"cmc_model": "affine", "match_thresh": 0.8})
     totals: dict[str, dict[str, float]] = {}
     times: dict[str, list[float]] = {}
-    print(f"\n== Simulated flights: {len(rooms)} room(s) x {duration_s:.0f} s at {cfg.camera.rate_hz:.0f} Hz, "
+    print(f"\n== Simulated flights, {layout} rooms: {len(rooms)} room(s) x {duration_s:.0f} s at {cfg.camera.rate_hz:.0f} Hz, "
           f"{intr.width_px}x{intr.height_px}, 60 deg/s yaw turns, oracle detector ==")
     for seed in rooms:
         room = generate_room(seed, width_m=cfg.sim.room_width_m, depth_m=cfg.sim.room_depth_m,
-                             n_objects=cfg.sim.n_objects, class_names=names)
+                             n_objects=cfg.sim.n_objects, class_names=names, layout=layout)
         poses = scripted_flight(room, duration_s, rate_hz=cfg.camera.rate_hz, yaw_rate_dps=60.0, seed=seed)
         sort = SORT()
         trackers = {
@@ -153,7 +154,7 @@ def bench_sim(quick: bool) -> dict[str, object]:
             print(f"  room {seed}: {name:<18} switches {c.continuous:>3}  re-entries {c.reentry:>3}  "
                   f"coverage {c.matched / max(c.gt_boxes, 1):.3f}")
     print(f"{'tracker':<19}{'frames':>7}{'IDsw':>6}{'IDsw/100f':>11}{'re-entry':>10}{'coverage':>10}{'update ms':>11}")
-    result: dict[str, object] = {"rooms": len(rooms), "duration_s_per_room": duration_s,
+    result: dict[str, object] = {"world": layout, "rooms": len(rooms), "duration_s_per_room": duration_s,
                                  "image_px": [intr.width_px, intr.height_px], "yaw_rate_dps": 60.0}
     for name, t in totals.items():
         per100 = 100.0 * t["switches"] / max(t["frames"], 1)
@@ -175,12 +176,18 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short low-resolution flight")
     ap.add_argument("--skip-sim", action="store_true", help="MOTChallenge only")
+    ap.add_argument("--world", choices=("realistic", "scattered"), default="realistic",
+                    help="simulated flights' room layout")
+    ap.add_argument("--no-scattered", action="store_true",
+                    help="with --world realistic: skip flying the same rooms scattered")
     args = ap.parse_args()
     if not MOT_DIR.is_dir():
         sys.exit(f"MOT data not found at {MOT_DIR.resolve()}")
-    out: dict[str, object] = {"mot": bench_mot()}
+    out: dict[str, object] = {"world": args.world, "mot": bench_mot()}
     if not args.skip_sim:
-        out["sim"] = bench_sim(args.quick)
+        out["sim"] = bench_sim(args.quick, args.world)
+        if args.world == "realistic" and not args.no_scattered:
+            out["sim_scattered"] = bench_sim(args.quick, "scattered")
     print(json.dumps(out))
 
 
