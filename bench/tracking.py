@@ -38,6 +38,7 @@ from semmap.tracking.botsort import BoTSORT  # noqa: E402
 from semmap.tracking.sort_baseline import SORT  # noqa: E402
 from semmap.types import CameraIntrinsics, Detection, Track  # noqa: E402
 
+#: The MOT data beside the repository (``--mot-dir`` for a checkout elsewhere, e.g. a worktree).
 MOT_DIR = REPO / ".." / "shared" / "data" / "mot"
 #: Sequence -> frame rate (MOT15 seqinfo).
 SEQUENCES = {"TUD-Campus": 25.0, "TUD-Stadtmitte": 25.0}
@@ -176,11 +177,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short low-resolution flight")
     ap.add_argument("--skip-sim", action="store_true", help="MOTChallenge only")
+    ap.add_argument("--mot-dir", default=str(MOT_DIR), help="MOT15 sequences folder (default ../shared/data/mot)")
     ap.add_argument("--world", choices=("realistic", "scattered"), default="realistic",
                     help="simulated flights' room layout")
     ap.add_argument("--no-scattered", action="store_true",
                     help="with --world realistic: skip flying the same rooms scattered")
     args = ap.parse_args()
+    global MOT_DIR
+    MOT_DIR = Path(args.mot_dir)
     if not MOT_DIR.is_dir():
         sys.exit(f"MOT data not found at {MOT_DIR.resolve()}")
     out: dict[str, object] = {"world": args.world, "mot": bench_mot()}

@@ -88,14 +88,13 @@ def depth_edges(zf: NDArray[np.float32], rel_jump: float) -> NDArray[np.bool_]:
     return edge
 
 
-def _neighbourhood(zf: NDArray[np.float32], pick: np.ufunc) -> NDArray[np.float32]:
-    """(H, W) ``pick`` (np.minimum / np.maximum) of each pixel and its four neighbours."""
-    out = zf.copy()
-    pick(out[:, 1:], zf[:, :-1], out=out[:, 1:])
-    pick(out[:, :-1], zf[:, 1:], out=out[:, :-1])
-    pick(out[1:, :], zf[:-1, :], out=out[1:, :])
-    pick(out[:-1, :], zf[1:, :], out=out[:-1, :])
-    return out
+def _neighbour_range(zf: NDArray[np.float32], v: NDArray[np.intp],
+                     u: NDArray[np.intp]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Nearest and farthest depth among pixels (v, u) and their four neighbours."""
+    H, W = zf.shape
+    stack = np.stack([zf[v, u], zf[np.maximum(v - 1, 0), u], zf[np.minimum(v + 1, H - 1), u],
+                      zf[v, np.maximum(u - 1, 0)], zf[v, np.minimum(u + 1, W - 1)]])
+    return stack.min(axis=0), stack.max(axis=0)
 
 
 def apply_depth(
@@ -129,30 +128,41 @@ def apply_depth(
         # A kept edge pixel flies: its depth lands anywhere between its surface and the far one.
         fly = ~drop_edge & (u_edge < m.edge_dropout + m.flying_pixels * (1.0 - m.edge_dropout))
         fv, fu = ev[fly], eu[fly]
-        far = _neighbourhood(zf, np.maximum)[fv, fu]
-        near = _neighbourhood(zf, np.minimum)[fv, fu]
+        near, far = _neighbour_range(zf, fv, fu)
         ok = far < 1e5
         t = rng.random(len(fv)).astype(np.float32)
         out[fv[ok], fu[ok]] = near[ok] + t[ok] * (far[ok] - near[ok])
     if m.disparity_step_px > 0:
-        fb = np.float32(fx_px * D455_BASELINE_M)
-        disp = fb / np.maximum(out, np.float32(1e-3))
-        step = np.float32(m.disparity_step_px)
-        disp = np.maximum(np.round(disp / step) * step, step)
-        out = (fb / disp).astype(np.float32)
+        # Disparity in sub-pixel steps: d / step = fB / (z step), rounded, back to depth.
+        k = np.float32(fx_px * D455_BASELINE_M / m.disparity_step_px)
+        np.maximum(out, np.float32(1e-3), out=out)
+        np.divide(k, out, out=out)
+        np.rint(out, out=out)
+        np.maximum(out, np.float32(1.0), out=out)
+        np.divide(k, out, out=out)
     if m.quantum_m > 0:
-        out = (np.round(out / m.quantum_m) * m.quantum_m).astype(np.float32)
+        q = np.float32(m.quantum_m)
+        np.divide(out, q, out=out)
+        np.rint(out, out=out)
+        out *= q
     invalid = ~finite | (out < m.effective_min_m(W)) | (out > m.max_m)
     invalid[ev[drop_edge], eu[drop_edge]] = True
+    # Random draws only for the pixels an effect can touch (a whole-image draw costs ~3 ms).
     if m.far_dropout > 0:
         start = m.far_start * m.max_m
-        p_far = np.clip((zf - start) / max(m.max_m - start, 1e-6), 0.0, 1.0) * m.far_dropout
-        invalid |= rng.random(z.shape) < p_far
+        fv, fu = np.nonzero(finite & (zf > start))
+        p_far = np.minimum((zf[fv, fu] - start) / max(m.max_m - start, 1e-6), 1.0) * m.far_dropout
+        hit = rng.random(len(fv)) < p_far
+        invalid[fv[hit], fu[hit]] = True
     if m.dark_holes > 0 and albedo is not None:
-        p_dark = np.clip(1.0 - albedo / max(m.dark_albedo, 1e-6), 0.0, 1.0) * m.dark_holes
-        invalid |= rng.random(z.shape) < p_dark
+        dv, du = np.nonzero(albedo < m.dark_albedo)
+        p_dark = (1.0 - albedo[dv, du] / max(m.dark_albedo, 1e-6)) * m.dark_holes
+        hit = rng.random(len(dv)) < p_dark
+        invalid[dv[hit], du[hit]] = True
     if m.shiny_holes > 0 and shiny_head_on is not None:
-        invalid |= shiny_head_on & (rng.random(z.shape) < m.shiny_holes)
+        sv, su = np.nonzero(shiny_head_on)
+        hit = rng.random(len(sv)) < m.shiny_holes
+        invalid[sv[hit], su[hit]] = True
     out[invalid] = 0.0
     return out
 

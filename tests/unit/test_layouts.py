@@ -160,3 +160,29 @@ def test_same_seed_same_room_and_classes_left_out_stay_out() -> None:
 def test_unknown_layout_is_named() -> None:
     with pytest.raises(SimulationError, match="layout 'tidy'"):
         generate_room(0, layout="tidy")
+
+
+def test_clutter_is_seen_but_is_never_an_object_in_the_masks() -> None:
+    pytest.importorskip("open3d")
+    from companion.config import CompanionConfig
+    from companion.sim.d455 import exact_depth
+    from companion.sim.render import RoomRenderer
+    from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform, pose_from_xyz_rpy
+    from semmap.types import CameraIntrinsics
+
+    room = next(r for r in (generate_room(s, layout="realistic") for s in range(20))
+                if any(c.class_name == "monitor" for c in r.clutter))
+    monitor = next(c for c in room.clutter if c.class_name == "monitor")
+    names = [c.name for c in CompanionConfig().classes]
+    r = RoomRenderer(room, names, CameraIntrinsics(191.5, 191.5, 160.0, 120.0, 320, 240), noise=exact_depth())
+    # Look at the monitor from 1.2 m, at its height.
+    mx, my = monitor.center_xy_m
+    ang = monitor.yaw_rad - math.pi / 2  # in front of the screen, where the user sits
+    cx, cy = mx + 1.2 * math.cos(ang), my + 1.2 * math.sin(ang)
+    T = pose_from_xyz_rpy(cx, cy, monitor.z_range_m[1] - 0.15, 0.0, 0.0, math.atan2(my - cy, mx - cx)) @ make_transform(
+        R_BODY_CAMERA_FORWARD, np.zeros(3))
+    frame = r.render(T)
+    inst, cls = np.asarray(frame.masks["instance"]), np.asarray(frame.masks["class"])
+    assert np.count_nonzero(inst == monitor.object_id) > 200
+    assert np.all(cls[inst < 0] == -1)
+    assert all(v.object_id > 0 for v in r.visible_objects(frame))
