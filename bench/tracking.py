@@ -50,16 +50,16 @@ METRICS = ["mota", "idf1", "num_switches", "num_false_positives", "num_misses", 
 
 # --- MOTChallenge -------------------------------------------------------------------------
 
-def _mot_detections(seq: str) -> dict[int, list[Detection]]:
-    rows = np.loadtxt(MOT_DIR / seq / "det.txt", delimiter=",", ndmin=2)
+def _mot_detections(mot_dir: Path, seq: str) -> dict[int, list[Detection]]:
+    rows = np.loadtxt(mot_dir / seq / "det.txt", delimiter=",", ndmin=2)
     out: dict[int, list[Detection]] = {f: [] for f in range(1, int(rows[:, 0].max()) + 1)}
     for f, _id, x, y, w, h, conf, *_ in rows:
         out[int(f)].append(Detection((x, y, x + w, y + h), float(conf), "person"))
     return out
 
 
-def _run_mot(seq: str, update) -> tuple[pd.DataFrame, float]:
-    dets = _mot_detections(seq)
+def _run_mot(mot_dir: Path, seq: str, update) -> tuple[pd.DataFrame, float]:
+    dets = _mot_detections(mot_dir, seq)
     rows, t_total = [], 0.0
     for f in sorted(dets):
         t0 = time.perf_counter()
@@ -73,14 +73,14 @@ def _run_mot(seq: str, update) -> tuple[pd.DataFrame, float]:
     return df, 1e3 * t_total / max(len(dets), 1)
 
 
-def bench_mot() -> dict[str, dict[str, dict[str, float]]]:
+def bench_mot(mot_dir: Path = MOT_DIR) -> dict[str, dict[str, dict[str, float]]]:
     """MOTA/IDF1/switches of BoT-SORT and SORT on both TUD sequences."""
     mh = mm.metrics.create()
     results: dict[str, dict[str, dict[str, float]]] = {}
     print("== MOTChallenge 2015 public detections (py-motmetrics, IoU >= 0.5) ==")
     print(f"{'sequence':<16}{'tracker':<19}{'MOTA':>8}{'IDF1':>8}{'IDsw':>6}{'FP':>6}{'FN':>6}{'MT':>5}{'ms/frame':>10}")
     for seq, fps in SEQUENCES.items():
-        gt = mm.io.loadtxt(str(MOT_DIR / seq / "gt.txt"), fmt="mot15-2D", min_confidence=1)
+        gt = mm.io.loadtxt(str(mot_dir / seq / "gt.txt"), fmt="mot15-2D", min_confidence=1)
         trackers = {
             "botsort": BoTSORT.from_config(TrackerConfig(**BOTSORT_MOT, frame_rate_hz=fps)).update,
             "sort": SORT(max_age=1, min_hits=3, iou_threshold=0.3).update,
@@ -91,7 +91,7 @@ def bench_mot() -> dict[str, dict[str, dict[str, float]]]:
         }
         results[seq] = {}
         for name, update in trackers.items():
-            res, ms = _run_mot(seq, update)
+            res, ms = _run_mot(mot_dir, seq, update)
             acc = mm.utils.compare_to_groundtruth(gt, res, "iou", distth=0.5)
             s = mh.compute(acc, metrics=METRICS, name=name).iloc[0]
             r = {
@@ -183,11 +183,10 @@ def main() -> None:
     ap.add_argument("--no-scattered", action="store_true",
                     help="with --world realistic: skip flying the same rooms scattered")
     args = ap.parse_args()
-    global MOT_DIR
-    MOT_DIR = Path(args.mot_dir)
-    if not MOT_DIR.is_dir():
-        sys.exit(f"MOT data not found at {MOT_DIR.resolve()}")
-    out: dict[str, object] = {"world": args.world, "mot": bench_mot()}
+    mot_dir = Path(args.mot_dir)
+    if not mot_dir.is_dir():
+        sys.exit(f"MOT data not found at {mot_dir.resolve()}")
+    out: dict[str, object] = {"world": args.world, "mot": bench_mot(mot_dir)}
     if not args.skip_sim:
         out["sim"] = bench_sim(args.quick, args.world)
         if args.world == "realistic" and not args.no_scattered:
