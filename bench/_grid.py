@@ -85,11 +85,11 @@ def jittered(fps: list[ObjectFootprint], rng: np.random.Generator, existence: fl
     ]
 
 
-def map_room(seed: int, n_frames: int) -> dict[str, Any]:
+def map_room(seed: int, n_frames: int, layout: str = "realistic") -> dict[str, Any]:
     """Fly one room; returns its agreement figures and per-frame stage times (ms)."""
     rng = np.random.default_rng(seed)
     room = generate_room(seed, width_m=float(rng.uniform(6.0, 8.0)), depth_m=float(rng.uniform(5.0, 6.5)),
-                         n_objects=10)
+                         n_objects=10, layout=layout)
     renderer = RoomRenderer(room, [c.name for c in CLASSES], INTRINSICS, noise=DepthNoise(), seed=seed)
     off = rng.uniform(0.1, 0.9, 2) * 0.05
     settings = SemanticMapSettings(
@@ -176,7 +176,7 @@ def grid_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]]:
     """The ``grid`` section of bench/mapping.py: (table lines, figures)."""
     n_rooms = 3 if args.quick else min(args.rooms, 10)
     n_frames = 50 if args.quick else max(80, args.frames)
-    rooms = [map_room(args.seed + 500 + k, n_frames) for k in range(n_rooms)]
+    rooms = [map_room(args.seed + 500 + k, n_frames, args.world) for k in range(n_rooms)]
     lines = [f"  {'room':<6}{'frames':>7}{'agree':>9}{'cover':>9}{'f_occ':>9}{'f_free':>9}"]
     for k, r in enumerate(rooms):
         lines.append(f"  {k:<6}{r['frames']:>7}{r['agreement']:>9.3f}{r['coverage']:>9.3f}"

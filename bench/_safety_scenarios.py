@@ -163,18 +163,19 @@ def pick_scenario(index: int, room: Room, cfg: CompanionConfig, altitude_m: floa
 
 
 def make_scenarios(cfg: CompanionConfig, n_rooms: int, seed: int, altitudes_m: list[float],
-                   width_m: float = 8.0, depth_m: float = 6.0, n_objects: int = 10) -> list[Scenario]:
+                   width_m: float = 8.0, depth_m: float = 6.0, n_objects: int = 10,
+                   layout: str = "realistic") -> list[Scenario]:
     """``n_rooms`` scenarios from room seeds ``seed, seed + 1, ...`` (a seed whose room has no
     fitting start and goal is skipped). Altitudes cycle through ``altitudes_m``; below 1 m the
     scenario is ``blocking`` (desks, tables, chair seats reach into the band), from 1 m up
-    ``overflight`` (only whiteboards reach that high)."""
+    ``overflight`` (only whiteboards reach that high). ``layout``: :data:`companion.sim.world.LAYOUTS`."""
     out: list[Scenario] = []
     names = [c.name for c in cfg.classes]
     s = seed
     while len(out) < n_rooms and s < seed + 20 * n_rooms + 20:
         alt = altitudes_m[len(out) % len(altitudes_m)]
         kind = "blocking" if alt < 1.0 else "overflight"
-        room = generate_room(s, width_m, depth_m, 2.6, n_objects, 2, class_names=names)
+        room = generate_room(s, width_m, depth_m, 2.6, n_objects, 2, class_names=names, layout=layout)
         sc = pick_scenario(len(out), room, cfg, alt, kind, np.random.default_rng(s))
         s += 1
         if sc is not None:

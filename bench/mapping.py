@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from companion.sim.groundtruth import clearance_m  # noqa: E402
 from companion.sim.render import DepthNoise, RoomRenderer  # noqa: E402
-from companion.sim.world import Room, generate_room  # noqa: E402
+from companion.sim.world import LAYOUTS, Room, generate_room  # noqa: E402
 from semmap.config import ClassConfig, ExtrinsicsConfig, GeometryConfig, MapConfig, default_classes  # noqa: E402
 from semmap.frames import pose_from_xyz_rpy  # noqa: E402
 from semmap.geometry import observe_object  # noqa: E402
@@ -209,15 +209,16 @@ def map_room(
     seed: int, n_frames: int, noise: OracleNoise | None = None,
     geometry: GeometryConfig | None = None, map_cfg: MapConfig | None = None,
     classes: list[ClassConfig] | None = None, vote_groups: dict[str, tuple[str, ...]] | None = None,
-    class_weights: dict[str, float] | None = None,
+    class_weights: dict[str, float] | None = None, layout: str = "realistic",
 ) -> tuple[Room, ObjectMap, dict[int, int], list[float]]:
-    """Fly one seeded room and build its object map (``classes``: the object map's, default
-    :func:`default_classes`; ``vote_groups`` as :class:`ObjectMap` takes them;
-    ``class_weights``: the room's furniture mix, default the generator's). Returns the room, the map, how many frames each ground-truth
-    object was seen whole in, and per-frame geometry times (ms)."""
+    """Fly one seeded room (``layout``: :data:`companion.sim.world.LAYOUTS`) and build its
+    object map (``classes``: the object map's, default :func:`default_classes`;
+    ``vote_groups`` as :class:`ObjectMap` takes them; ``class_weights``: the room's furniture
+    mix, default the generator's). Returns the room, the map, how many frames each
+    ground-truth object was seen whole in, and per-frame geometry times (ms)."""
     rng = np.random.default_rng(seed)
     room = generate_room(seed, width_m=float(rng.uniform(6.0, 8.0)), depth_m=float(rng.uniform(5.0, 6.5)),
-                         class_weights=class_weights)
+                         class_weights=class_weights, layout=layout)
     classes = classes or default_classes()
     cfg_by_name = {c.name: c for c in classes}
     renderer = RoomRenderer(room, [c.name for c in classes], INTRINSICS,
@@ -291,15 +292,34 @@ def _pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
+#: The headline figures under the issue's names (``--world``'s and, beside it, ``scattered``'s).
+HEADLINE = {
+    "position_error_p95_m": "position_err_m_p95", "footprint_iou_median": "footprint_iou_median",
+    "height_error_p95_m": "height_err_m_p95", "class_accuracy": "class_correct_frac",
+    "duplicates": "duplicate_objects", "spurious": "spurious_objects",
+}
+
+
 def objects_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]]:
-    """Object geometry + object map accuracy over seeded rooms."""
+    """Object geometry + object map accuracy over seeded rooms of ``--world``; with
+    ``--world realistic`` the same rooms' seeds laid out ``scattered`` too, under "scattered"."""
+    lines, figures = _objects_in(args, args.world)
+    figures.update({k: figures[v] for k, v in HEADLINE.items()})
+    if args.world == "realistic" and not args.no_scattered:
+        more, scattered = _objects_in(args, "scattered")
+        lines += ["", "-- the same seeds, scattered layout", *more]
+        figures["scattered"] = {**{k: scattered[v] for k, v in HEADLINE.items()}, "detail": scattered}
+    return lines, figures
+
+
+def _objects_in(args: argparse.Namespace, layout: str) -> tuple[list[str], dict[str, Any]]:
     n_rooms, n_frames = (3, 40) if args.quick else (args.rooms, args.frames)
     results = []
     lines = [f"{'seed':>4} {'gt':>3} {'match':>5} {'spur':>4} {'dup':>3} {'pos p95 cm':>10} "
              f"{'IoU med':>7} {'h p95 cm':>8} {'class %':>7}"]
     for k in range(n_rooms):
         seed = args.seed + k
-        room, omap, seen, times = map_room(seed, n_frames)
+        room, omap, seen, times = map_room(seed, n_frames, layout=layout)
         r = score_room(room, omap, seen)
         r.geometry_ms = times
         results.append(r)
@@ -378,12 +398,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rooms", type=int, default=20)
     ap.add_argument("--frames", type=int, default=80, help="frames per room")
     ap.add_argument("--seed", type=int, default=1000)
+    ap.add_argument("--world", choices=LAYOUTS, default="realistic",
+                    help="room layout (realistic also measures the same seeds scattered)")
+    ap.add_argument("--no-scattered", action="store_true", help="with --world realistic: skip the scattered rooms")
     ap.add_argument("--tail", type=int, default=0, metavar="N",
                     help="objects section: also list the N objects with the largest position error")
     ap.add_argument("--section", choices=sorted(SECTIONS), action="append",
                     help="run only these sections (default: all)")
     args = ap.parse_args(argv)
-    out: dict[str, Any] = {}
+    out: dict[str, Any] = {"world": args.world}
     for name, fn in SECTIONS.items():
         if args.section and name not in args.section:
             continue
@@ -394,6 +417,11 @@ def main(argv: list[str] | None = None) -> int:
             print(line)
         print()
         out[name] = figures
+    if "objects" in out:
+        # The headline figures first-level too, as the status table quotes them.
+        out.update({k: out["objects"][k] for k in HEADLINE})
+        if "scattered" in out["objects"]:
+            out["scattered"] = {k: out["objects"]["scattered"][k] for k in HEADLINE}
     print(json.dumps(out))
     return 0
 

@@ -43,7 +43,7 @@ from companion.sim import groundtruth as gt  # noqa: E402
 from companion.sim.odometry import OdometryDriftModel  # noqa: E402
 from companion.sim.render import RoomRenderer  # noqa: E402
 from companion.sim.trajectory import fly_route, plan_route  # noqa: E402
-from companion.sim.world import generate_room  # noqa: E402
+from companion.sim.world import LAYOUTS, generate_room  # noqa: E402
 from semmap.config import ExtrinsicsConfig, SlamConfig, default_classes  # noqa: E402
 from semmap.costmap import VerticalBand  # noqa: E402
 from semmap.scan import BandScan, extract_band_scan  # noqa: E402
@@ -123,9 +123,9 @@ def pose_at(traj: np.ndarray, stamp_s: float) -> np.ndarray:
 def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float = 10.0,
                width_px: int = 320, cfg: SlamConfig | None = None,
                drift: OdometryDriftModel | None = None, max_duration_s: float | None = None,
-               max_range_m: float = 6.0) -> dict[str, Any]:
-    """Fly one seeded room with SLAM; returns its figures (see the module docstring)."""
-    room = generate_room(seed, n_objects=8)
+               max_range_m: float = 6.0, layout: str = "realistic") -> dict[str, Any]:
+    """Fly one seeded room (``layout``) with SLAM; returns its figures (see the module docstring)."""
+    room = generate_room(seed, n_objects=8, layout=layout)
     traj = loop_trajectory(room, laps, speed_m_s)
     scale = width_px / 640.0
     intr = CameraIntrinsics(383.0 * scale, 383.0 * scale, 320.0 * scale, 240.0 * scale, width_px, int(480 * scale))
@@ -197,18 +197,14 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="one room, one short loop, small images (< 1 min)")
-    ap.add_argument("--seeds", type=int, nargs="*", default=None)
-    args = ap.parse_args(argv)
-    seeds = args.seeds or ([3] if args.quick else [1, 2, 3])
+def _fly_all(args: argparse.Namespace, seeds: list[int], layout: str) -> dict[str, Any]:
+    """Fly every seed's room laid out ``layout``, print the table, return the summary figures."""
     results = []
     for seed in seeds:
         if args.quick:
-            r = run_flight(seed, laps=1, speed_m_s=0.6, rate_hz=6.0, width_px=160)
+            r = run_flight(seed, laps=1, speed_m_s=0.6, rate_hz=6.0, width_px=160, layout=layout)
         else:
-            r = run_flight(seed)
+            r = run_flight(seed, layout=layout)
         results.append(r)
     print(f"{'seed':>4} {'dur s':>6} {'scans':>5} {'ATE odom m':>10} {'ATE live m':>10} {'live p95':>8} {'ATE SLAM m':>10} "
           f"{'loops':>5} {'revis':>5} {'fallb':>5} {'part':>5} {'agree slam':>10} {'live':>6} {'odom':>6} {'truth':>6} "
@@ -220,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['agreement_odometry']:6.3f} {r['agreement_true_poses']:6.3f} {np.percentile(r['local_ms'], 50):12.2f}")
     all_ms = np.concatenate([r["local_ms"] for r in results])
     all_cpu = np.concatenate([r["local_cpu_ms"] for r in results])
-    summary = {
+    return {
         "rooms": {str(r["seed"]): {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()
                                    if k not in ("local_ms", "local_cpu_ms")} for r in results},
         "ate_odometry_m_mean": round(float(np.mean([r["ate_odometry_m"] for r in results])), 4),
@@ -243,6 +239,22 @@ def main(argv: list[str] | None = None) -> int:
         "local_slam_cpu_ms_p50": round(float(np.percentile(all_cpu, 50)), 3),
         "local_slam_cpu_ms_p95": round(float(np.percentile(all_cpu, 95)), 3),
     }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="one room, one short loop, small images (< 1 min)")
+    ap.add_argument("--seeds", type=int, nargs="*", default=None)
+    ap.add_argument("--world", choices=LAYOUTS, default="realistic", help="room layout")
+    ap.add_argument("--no-scattered", action="store_true",
+                    help="with --world realistic: skip flying the same seeds scattered")
+    args = ap.parse_args(argv)
+    seeds = args.seeds or ([3] if args.quick else [1, 2, 3])
+    summary = {"world": args.world, **_fly_all(args, seeds, args.world)}
+    if args.world == "realistic" and not args.no_scattered:
+        print("\n-- the same seeds, scattered layout")
+        scattered = _fly_all(args, seeds, "scattered")
+        summary["scattered"] = {k: v for k, v in scattered.items() if k != "rooms"}
     print(json.dumps(summary))
     return 0
 

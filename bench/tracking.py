@@ -38,6 +38,7 @@ from semmap.tracking.botsort import BoTSORT  # noqa: E402
 from semmap.tracking.sort_baseline import SORT  # noqa: E402
 from semmap.types import CameraIntrinsics, Detection, Track  # noqa: E402
 
+#: The MOT data beside the repository (``--mot-dir`` for a checkout elsewhere, e.g. a worktree).
 MOT_DIR = REPO / ".." / "shared" / "data" / "mot"
 #: Sequence -> frame rate (MOT15 seqinfo).
 SEQUENCES = {"TUD-Campus": 25.0, "TUD-Stadtmitte": 25.0}
@@ -49,16 +50,16 @@ METRICS = ["mota", "idf1", "num_switches", "num_false_positives", "num_misses", 
 
 # --- MOTChallenge -------------------------------------------------------------------------
 
-def _mot_detections(seq: str) -> dict[int, list[Detection]]:
-    rows = np.loadtxt(MOT_DIR / seq / "det.txt", delimiter=",", ndmin=2)
+def _mot_detections(mot_dir: Path, seq: str) -> dict[int, list[Detection]]:
+    rows = np.loadtxt(mot_dir / seq / "det.txt", delimiter=",", ndmin=2)
     out: dict[int, list[Detection]] = {f: [] for f in range(1, int(rows[:, 0].max()) + 1)}
     for f, _id, x, y, w, h, conf, *_ in rows:
         out[int(f)].append(Detection((x, y, x + w, y + h), float(conf), "person"))
     return out
 
 
-def _run_mot(seq: str, update) -> tuple[pd.DataFrame, float]:
-    dets = _mot_detections(seq)
+def _run_mot(mot_dir: Path, seq: str, update) -> tuple[pd.DataFrame, float]:
+    dets = _mot_detections(mot_dir, seq)
     rows, t_total = [], 0.0
     for f in sorted(dets):
         t0 = time.perf_counter()
@@ -72,14 +73,14 @@ def _run_mot(seq: str, update) -> tuple[pd.DataFrame, float]:
     return df, 1e3 * t_total / max(len(dets), 1)
 
 
-def bench_mot() -> dict[str, dict[str, dict[str, float]]]:
+def bench_mot(mot_dir: Path = MOT_DIR) -> dict[str, dict[str, dict[str, float]]]:
     """MOTA/IDF1/switches of BoT-SORT and SORT on both TUD sequences."""
     mh = mm.metrics.create()
     results: dict[str, dict[str, dict[str, float]]] = {}
     print("== MOTChallenge 2015 public detections (py-motmetrics, IoU >= 0.5) ==")
     print(f"{'sequence':<16}{'tracker':<19}{'MOTA':>8}{'IDF1':>8}{'IDsw':>6}{'FP':>6}{'FN':>6}{'MT':>5}{'ms/frame':>10}")
     for seq, fps in SEQUENCES.items():
-        gt = mm.io.loadtxt(str(MOT_DIR / seq / "gt.txt"), fmt="mot15-2D", min_confidence=1)
+        gt = mm.io.loadtxt(str(mot_dir / seq / "gt.txt"), fmt="mot15-2D", min_confidence=1)
         trackers = {
             "botsort": BoTSORT.from_config(TrackerConfig(**BOTSORT_MOT, frame_rate_hz=fps)).update,
             "sort": SORT(max_age=1, min_hits=3, iou_threshold=0.3).update,
@@ -90,7 +91,7 @@ def bench_mot() -> dict[str, dict[str, dict[str, float]]]:
         }
         results[seq] = {}
         for name, update in trackers.items():
-            res, ms = _run_mot(seq, update)
+            res, ms = _run_mot(mot_dir, seq, update)
             acc = mm.utils.compare_to_groundtruth(gt, res, "iou", distth=0.5)
             s = mh.compute(acc, metrics=METRICS, name=name).iloc[0]
             r = {
@@ -111,8 +112,9 @@ def bench_mot() -> dict[str, dict[str, dict[str, float]]]:
 
 # --- simulated flights --------------------------------------------------------------------
 
-def bench_sim(quick: bool) -> dict[str, object]:
-    """Identity switches per 100 frames on simulated flights with 60 deg/s yaw turns."""
+def bench_sim(quick: bool, layout: str = "realistic") -> dict[str, object]:
+    """Identity switches per 100 frames on simulated flights with 60 deg/s yaw turns, in rooms
+    laid out ``layout``."""
     from bench._sim_flight import fly, scripted_flight
     from companion.config import CompanionConfig
     from companion.sim.world import generate_room
@@ -128,11 +130,11 @@ def bench_sim(quick: bool) -> dict[str, object]:
     reference = cfg.tracker.model_copy(update={"cmc_model": "affine", "match_thresh": 0.8})
     totals: dict[str, dict[str, float]] = {}
     times: dict[str, list[float]] = {}
-    print(f"\n== Simulated flights: {len(rooms)} room(s) x {duration_s:.0f} s at {cfg.camera.rate_hz:.0f} Hz, "
+    print(f"\n== Simulated flights, {layout} rooms: {len(rooms)} room(s) x {duration_s:.0f} s at {cfg.camera.rate_hz:.0f} Hz, "
           f"{intr.width_px}x{intr.height_px}, 60 deg/s yaw turns, oracle detector ==")
     for seed in rooms:
         room = generate_room(seed, width_m=cfg.sim.room_width_m, depth_m=cfg.sim.room_depth_m,
-                             n_objects=cfg.sim.n_objects, class_names=names)
+                             n_objects=cfg.sim.n_objects, class_names=names, layout=layout)
         poses = scripted_flight(room, duration_s, rate_hz=cfg.camera.rate_hz, yaw_rate_dps=60.0, seed=seed)
         sort = SORT()
         trackers = {
@@ -153,7 +155,7 @@ def bench_sim(quick: bool) -> dict[str, object]:
             print(f"  room {seed}: {name:<18} switches {c.continuous:>3}  re-entries {c.reentry:>3}  "
                   f"coverage {c.matched / max(c.gt_boxes, 1):.3f}")
     print(f"{'tracker':<19}{'frames':>7}{'IDsw':>6}{'IDsw/100f':>11}{'re-entry':>10}{'coverage':>10}{'update ms':>11}")
-    result: dict[str, object] = {"rooms": len(rooms), "duration_s_per_room": duration_s,
+    result: dict[str, object] = {"world": layout, "rooms": len(rooms), "duration_s_per_room": duration_s,
                                  "image_px": [intr.width_px, intr.height_px], "yaw_rate_dps": 60.0}
     for name, t in totals.items():
         per100 = 100.0 * t["switches"] / max(t["frames"], 1)
@@ -175,12 +177,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short low-resolution flight")
     ap.add_argument("--skip-sim", action="store_true", help="MOTChallenge only")
+    ap.add_argument("--mot-dir", default=str(MOT_DIR), help="MOT15 sequences folder (default ../shared/data/mot)")
+    ap.add_argument("--world", choices=("realistic", "scattered"), default="realistic",
+                    help="simulated flights' room layout")
+    ap.add_argument("--no-scattered", action="store_true",
+                    help="with --world realistic: skip flying the same rooms scattered")
     args = ap.parse_args()
-    if not MOT_DIR.is_dir():
-        sys.exit(f"MOT data not found at {MOT_DIR.resolve()}")
-    out: dict[str, object] = {"mot": bench_mot()}
+    mot_dir = Path(args.mot_dir)
+    if not mot_dir.is_dir():
+        sys.exit(f"MOT data not found at {mot_dir.resolve()}")
+    out: dict[str, object] = {"world": args.world, "mot": bench_mot(mot_dir)}
     if not args.skip_sim:
-        out["sim"] = bench_sim(args.quick)
+        out["sim"] = bench_sim(args.quick, args.world)
+        if args.world == "realistic" and not args.no_scattered:
+            out["sim_scattered"] = bench_sim(args.quick, "scattered")
     print(json.dumps(out))
 
 

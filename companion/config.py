@@ -202,10 +202,31 @@ class SimConfig(StageConfig):
     wall_height_m: float = Field(default=2.6, ge=2.0, le=6.0)
     n_objects: int = Field(default=8, ge=0, le=60)
     n_doorways: int = Field(default=2, ge=1, le=4)
-    #: D455-like depth noise: sigma = depth_noise_coeff * z^2 (metres).
-    depth_noise_coeff: float = Field(default=0.003, ge=0.0)
-    #: Fraction of pixels near depth edges invalidated.
+    #: Room generator: ``realistic`` (furniture in groups as people arrange it: chairs pushed
+    #: under tables, desks against walls, clutter; :mod:`companion.sim.layouts`) or
+    #: ``scattered`` (each piece alone at a random spot, 0.25 m from the next).
+    layout: Literal["realistic", "scattered"] = "realistic"
+    #: The simulated D455 (:mod:`companion.sim.d455`, docs/simulation.md); each effect off at 0.
+    #: Depth noise: sigma = depth_noise_coeff * z^2 (metres; 0.005 = Intel's 2 % RMS at 4 m).
+    depth_noise_coeff: float = Field(default=0.005, ge=0.0)
+    #: Fraction of pixels at depth edges invalidated.
     depth_edge_dropout: float = Field(default=0.5, ge=0.0, le=1.0)
+    #: Fraction of the remaining edge pixels given a depth between their two surfaces.
+    depth_flying_pixels: float = Field(default=0.3, ge=0.0, le=1.0)
+    #: Hole probability on black surfaces (falling to 0 at albedo 0.15).
+    depth_dark_holes: float = Field(default=0.8, ge=0.0, le=1.0)
+    #: Hole probability on shiny surfaces (screens, whiteboards) seen nearly head-on.
+    depth_shiny_holes: float = Field(default=0.7, ge=0.0, le=1.0)
+    #: Hole probability reached at camera.depth_max_m (growing from 3/4 of it).
+    depth_far_dropout: float = Field(default=0.4, ge=0.0, le=1.0)
+    #: Disparity in 1/32-pixel steps (depth steps growing with z^2), before z16 millimetres.
+    depth_disparity_quantisation: bool = True
+    #: Minimum range at an 848-pixel-wide depth image, scaled by the configured width (0: off;
+    #: camera.depth_min_m applies either way).
+    depth_min_z_m: float = Field(default=0.5, ge=0.0, le=3.0)
+    #: Colour auto-exposure (gain follows the view's brightness) and motion blur in fast turns.
+    rgb_auto_exposure: bool = True
+    rgb_motion_blur: bool = True
     #: Who flies the vehicle the simulated camera rides on: ``mock``, the in-process mock PX4
     #: on the ports below; ``external``, the autopilot on ``link.url`` (PX4 SITL, a real
     #: vehicle on the bench): the camera renders the room from the pose it reports.

@@ -430,9 +430,25 @@ def _write_picture(path: Path, service: CompanionService, placement: SimPlacemen
 
     cv2.rectangle(panel, tuple(room_px(np.array([0.0, 0.0]))[0]),
                   tuple(room_px(np.array([room.width_m, room.depth_m]))[0]), (0, 0, 0), 2)
+    colours = {c.name: c.color_rgb for c in service.cfg.classes}
+    # The room as laid out: clutter solid grey, true footprints tinted pale by class (tucked
+    # chairs overlap their table), and a thin line from each arranged piece to its partner.
+    for o in room.clutter:
+        for part in o.parts:
+            cv2.fillPoly(panel, [room_px(part.corners_xy_m())], (185, 185, 185), cv2.LINE_AA)
+    tint = panel.copy()
+    for o in room.objects:
+        col = colours.get(o.class_name, (150, 150, 150))
+        pale = tuple(int(255 - 0.35 * (255 - v)) for v in (col[2], col[1], col[0]))
+        cv2.fillPoly(tint, [room_px(o.footprint_xy_m())], pale, cv2.LINE_AA)
+    panel = np.minimum(panel, tint)
     for o in room.objects:
         cv2.polylines(panel, [room_px(o.footprint_xy_m())], True, (150, 150, 150), 1, cv2.LINE_AA)
-    colours = {c.name: c.color_rgb for c in service.cfg.classes}
+    by_id = {o.object_id: o for o in room.objects}
+    for rel in room.relations:
+        if rel.b_id in by_id and rel.a_id in by_id:
+            a, b = (room_px(np.array(by_id[i].center_xy_m))[0] for i in (rel.a_id, rel.b_id))
+            cv2.line(panel, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), (120, 120, 120), 1, cv2.LINE_AA)
     for fp in smap.objects:
         col = colours.get(fp.class_name, (200, 0, 200))
         poly = to_px(np.asarray(fp.polygon_xy_m))
@@ -447,7 +463,8 @@ def _write_picture(path: Path, service: CompanionService, placement: SimPlacemen
         cv2.circle(panel, (int(q[0]), int(q[1])), 6, (0, 0, 255), 2)
         cv2.putText(panel, "start" if i == 0 else f"wp{i}", (int(q[0]) + 8, int(q[1]) - 8),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 255), 1, cv2.LINE_AA)
-    cv2.putText(panel, "grey: true footprints, colour: mapped objects, orange: flown path", (8, 18),
+    cv2.putText(panel, "pale: true footprints (lines join groups), solid grey: clutter, colour: mapped objects, "
+                "orange: flown path", (8, 18),
                 cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     # Side by side with the map picture (same height).
     ph = h

@@ -82,6 +82,9 @@ class DatasetSpec:
     #: keeps :data:`companion.sim.world.CLASS_WEIGHTS`. Training data only, to give rare
     #: classes (conference tables) more instances.
     class_weights: tuple[tuple[str, float], ...] = ()
+    #: Room generator (:data:`companion.sim.world.LAYOUTS`): furniture in groups as people
+    #: arrange it, or each piece alone.
+    layout: str = "realistic"
     min_clearance_m: float = 0.3
     min_visible_px: int = 120
     #: Also measure each labelled object's visible fraction (visible pixels over its
@@ -147,7 +150,7 @@ def _random_color(rng: np.random.Generator) -> tuple[int, int, int]:
 
 
 def varied_room(room_seed: int, rng: np.random.Generator, class_names: Sequence[str],
-                class_weights: Sequence[tuple[str, float]] = ()) -> Room:
+                class_weights: Sequence[tuple[str, float]] = (), layout: str = "realistic") -> Room:
     """A room of ``room_seed`` with a random size, wall height, furniture count, doorways and
     colours (from ``rng``). The geometry depends on both; the seed range keeps splits apart."""
     geo = np.random.default_rng([room_seed, int(rng.integers(1 << 31))])
@@ -160,6 +163,7 @@ def varied_room(room_seed: int, rng: np.random.Generator, class_names: Sequence[
         n_doorways=int(geo.integers(1, 4)),
         class_names=list(class_names),
         class_weights=dict(class_weights) or None,
+        layout=layout,
     )
     objects: list[FurnitureObject] = []
     for obj in room.objects:
@@ -280,7 +284,7 @@ def generate(spec: DatasetSpec, room_start: int = 0) -> Iterator[LabeledImage]:
     intr = spec.intrinsics
     for i, room_seed in enumerate(room_seeds(spec.split, spec.n_rooms, start=room_start)):
         rng = np.random.default_rng([spec.seed, room_seed])
-        room = varied_room(room_seed, rng, spec.class_names, spec.class_weights)
+        room = varied_room(room_seed, rng, spec.class_names, spec.class_weights, spec.layout)
         renderer = RoomRenderer(
             room, spec.class_names, intr, noise=DepthNoise(), seed=int(rng.integers(1 << 31)),
             light_dir_map=(float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), float(rng.uniform(0.5, 1.5))),

@@ -2,7 +2,7 @@
 
 One ray per pixel is cast with Open3D's tensor ``RaycastingScene`` (Embree) against a triangle
 mesh per primitive box (walls, floor, ceiling and every furniture part). Each primitive keeps
-its owner (object id, 0 for the building) and class index, so the instance and class masks
+its owner (object id, 0 for the building, negative for clutter) and class index, so the instance and class masks
 come straight from the noise-free geometry.
 
 Pixel convention: pixel ``(u, v)`` samples the ray through image coordinates ``(u, v)`` with
@@ -16,10 +16,9 @@ normal (a ceiling light direction plus a camera headlight and ambient), and a pr
 texture per material fixed to the surfaces (floor planks, wood grain, fabric weave, mottled
 paint), so optical flow and feature trackers find stable corners that move with the geometry.
 
-Depth: D455-like. Gaussian noise with ``sigma = depth_noise_coeff * z**2``, millimetre
-quantisation, 0 (invalid) outside ``[depth_min_m, depth_max_m]`` and, with probability
-``depth_edge_dropout``, at depth discontinuities (stereo matching fails at occlusion edges).
-All randomness comes from a seeded :class:`numpy.random.Generator`, so runs are reproducible.
+Depth and colour: what a D455 does to the perfect images (:mod:`companion.sim.d455`): range
+noise, flying pixels, holes, minimum range, quantisation; auto-exposure and motion blur. All
+randomness comes from a seeded :class:`numpy.random.Generator`, so runs are reproducible.
 
 Open3D is imported lazily (the ``sim`` extra), so importing this module costs nothing.
 """
@@ -37,6 +36,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.sim.d455 import (
+    SHINY_COS,
+    ColorModel,
+    DepthNoise,
+    apply_color,
+    apply_depth,
+    exposure_gain,
+    rotation_blur_px,
+)
+from companion.sim.furniture import SHINY_CLUTTER
 from companion.sim.world import Box, Room
 from semmap.errors import SimulationError
 from semmap.frames import Transform
@@ -47,6 +56,8 @@ log = logging.getLogger(__name__)
 #: Material (texture) indices.
 MAT_WALL, MAT_FLOOR, MAT_CEILING, MAT_WOOD, MAT_FABRIC, MAT_BOARD = range(6)
 _CLASS_MATERIAL = {
+    "plant": MAT_FABRIC,
+    "box": MAT_BOARD,
     "chair": MAT_WOOD,
     "desk": MAT_WOOD,
     "coffee_table": MAT_WOOD,
@@ -208,22 +219,6 @@ def make_textures(seed: int, size: int = TEX_SIZE) -> NDArray[np.float32]:
     return np.clip(tex, 0.3, 1.3).astype(np.float32)
 
 
-@dataclass(frozen=True)
-class DepthNoise:
-    """D455-like depth model (metres)."""
-
-    #: sigma = coeff * z**2.
-    noise_coeff: float = 0.003
-    #: Probability a pixel at a depth discontinuity is invalid.
-    edge_dropout: float = 0.5
-    min_m: float = 0.3
-    max_m: float = 6.0
-    #: Neighbouring depths differing by more than this fraction of the nearer are an edge.
-    edge_rel_jump: float = 0.05
-    #: Output quantisation step (RealSense z16 counts millimetres).
-    quantum_m: float = 0.001
-
-
 class RoomRenderer:
     """Renders RGB-D :class:`Frame` s of one room (not thread-safe: one caller at a time).
 
@@ -241,6 +236,7 @@ class RoomRenderer:
         intrinsics: CameraIntrinsics,
         noise: DepthNoise | None = None,
         seed: int = 0,
+        color: ColorModel | None = None,
         light_dir_map: tuple[float, float, float] = (0.35, 0.25, 1.0),
         rgb_noise_std: float = 2.0,
         n_threads: int = 0,
@@ -257,6 +253,9 @@ class RoomRenderer:
         self.class_names = list(class_names)
         self.intrinsics = intrinsics
         self.noise = noise or DepthNoise()
+        self.color = color or ColorModel()
+        #: (stamp_s, camera rotation) of the last frame: a fast turn between frames blurs.
+        self._last_view: tuple[float, NDArray[np.float64]] | None = None
         self.seed = int(seed)
         self.rgb_noise_std = float(rgb_noise_std)
         self.n_threads = int(n_threads)
@@ -316,16 +315,20 @@ class RoomRenderer:
         entries: list[tuple[Box, int, int, int, tuple[int, int, int]]] = [
             (b, 0, -1, mat, col) for b, mat, col in self._building_boxes()
         ]
-        for obj in self.room.objects:
+        for obj in (*self.room.objects, *self.room.clutter):
             cls = self.class_names.index(obj.class_name) if obj.class_name in self.class_names else -1
+            if obj.object_id < 0:
+                cls = -1  # clutter is never one of our classes, whatever it is called
             mat = _CLASS_MATERIAL.get(obj.class_name, MAT_WOOD)
             entries.extend((p, obj.object_id, cls, mat, obj.color_rgb) for p in obj.parts)
         n = len(entries)
+        cls_name_of = {o.object_id: o.class_name for o in self.room.clutter}
         # Per-primitive tables, one extra row (index n) for rays that hit nothing.
         self._owner = np.zeros(n + 1, dtype=np.int32)
         self._class = np.full(n + 1, -1, dtype=np.int16)
         self._color = np.zeros((n + 1, 3), dtype=np.float32)
         self._color[n] = BACKGROUND_RGB
+        self._shiny = np.zeros(n + 1, dtype=bool)
         # Per-face tables (6 faces per primitive in _FACE_AXES order, plus the miss row):
         # world normal, sun-light term, and the affine map from a map-frame point to texel
         # coordinates (u, v) on that face, offset into the material's texture.
@@ -347,6 +350,7 @@ class RoomRenderer:
             self._owner[i] = owner
             self._class[i] = cls
             self._color[i] = col
+            self._shiny[i] = (mat == MAT_BOARD and owner > 0) or (owner < 0 and cls_name_of.get(owner) in SHINY_CLUTTER)
             # Building surfaces share one texture frame so seams line up; furniture parts get
             # a random offset so two chairs do not look stamped from one mould.
             off = rng.uniform(0.0, TEX_SIZE * TEXEL_M, 2) if owner != 0 else np.zeros(2)
@@ -366,6 +370,7 @@ class RoomRenderer:
             self._boxes.append(box)
         self._face_flat_light = (AMBIENT + SUN * self._face_sun).astype(np.float32)
         self._color_cols = [np.ascontiguousarray(self._color[:, k]) for k in range(3)]
+        self._albedo = (self._color.mean(axis=1) / 255.0).astype(np.float32)
         self._n_prims = n
         self._scene = scene
         self._inner_scene = inner
@@ -520,23 +525,39 @@ class RoomRenderer:
         if pool is None:
             for lo, hi in bands:
                 self._shade_band(c, tables, lo, hi, lum_noise, rgb)
-            depth = self._noisy_depth(c["depth_m"].reshape(H, W), rng)
+            depth = self._noisy_depth(c["depth_m"].reshape(H, W), rng, c)
         else:
             futures = [pool.submit(self._shade_band, c, tables, lo, hi, lum_noise, rgb)
                        for lo, hi in bands]
             try:
-                depth = self._noisy_depth(c["depth_m"].reshape(H, W), rng)
+                depth = self._noisy_depth(c["depth_m"].reshape(H, W), rng, c)
             finally:
                 for fut in futures:
                     fut.result()
+        image = self._camera_color(rgb.reshape(H, W, 3), c["T"], float(stamp_s), rng)
         masks: dict[str, NDArray[np.generic]] = {
             "instance": self._owner[prim].reshape(H, W),
             "class": self._class[prim].reshape(H, W),
         }
         return Frame(
-            stamp_s=float(stamp_s), rgb=rgb.reshape(H, W, 3), depth_m=depth, intrinsics=intr,
+            stamp_s=float(stamp_s), rgb=image, depth_m=depth, intrinsics=intr,
             T_map_camera=np.array(T_map_camera, dtype=np.float64), index=int(index), masks=masks,
         )
+
+    def _camera_color(self, rgb: NDArray[np.uint8], T: NDArray[np.float64], stamp_s: float,
+                      rng: np.random.Generator) -> NDArray[np.uint8]:
+        """Auto-exposure, and motion blur from the turn since the previous frame (a frame
+        whose stamp does not follow the previous one within half a second is not blurred)."""
+        cm = self.color
+        gain = exposure_gain(rgb, cm, rng)
+        blur = (0.0, 0.0)
+        R = np.array(T[:3, :3], dtype=np.float64)
+        if cm.motion_blur and self._last_view is not None:
+            dt = stamp_s - self._last_view[0]
+            if 0.0 < dt <= 0.5:
+                blur = rotation_blur_px(self._last_view[1], R, dt, self.intrinsics.fx_px, cm.exposure_s * gain)
+        self._last_view = (stamp_s, R)
+        return apply_color(rgb, gain, blur)
 
     def _bands(self, H: int, W: int) -> list[tuple[int, int]]:
         """Flat pixel ranges ``[lo, hi)`` of ``shade_threads`` horizontal bands of whole rows."""
@@ -637,32 +658,26 @@ class RoomRenderer:
         start = int(rng.integers(0, bank.shape[0] - n))
         return bank[start:start + n]
 
-    def _noisy_depth(self, z: NDArray[np.float32], rng: np.random.Generator) -> NDArray[np.float32]:
-        """(H, W) float32 metres with the D455-like noise model; 0 where invalid."""
+    def _noisy_depth(self, z: NDArray[np.float32], rng: np.random.Generator,
+                     c: dict[str, Any]) -> NDArray[np.float32]:
+        """(H, W) float32 metres with the D455 depth model (:func:`~companion.sim.d455.apply_depth`); 0 where invalid."""
         nz = self.noise
-        finite = np.isfinite(z)
-        zf = np.where(finite, z, np.float32(1e6)).astype(np.float32)
-        # Depth discontinuities in the noise-free depth: both pixels of a jumping pair.
-        edge = np.zeros(z.shape, dtype=bool)
-        jump_h = np.abs(zf[:, 1:] - zf[:, :-1]) > nz.edge_rel_jump * np.minimum(zf[:, 1:], zf[:, :-1])
-        jump_v = np.abs(zf[1:, :] - zf[:-1, :]) > nz.edge_rel_jump * np.minimum(zf[1:, :], zf[:-1, :])
-        edge[:, 1:] |= jump_h
-        edge[:, :-1] |= jump_h
-        edge[1:, :] |= jump_v
-        edge[:-1, :] |= jump_v
-        out = zf.copy()
-        if nz.noise_coeff > 0:
-            noise = self._gaussian(rng, z.size).reshape(z.shape)
-            out += noise * (np.float32(nz.noise_coeff) * zf * zf)
-        if nz.quantum_m > 0:
-            out = (np.round(out / nz.quantum_m) * nz.quantum_m).astype(np.float32)
-        invalid = ~finite | (out < nz.min_m) | (out > nz.max_m)
-        if nz.edge_dropout > 0:
-            ev, eu = np.nonzero(edge)
-            drop = rng.random(len(ev)) < nz.edge_dropout
-            invalid[ev[drop], eu[drop]] = True
-        out[invalid] = 0.0
-        return out
+        H, W = z.shape
+        gaussian = self._gaussian(rng, z.size) if nz.noise_coeff > 0 else None
+        prim = c["prim"]
+        albedo = self._albedo[prim].reshape(H, W) if nz.dark_holes > 0 else None
+        shiny = None
+        if nz.shiny_holes > 0:
+            flat = self._shiny[prim]
+            idx = np.nonzero(flat)[0]
+            if len(idx):
+                normal = self._face_normal[c["face"][idx]] @ c["T"][:3, :3].astype(np.float32)
+                cos = np.abs(normal[:, 0] * self._xc[idx] + normal[:, 1] * self._yc[idx] + normal[:, 2])
+                cos *= self._inv_len[idx]
+                flat = np.zeros_like(flat)
+                flat[idx[cos > SHINY_COS]] = True
+            shiny = flat.reshape(H, W)
+        return apply_depth(z, nz, rng, gaussian, self.intrinsics.fx_px, albedo, shiny)
 
     # --- ground truth ------------------------------------------------------------------
 
@@ -751,11 +766,15 @@ def renderer_from_config(room: Room, cfg: Any, seed: int | None = None) -> RoomR
     intrinsics and depth range from ``cfg.camera``, noise from ``cfg.sim``, class order from
     ``cfg.classes``; ``seed`` defaults to ``cfg.sim.seed``."""
     cam = cfg.camera
+    sim = cfg.sim
     noise = DepthNoise(
-        noise_coeff=cfg.sim.depth_noise_coeff, edge_dropout=cfg.sim.depth_edge_dropout,
-        min_m=cam.depth_min_m, max_m=cam.depth_max_m,
+        noise_coeff=sim.depth_noise_coeff, edge_dropout=sim.depth_edge_dropout,
+        min_m=cam.depth_min_m, max_m=cam.depth_max_m, flying_pixels=sim.depth_flying_pixels,
+        dark_holes=sim.depth_dark_holes, shiny_holes=sim.depth_shiny_holes, far_dropout=sim.depth_far_dropout,
+        disparity_step_px=1.0 / 32.0 if sim.depth_disparity_quantisation else 0.0, min_z_m=sim.depth_min_z_m,
     )
+    color = ColorModel(auto_exposure=sim.rgb_auto_exposure, motion_blur=sim.rgb_motion_blur)
     return RoomRenderer(
         room, [c.name for c in cfg.classes], cam.intrinsics(), noise=noise,
-        seed=cfg.sim.seed if seed is None else seed,
+        seed=sim.seed if seed is None else seed, color=color,
     )

@@ -19,6 +19,8 @@ from numpy.typing import NDArray
 from semmap.errors import SimulationError
 
 WALL_THICKNESS_M = 0.12
+#: Room generators: furniture alone at random spots, or arranged as people arrange it.
+LAYOUTS = ("realistic", "scattered")
 DOOR_HEIGHT_M = 2.05
 
 
@@ -106,8 +108,24 @@ class Doorway:
 
 
 @dataclass(frozen=True)
+class Relation:
+    """How a layout arranged two pieces: ``kind`` (e.g. ``chair_tucked``), object ``a_id``
+    relative to ``b_id`` (0 = the nearest wall), and the spacing range it was drawn from."""
+
+    kind: str
+    a_id: int
+    b_id: int
+    range_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
 class Room:
-    """A generated room: walls, doorways and furniture."""
+    """A generated room: walls, doorways and furniture.
+
+    ``clutter`` holds solid things of none of our classes (cabinets, plants, monitors, cups):
+    they are geometry the camera sees and the vehicle can hit, never ground-truth objects; their
+    ids are negative. ``relations`` records how a realistic layout arranged the furniture.
+    """
 
     seed: int
     width_m: float
@@ -118,11 +136,13 @@ class Room:
     objects: tuple[FurnitureObject, ...]
     floor_color_rgb: tuple[int, int, int] = (150, 130, 110)
     wall_color_rgb: tuple[int, int, int] = (215, 215, 205)
+    clutter: tuple[FurnitureObject, ...] = ()
+    relations: tuple[Relation, ...] = ()
 
     def all_boxes(self) -> list[tuple[Box, int]]:
-        """Every primitive with its owner: object id, or 0 for walls."""
+        """Every primitive with its owner: object id, 0 for walls, negative for clutter."""
         out: list[tuple[Box, int]] = [(w, 0) for w in self.walls]
-        for obj in self.objects:
+        for obj in (*self.objects, *self.clutter):
             out.extend((p, obj.object_id) for p in obj.parts)
         return out
 
@@ -345,8 +365,14 @@ def generate_room(
     min_gap_m: float = 0.25,
     free_path_radius_m: float = 0.3,
     class_weights: Mapping[str, float] | None = None,
+    layout: str = "scattered",
 ) -> Room:
     """A furnished room, the same for the same arguments.
+
+    ``layout`` picks the generator: ``scattered`` (this function: every piece alone, at a random
+    spot) or ``realistic`` (:func:`companion.sim.layouts.generate_realistic_room`: groups as
+    people arrange them, touching walls and each other, with clutter); ``min_gap_m`` applies to
+    ``scattered`` only.
 
     Classes are drawn with ``class_weights`` (relative; default :data:`CLASS_WEIGHTS`, where
     chairs are common); a class the mapping leaves out keeps its default weight.
@@ -356,6 +382,15 @@ def generate_room(
     doorways (for a vehicle of ``free_path_radius_m`` at any height) is dropped and another
     tried, so a free path always exists. Raises :class:`SimulationError` for impossible sizes.
     """
+    if layout not in LAYOUTS:
+        raise SimulationError(f"unknown room layout {layout!r} (expected one of {list(LAYOUTS)})")
+    if layout == "realistic":
+        # Imported here: layouts builds on this module's types.
+        from companion.sim.layouts import generate_realistic_room
+
+        return generate_realistic_room(
+            seed, width_m, depth_m, wall_height_m, n_objects, n_doorways, class_names=class_names,
+            free_path_radius_m=free_path_radius_m, class_weights=class_weights)
     if width_m < 3.0 or depth_m < 3.0:
         raise SimulationError(f"room too small: {width_m} x {depth_m} m (minimum 3 x 3 m)")
     names = [n for n in (class_names or list(BUILDERS)) if n in BUILDERS]

@@ -31,7 +31,7 @@ def room_from_config(cfg: CompanionConfig) -> Room:
     names = [c.name for c in cfg.classes if c.name in BUILDERS]
     return generate_room(
         s.seed, s.room_width_m, s.room_depth_m, s.wall_height_m, s.n_objects, s.n_doorways,
-        class_names=names or None,
+        class_names=names or None, layout=s.layout,
     )
 
 

@@ -45,7 +45,9 @@ pytest.importorskip("open3d")
 REPO = Path(__file__).resolve().parents[2]
 SMALL: dict[str, Any] = {
     "camera": {"width_px": 160, "height_px": 120, "fx_px": 96.0, "fy_px": 96.0, "cx_px": 80.0, "cy_px": 60.0},
-    "sim": {"seed": 3, "room_width_m": 6.0, "room_depth_m": 5.0, "n_objects": 4},
+    # Scattered: this is about faults mid-flight; in the realistic room of this seed the map
+    # built at 160x120 closes the way (touching furniture mapped whole), which bench/mapping.py measures.
+    "sim": {"seed": 3, "room_width_m": 6.0, "room_depth_m": 5.0, "n_objects": 4, "layout": "scattered"},
 }
 
 

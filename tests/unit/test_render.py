@@ -12,6 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from companion.config import CompanionConfig
+from companion.sim.d455 import exact_depth
 from companion.sim.render import DepthNoise, RoomRenderer, renderer_from_config
 from companion.sim.world import Box, FurnitureObject, Room, generate_room
 from semmap.errors import SimulationError
@@ -25,7 +26,7 @@ CLASSES = [c.name for c in CompanionConfig().classes]
 INTR = CameraIntrinsics(383.0, 383.0, 320.0, 240.0, 640, 480)
 HALF = CameraIntrinsics(191.5, 191.5, 160.0, 120.0, 320, 240)
 SMALL = CameraIntrinsics(120.0, 120.0, 80.0, 60.0, 160, 120)
-EXACT = DepthNoise(noise_coeff=0.0, edge_dropout=0.0, min_m=0.0, max_m=100.0, quantum_m=0.0)
+EXACT = exact_depth()
 
 
 def empty_room(width_m: float = 8.0, depth_m: float = 6.0, height_m: float = 2.6) -> Room:
@@ -260,8 +261,9 @@ def test_silhouette_counts_what_lies_beyond_the_image_border() -> None:
 def test_edge_dropout_invalidates_depth_discontinuities(furnished: tuple[Room, RoomRenderer]) -> None:
     room, _ = furnished
     T = object_poses(room)[0]
-    keep = RoomRenderer(room, CLASSES, INTR, noise=DepthNoise(noise_coeff=0.0, edge_dropout=0.0, max_m=50.0))
-    drop = RoomRenderer(room, CLASSES, INTR, noise=DepthNoise(noise_coeff=0.0, edge_dropout=1.0, max_m=50.0))
+    # Only edge dropout differs (the other D455 effects off, so they cannot mask it).
+    keep = RoomRenderer(room, CLASSES, INTR, noise=exact_depth(max_m=50.0))
+    drop = RoomRenderer(room, CLASSES, INTR, noise=dataclasses.replace(exact_depth(max_m=50.0), edge_dropout=1.0))
     a, b = keep.render(T).depth_m, drop.render(T).depth_m
     jump = np.abs(np.diff(a, axis=1)) > 0.3
     vv, uu = np.nonzero(jump)
