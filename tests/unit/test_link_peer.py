@@ -66,7 +66,9 @@ async def test_garbage_and_strangers_never_take_the_peer(sockets: list[socket.so
         other_system.sendto(_heartbeat(system_id=42), addr)
         await asyncio.sleep(0.2)
         assert link.stats.peer is None
-        assert link.stats.garbage_dropped >= 50 and link.stats.strangers_dropped >= 1
+        # (a random datagram can look like a whole packet from a stranger: counted there)
+        assert link.stats.garbage_dropped + link.stats.strangers_dropped >= 51
+        assert link.stats.strangers_dropped >= 1
         # The autopilot's first packet picks it.
         heartbeats = link.subscribe("HEARTBEAT")
         autopilot.sendto(_heartbeat(), addr)
