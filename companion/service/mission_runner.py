@@ -368,11 +368,13 @@ class MissionRunner:
         t0 = time.monotonic()
         while True:
             self._check_offboard()
-            z_sp = z0 + math.copysign(min(abs(altitude_m - z0), CLIMB_SPEED_M_S * (time.monotonic() - t0)),
-                                      altitude_m - z0)
+            step = CLIMB_SPEED_M_S * (time.monotonic() - t0)
+            # The last setpoint is the altitude itself (z0 plus the rest need not equal it exactly).
+            ramp_done = step >= abs(altitude_m - z0)
+            z_sp = altitude_m if ramp_done else z0 + math.copysign(step, altitude_m - z0)
             self.hold_at(pos[:2], z_sp)
             now = position_enu(self.vehicle.snapshot())
-            if z_sp == altitude_m and now is not None and abs(float(now[2]) - altitude_m) <= CLIMB_DONE_M:
+            if ramp_done and now is not None and abs(float(now[2]) - altitude_m) <= CLIMB_DONE_M:
                 return
             if time.monotonic() - t0 > timeout_s:
                 raise MissionError(f"the climb to {altitude_m:.2f} m did not end within {timeout_s:.0f} s")
