@@ -268,7 +268,13 @@ class MissionRunner:
         v = self.vehicle
         if not v.snapshot().in_air:
             await self.arm_when_ready()
-            await v.commands.takeoff(altitude_m)
+            # PX4 takes the altitude above home as AMSL; home streams only on change, so the
+            # copy we hold can predate the one PX4 set at arming: climb from where it stands.
+            state = v.snapshot()
+            ground_above_home_m = 0.0
+            if state.global_position is not None and state.home is not None:
+                ground_above_home_m = state.global_position.altitude_amsl_m - state.home.altitude_amsl_m
+            await v.commands.takeoff(altitude_m + ground_above_home_m)
             await v.state.wait_for(lambda s: took_off(s, altitude_m), timeout_s,
                                    f"the take-off to {altitude_m:.2f} m to finish")
         await self.engage_here(altitude_m)
