@@ -75,6 +75,27 @@ class LinkConfig(StageConfig):
     scheduler_slice_ms: float = Field(default=0.5, ge=0.0, le=100.0)
     #: Send the SLAM pose to PX4 as external vision.
     external_vision: bool = False
+    #: The SLAM pose's 1-sigma errors sent with it as ODOMETRY's covariance (EKF2 weighs it by
+    #: them with ``EKF2_EV_NOISE_MD`` 0): bench/slam.py's ATE and the live error in flight.
+    vision_position_std_m: float = Field(default=0.05, gt=0.0, le=5.0)
+    vision_yaw_std_deg: float = Field(default=2.0, gt=0.0, le=90.0)
+    #: A SLAM pose that moves farther than this from where the previous one and the odometry
+    #: since put it (a loop closure, a relocalisation) bumps ODOMETRY's ``reset_counter``, so
+    #: EKF2 resets to it instead of rejecting it at its innovation gate.
+    vision_reset_jump_m: float = Field(default=0.10, gt=0.0)
+    vision_reset_jump_deg: float = Field(default=3.0, gt=0.0)
+    #: No SLAM pose sent for this long while flying on it: hold on PX4's last estimate ...
+    vision_lost_hold_s: float = Field(default=1.0, gt=0.0)
+    #: ... and land when it has not come back after this long (keep it below PX4's
+    #: ``EKF2_NOAID_TOUT``, 5 s, after which PX4 drops its position and fails over itself).
+    vision_lost_land_s: float = Field(default=4.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _vision_lost_order(self) -> "LinkConfig":
+        if self.vision_lost_land_s <= self.vision_lost_hold_s:
+            raise ValueError(f"link.vision_lost_land_s ({self.vision_lost_land_s}) must be longer than "
+                             f"link.vision_lost_hold_s ({self.vision_lost_hold_s})")
+        return self
 
     @field_validator("url")
     @classmethod

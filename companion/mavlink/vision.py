@@ -9,7 +9,10 @@ flipping y and z::
 
 The message is ODOMETRY with ``frame_id = MAV_FRAME_LOCAL_NED``, ``child_frame_id =
 MAV_FRAME_BODY_FRD`` and ``estimator_type = MAV_ESTIMATOR_TYPE_VISION``; unknown velocities,
-rates and covariances are NaN, which PX4 reads as "not provided".
+rates and covariances are NaN, which PX4 reads as "not provided". The pose covariance carries
+what the 2D SLAM measures (x, y and yaw variances); height, roll and pitch are PX4's own
+(the SLAM echoes them), so their variances are NaN and EKF2 must not fuse them
+(``EKF2_EV_CTRL`` without the vertical bit).
 
 :class:`VisionStream` sends the latest pose at a fixed rate (30 Hz by default) from its own
 task, stamped with the pose's capture time, so PX4's EKF2 fuses it at that time (it drops a
@@ -43,6 +46,24 @@ R_NED_ENU: NDArray[np.float64] = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.
 R_FLU_FRD: NDArray[np.float64] = np.diag([1.0, -1.0, -1.0])
 
 _NAN21 = [math.nan] * 21
+#: Indices of the diagonal of MAVLink's upper-triangular 6x6 pose covariance (x y z roll pitch yaw).
+_DIAG = (0, 6, 11, 15, 18, 20)
+
+
+def pose_covariance(position_std_m: float | None, yaw_std_rad: float | None) -> list[float]:
+    """ODOMETRY's ``pose_covariance`` (21, row-major upper triangle, NED/FRD) for a 2D pose:
+    x and y variance ``position_std_m`` squared each (the SLAM's error is not directional in a
+    way it reports), yaw variance ``yaw_std_rad`` squared, z/roll/pitch NaN (not measured),
+    off-diagonals 0. All NaN ("unknown", MAVLink's rule: NaN first element) without a
+    position standard deviation."""
+    if position_std_m is None or not math.isfinite(position_std_m) or position_std_m <= 0.0:
+        return list(_NAN21)
+    cov = [0.0] * 21
+    var_xy = float(position_std_m) ** 2
+    yaw_var = float(yaw_std_rad) ** 2 if yaw_std_rad is not None and math.isfinite(yaw_std_rad) else math.nan
+    for k, v in zip(_DIAG, (var_xy, var_xy, math.nan, math.nan, math.nan, yaw_var), strict=True):
+        cov[k] = v
+    return cov
 
 
 def ned_pose_from_map(T_map_body: Transform) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -71,6 +92,8 @@ def vision_odometry_message(
     velocity_map_m_s: NDArray[np.float64] | None = None,
     quality_percent: int = 100,
     reset_counter: int = 0,
+    position_std_m: float | None = None,
+    yaw_std_rad: float | None = None,
 ) -> mavlink.MAVLink_odometry_message:
     """ODOMETRY for PX4's EKF2 external-vision fusion.
 
@@ -78,6 +101,7 @@ def vision_odometry_message(
     of the pose (microseconds, our boot clock). ``velocity_map_m_s``: optional (3,) velocity
     in the map frame (sent in body FRD as PX4 expects), else NaN. ``reset_counter``: bump it
     when the pose jumps (relocalisation) so EKF2 resets instead of rejecting it.
+    ``position_std_m``/``yaw_std_rad``: the pose's 1-sigma errors (see :func:`pose_covariance`).
     """
     p_ned, R_ned_frd = ned_pose_from_map(T_map_body)
     if velocity_map_m_s is not None:
@@ -88,7 +112,7 @@ def vision_odometry_message(
     return link.mav.odometry_encode(
         time_usec, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,
         float(p_ned[0]), float(p_ned[1]), float(p_ned[2]), list(quaternion_wxyz(R_ned_frd)),
-        vx, vy, vz, math.nan, math.nan, math.nan, _NAN21, _NAN21,
+        vx, vy, vz, math.nan, math.nan, math.nan, pose_covariance(position_std_m, yaw_std_rad), _NAN21,
         reset_counter & 0xFF, mavlink.MAV_ESTIMATOR_TYPE_VISION, int(max(-1, min(100, quality_percent))),
     )
 
@@ -97,18 +121,23 @@ def vision_odometry_message(
 class VisionPose:
     """One pose for the autopilot: ``stamp_s`` capture time (seconds, the clock PX4 is
     synchronised to), ``T_map_body`` (4, 4) FLU body in the map frame, ``quality_percent``
-    (0-100), ``reset_counter`` (bump when the estimate jumps, e.g. after a loop closure)."""
+    (0-100), ``reset_counter`` (bump when the estimate jumps, e.g. after a loop closure),
+    ``position_std_m``/``yaw_std_rad`` its 1-sigma errors (None: unknown)."""
 
     stamp_s: float
     T_map_body: Transform
     quality_percent: int = 100
     reset_counter: int = 0
+    position_std_m: float | None = None
+    yaw_std_rad: float | None = None
 
 
 class VisionStream:
     """Streams the latest pose from ``source`` as external-vision ODOMETRY at ``rate_hz``
     (async context manager). ``source()`` returns a :class:`VisionPose` or None (nothing to
-    send now). Counts what it sent (:attr:`sent`) and what it skipped (:attr:`skipped`)."""
+    send now). Counts what it sent (:attr:`sent`), how many of those were new poses
+(:attr:`sent_new`: PX4's EKF2 fuses a stamp once) and what it skipped (:attr:`skipped`);
+:attr:`last_sent_s` is when it last sent (``time.monotonic``, None before the first)."""
 
     def __init__(self, link: MavlinkLink, source: Callable[[], VisionPose | None], rate_hz: float = 30.0) -> None:
         if rate_hz <= 0.0:
@@ -117,7 +146,10 @@ class VisionStream:
         self.source = source
         self.period_s = 1.0 / rate_hz
         self.sent = 0
+        self.sent_new = 0
         self.skipped = 0
+        self.last_sent_s: float | None = None
+        self._last_stamp_s = -math.inf
         self._task: asyncio.Task[None] | None = None
 
     async def __aenter__(self) -> "VisionStream":
@@ -143,13 +175,19 @@ class VisionStream:
         try:
             self.link.send(vision_odometry_message(self.link, pose.T_map_body, int(pose.stamp_s * 1e6),
                                                    quality_percent=pose.quality_percent,
-                                                   reset_counter=pose.reset_counter))
+                                                   reset_counter=pose.reset_counter,
+                                                   position_std_m=pose.position_std_m,
+                                                   yaw_std_rad=pose.yaw_std_rad))
         except (LinkError, ValueError) as exc:
             self.skipped += 1
             if self.skipped % 100 == 1:
                 log.warning("external vision not sent (%d so far): %s", self.skipped, exc)
             return False
         self.sent += 1
+        self.last_sent_s = time.monotonic()
+        if pose.stamp_s > self._last_stamp_s:
+            self.sent_new += 1
+            self._last_stamp_s = pose.stamp_s
         return True
 
     async def _run(self) -> None:

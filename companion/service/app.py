@@ -222,12 +222,16 @@ class CompanionService:
             # OBSTACLE_DISTANCE from the flight-band costmap lets PX4's collision prevention
             # (CP_DIST) stop the vehicle short of what the map holds, whoever flies it.
             self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh,
+                                                                   is_pose_fresh=self._pose_fresh,
                                                                    obstacle_source=self._obstacle_input))
             recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component,
                                              remote_to_local=self.vehicle.autopilot_clock.to_local,
                                              map_frame=lambda: self.vehicle.snapshot().map_frame if self.vehicle else None)
             stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
             await stack.enter_async_context(loc.vision_stream(self.vehicle.link))
+            vehicle = self.vehicle
+            guard = loc.loss_guard(vehicle.link, lambda: vehicle.snapshot().in_air,
+                                   lambda: self._land_here("the SLAM pose (PX4's position source) is lost"))
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
             self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
             self._update_goal_fence()
@@ -236,7 +240,8 @@ class CompanionService:
             # A hung perception process (or camera) stops the pings: systemd restarts us.
             watchdog.register("perception", PERCEPTION_SILENCE_S)
             perception.on_frame = lambda: watchdog.alive("perception")
-            perception.on_failed = lambda: self._background(self._land_without_perception(), "perception-lost")
+            perception.on_failed = lambda: self._background(self._land_here("perception is gone", lost=True),
+                                                            "perception-lost")
             self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,
                                         on_path=self._on_path, capture_time=perception.capture_time)
             self.state = "active"
@@ -246,6 +251,8 @@ class CompanionService:
                 async with asyncio.TaskGroup() as tg:
                     loops = [tg.create_task(self._status_loop(watchdog), name="status"),
                              tg.create_task(self._command_loop(), name="ground-commands")]
+                    if guard is not None:
+                        loops.append(tg.create_task(guard.run(), name="vision-loss"))
                     if self.fly_mission:
                         self._mission_task = tg.create_task(self._mission(), name="mission")
                     if self.on_active is not None:
@@ -279,6 +286,13 @@ class CompanionService:
             self.smap = perception.final_map
         log.info("service stopped")
         return self.report
+
+    def _pose_fresh(self) -> bool:
+        """The planner's setpoints may be flown: PX4's position is fresh and, when PX4 flies
+        on our SLAM pose, that pose has not been lost."""
+        v = self.vehicle
+        return (v is not None and v.snapshot().position_fresh(self.cfg.link.pose_timeout_s)
+                and self.localization.pose_ok)
 
     def _obstacle_input(self) -> ObstacleDistanceInput | None:
         """The OBSTACLE_DISTANCE feed's input: the newest costmap around the vehicle."""
@@ -351,26 +365,28 @@ class CompanionService:
         self._background_tasks.add(task)
         task.add_done_callback(self._background_tasks.discard)
 
-    async def _land_without_perception(self) -> None:
-        """Perception is gone for good: the map cannot be trusted, so stop the mission and land
-        here (the vehicle has been holding since the map went stale)."""
-        self.perception_lost = True
+    async def _land_here(self, why: str, lost: bool = False) -> None:
+        """Stop the mission and land where the vehicle is: perception is gone for good
+        (``lost``: the map cannot be trusted, a stop lands too), or PX4's position source is.
+        The vehicle has been holding since its map or pose went stale."""
+        self.perception_lost = self.perception_lost or lost
         if self._mission_task is not None and not self._mission_task.done():
             self._mission_task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._mission_task
         v = self.vehicle
         if v is None or not v.snapshot().in_air:
-            log.error("perception is gone: no mission or goal can be flown until the service restarts")
+            log.error("%s: no mission or goal is flown until %s", why,
+                      "the service restarts" if lost else "it is back and a mission is started")
             return
-        log.error("perception is gone: landing")
+        log.error("%s: landing", why)
         try:
             if v.offboard.state.streams:
                 await v.offboard.release(FlightMode.LAND)
             else:
                 await v.commands.land()
         except CompanionError as exc:
-            log.error("perception is gone and landing could not be commanded (%s)", exc)
+            log.error("%s and landing could not be commanded (%s)", why, exc)
 
     # --- the mission --------------------------------------------------------------------
 

@@ -35,6 +35,7 @@ import logging
 import math
 import multiprocessing as mp
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -44,12 +45,13 @@ from companion.config import CompanionConfig
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.vision import VisionPose, VisionStream
 from companion.service.perception_worker import semantic_map_settings
+from companion.service.vision_loss import VisionLossGuard, VisionLossMonitor
 from companion.sources.base import FrameSource, WrappedSource
 from semmap.costmap import VerticalBand
 from semmap.errors import ConfigError
 from semmap.frames import invert, pose_from_xyz_rpy, rpy_from_rotation
 from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth
-from semmap.slam.pose2d import compose, inverse
+from semmap.slam.pose2d import compose, inverse, relative
 from semmap.types import CameraIntrinsics, Frame
 
 log = logging.getLogger(__name__)
@@ -61,7 +63,7 @@ _STATUS_NAMES = {int(v): (k.value if k is not None else "none") for k, v in _STA
 #: Shared array layout.
 _FIELDS = ("seq", "stamp_s", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad", "status",
            "scans", "ok", "partial", "fallbacks", "consecutive_fallbacks", "loop_closures",
-           "generation", "loop_searches_dropped", "localize_ms", "published_monotonic_s")
+           "generation", "loop_searches_dropped", "localize_ms", "resets", "published_monotonic_s")
 _IX = {name: i for i, name in enumerate(_FIELDS)}
 
 
@@ -86,6 +88,8 @@ class LocalizationState:
     loop_searches_dropped: int
     localize_ms: float
     age_s: float
+    #: Jumps of the matched pose (loop closures, relocalisations; see :class:`JumpCounter`).
+    resets: int = 0
 
     @property
     def matched(self) -> bool:
@@ -96,7 +100,7 @@ class LocalizationState:
         """The counters as a flat dict for status messages."""
         return {"status": self.status, "scans": self.scans, "ok": self.ok, "partial": self.partial,
                 "fallbacks": self.fallbacks, "consecutive_fallbacks": self.consecutive_fallbacks,
-                "loop_closures": self.loop_closures, "generation": self.generation,
+                "loop_closures": self.loop_closures, "generation": self.generation, "resets": self.resets,
                 "localize_ms": round(self.localize_ms, 2)}
 
 
@@ -132,7 +136,7 @@ class SharedLocalization:
             int(g(_IX["scans"])), int(g(_IX["ok"])), int(g(_IX["partial"])), int(g(_IX["fallbacks"])),
             int(g(_IX["consecutive_fallbacks"])), int(g(_IX["loop_closures"])), int(g(_IX["generation"])),
             int(g(_IX["loop_searches_dropped"])), g(_IX["localize_ms"]),
-            time.monotonic() - g(_IX["published_monotonic_s"]))
+            time.monotonic() - g(_IX["published_monotonic_s"]), int(g(_IX["resets"])))
 
 
 #: A SLAM pose older than this is not sent to the autopilot (the camera stalled).
@@ -141,9 +145,13 @@ VISION_MAX_AGE_S = 1.0
 VISION_RATE_HZ = 30.0
 
 
-def vision_pose(shared: SharedLocalization, max_age_s: float = VISION_MAX_AGE_S) -> VisionPose | None:
-    """The latest SLAM pose for the autopilot's external-vision input, or None when there is
-    none, it is stale, or it was not matched in full (PX4 keeps its own estimate then).
+class VisionPoseSource:
+    """The latest SLAM pose for the autopilot's external-vision input (the
+    :class:`VisionStream`'s source, called at its rate): None when there is none, it is
+    stale, or it was not matched in full (PX4 keeps its own estimate then). Each pose carries
+    the configured 1-sigma errors and a ``reset_counter`` that counts the SLAM's jumps (see
+    :class:`JumpCounter`) and every return after a gap of ``reset_after_gap_s`` or more:
+    PX4 dead-reckoned on its IMU meanwhile and would reject the pose at its innovation gate.
 
     Why not a partly matched pose: along its unconstrained direction it is the previous SLAM
     pose moved by the increment of PX4's estimate, and that estimate is what the earlier
@@ -153,10 +161,75 @@ def vision_pose(shared: SharedLocalization, max_age_s: float = VISION_MAX_AGE_S)
     fraction of their offset per scan (test_service_slam: a 4.5 cm offset became 0.26 m in
     eleven partly matched scans along a wall; the map then kept it). An odometry fallback
     is not sent for the same reason."""
-    st = shared.latest()
-    if st is None or st.status != SlamStatus.OK.value or st.age_s > max_age_s:
-        return None
-    return VisionPose(st.stamp_s, st.T_map_body, 100, st.generation & 0xFF)
+
+    def __init__(self, shared: SharedLocalization, *, max_age_s: float = 1.0, position_std_m: float | None = None,
+                 yaw_std_rad: float | None = None, reset_after_gap_s: float = math.inf,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.shared = shared
+        self.max_age_s = max_age_s
+        self.position_std_m = position_std_m
+        self.yaw_std_rad = yaw_std_rad
+        self.reset_after_gap_s = reset_after_gap_s
+        self.clock = clock
+        #: Returns after a gap (each bumped the reset counter).
+        self.gap_resets = 0
+        self._last_given_s: float | None = None
+
+    @classmethod
+    def from_config(cls, shared: SharedLocalization, cfg: CompanionConfig) -> VisionPoseSource:
+        link = cfg.link
+        return cls(shared, max_age_s=VISION_MAX_AGE_S, position_std_m=link.vision_position_std_m,
+                   yaw_std_rad=math.radians(link.vision_yaw_std_deg), reset_after_gap_s=link.vision_lost_hold_s)
+
+    def __call__(self) -> VisionPose | None:
+        st = self.shared.latest()
+        if st is None or st.status != SlamStatus.OK.value or st.age_s > self.max_age_s:
+            return None
+        now = self.clock()
+        if self._last_given_s is not None and now - self._last_given_s >= self.reset_after_gap_s:
+            self.gap_resets += 1
+            log.warning("external vision back after %.1f s without a matched SLAM pose: reset counter bumped "
+                        "(PX4 takes the pose as it is)", now - self._last_given_s)
+        self._last_given_s = now
+        return VisionPose(st.stamp_s, st.T_map_body, 100, (st.resets + self.gap_resets) & 0xFF,
+                          self.position_std_m, self.yaw_std_rad)
+
+
+def vision_pose(shared: SharedLocalization, max_age_s: float = VISION_MAX_AGE_S) -> VisionPose | None:
+    """One look at the latest SLAM pose for PX4 (see :class:`VisionPoseSource`), without
+    covariances or gap tracking."""
+    return VisionPoseSource(shared, max_age_s=max_age_s)()
+
+
+class JumpCounter:
+    """Counts the jumps of the matched SLAM pose: a pose farther than ``jump_m`` (or turned
+    more than ``jump_rad``) from where the previous matched pose and the odometry since then
+    put it. Scan matching corrects by centimetres; a loop closure or a relocalisation after
+    fallbacks moves the pose at once, and EKF2 must reset to it (``reset_counter``)."""
+
+    def __init__(self, jump_m: float, jump_rad: float) -> None:
+        self.jump_m = jump_m
+        self.jump_rad = jump_rad
+        self.count = 0
+        self._prev: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+
+    def update(self, pose_map: NDArray[np.float64], pose_odom: NDArray[np.float64], matched: bool) -> int:
+        """The count after one scan's ``pose_map`` and odometry prior ``pose_odom`` (3,) x, y,
+        yaw; only matched poses are compared (and remembered)."""
+        if not matched:
+            return self.count
+        pose_map = np.asarray(pose_map, dtype=np.float64).copy()
+        pose_odom = np.asarray(pose_odom, dtype=np.float64).copy()
+        if self._prev is not None:
+            predicted = compose(self._prev[0], relative(self._prev[1], pose_odom))
+            d = relative(predicted, pose_map)
+            dist, dyaw = math.hypot(float(d[0]), float(d[1])), abs(float(d[2]))
+            if dist > self.jump_m or dyaw > self.jump_rad:
+                self.count += 1
+                log.info("SLAM pose jumped %.2f m, %.1f deg from its prediction: external-vision reset %d",
+                         dist, math.degrees(dyaw), self.count)
+        self._prev = (pose_map, pose_odom)
+        return self.count
 
 
 def slam_band(cfg: CompanionConfig) -> VerticalBand:
@@ -186,6 +259,7 @@ class Localizer:
         self.prior_source: str | None = None
         self._prior_anchor = np.zeros(3)
         self._last_prior: NDArray[np.float64] | None = None
+        self.jumps = JumpCounter(cfg.link.vision_reset_jump_m, math.radians(cfg.link.vision_reset_jump_deg))
 
     def close(self) -> None:
         """Stop the background loop closer."""
@@ -244,7 +318,9 @@ class Localizer:
                                      max_depth_m=self.cfg.camera.depth_max_m,
                                      stride_px=2 if depth.shape[1] > 200 else 1, stamp_s=frame.stamp_s)
         # Slam2D locks its own state against the loop-closure thread.
-        est = self.slam.add_scan(frame.stamp_s, scan, self.odometry_prior(frame, (x, y, yaw)))
+        prior = self.odometry_prior(frame, (x, y, yaw))
+        est = self.slam.add_scan(frame.stamp_s, scan, prior)
+        resets = self.jumps.update(est.pose_map, prior, est.status is SlamStatus.OK)
         stats = self.slam.stats()
         self.last_status = est.status
         px, py, pyaw = (float(v) for v in est.pose_map)
@@ -257,7 +333,7 @@ class Localizer:
                 "scans": stats.scans, "ok": stats.ok, "partial": stats.partial, "fallbacks": stats.fallbacks,
                 "consecutive_fallbacks": stats.consecutive_fallbacks, "loop_closures": stats.loop_closures,
                 "generation": stats.generation, "loop_searches_dropped": stats.loop_searches_dropped,
-                "localize_ms": ms})
+                "localize_ms": ms, "resets": resets})
         return replace(frame, T_map_camera=T_map_body @ self.T_body_camera)
 
 
@@ -334,6 +410,8 @@ class ServiceLocalization:
                               "link.external_vision: true (PX4 then fuses the SLAM pose)")
         self.shared = SharedLocalization() if self.enabled else None
         self.stream: VisionStream | None = None
+        self.vision_source: VisionPoseSource | None = None
+        self.loss_guard_: VisionLossGuard | None = None
 
     def source(self, frame_source: FrameSource) -> FrameSource:
         """The camera as perception should read it (wrapped in the SLAM when enabled)."""
@@ -344,7 +422,8 @@ class ServiceLocalization:
         shared = self.shared
         if shared is None or not self.cfg.link.external_vision:
             return contextlib.nullcontext()
-        self.stream = VisionStream(link, lambda: vision_pose(shared), VISION_RATE_HZ)
+        self.vision_source = VisionPoseSource.from_config(shared, self.cfg)
+        self.stream = VisionStream(link, self.vision_source, VISION_RATE_HZ)
         return self.stream
 
     def latest(self) -> LocalizationState | None:
@@ -381,4 +460,30 @@ class ServiceLocalization:
         out = st.summary()
         if self.stream is not None:
             out["vision_sent"] = self.stream.sent
+            out["vision_sent_new"] = self.stream.sent_new
+        if self.vision_source is not None:
+            out["vision_gap_resets"] = self.vision_source.gap_resets
+        if self.loss_guard_ is not None:
+            out["vision_loss_actions"] = ",".join(a.value for _, a, _ in self.loss_guard_.events)
         return out
+
+    @property
+    def pose_ok(self) -> bool:
+        """False while the vehicle holds or lands for want of our pose (see :mod:`.vision_loss`)."""
+        return self.loss_guard_ is None or self.loss_guard_.monitor.pose_ok
+
+    def loss_guard(self, link: MavlinkLink, in_air: Callable[[], bool],
+                   land: Callable[[], Awaitable[None]]) -> VisionLossGuard | None:
+        """The guard that holds and lands when PX4's vision stops (None unless the SLAM pose
+        goes to PX4)."""
+        if self.shared is None or not self.cfg.link.external_vision:
+            return None
+        monitor = VisionLossMonitor(self.cfg.link.vision_lost_hold_s, self.cfg.link.vision_lost_land_s)
+        self.loss_guard_ = VisionLossGuard(monitor, link, self.vision_age_s, in_air, land, clock=time.monotonic)
+        return self.loss_guard_
+
+    def vision_age_s(self) -> float | None:
+        """Seconds since the last external-vision message went to PX4 (None: never, or disabled)."""
+        if self.stream is None or self.stream.last_sent_s is None:
+            return None
+        return time.monotonic() - self.stream.last_sent_s

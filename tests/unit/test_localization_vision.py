@@ -2,23 +2,32 @@
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 
-from companion.service.localization import _STATUS_CODES, SharedLocalization, vision_pose
+from companion.service.localization import (
+    _STATUS_CODES,
+    JumpCounter,
+    SharedLocalization,
+    VisionPoseSource,
+    vision_pose,
+)
 from semmap.slam import SlamStatus
 
 
 def _shared(status: SlamStatus) -> SharedLocalization:
     shared = SharedLocalization()
     shared.publish({"stamp_s": 12.5, "x_m": 1.0, "y_m": -2.0, "z_m": 0.6, "yaw_rad": 0.3,
-                    "status": _STATUS_CODES[status], "generation": 3})
+                    "status": _STATUS_CODES[status], "generation": 3, "resets": 2})
     return shared
 
 
 def test_a_fully_matched_pose_is_sent() -> None:
     pose = vision_pose(_shared(SlamStatus.OK))
     assert pose is not None
-    assert pose.stamp_s == 12.5 and pose.quality_percent == 100 and pose.reset_counter == 3
+    assert pose.stamp_s == 12.5 and pose.quality_percent == 100 and pose.reset_counter == 2
     assert pose.T_map_body[:3, 3] == pytest.approx([1.0, -2.0, 0.6])
 
 
@@ -34,3 +43,35 @@ def test_a_pose_taken_from_odometry_is_not_fed_back(status: SlamStatus) -> None:
 def test_nothing_before_the_first_scan_or_when_stale() -> None:
     assert vision_pose(SharedLocalization()) is None
     assert vision_pose(_shared(SlamStatus.OK), max_age_s=-1.0) is None
+
+
+def test_the_pose_carries_its_errors_and_a_reset_after_a_gap() -> None:
+    now = [100.0]
+    source = VisionPoseSource(_shared(SlamStatus.OK), position_std_m=0.05, yaw_std_rad=0.03,
+                              reset_after_gap_s=1.0, clock=lambda: now[0])
+    first = source()
+    assert first is not None and (first.position_std_m, first.yaw_std_rad) == (0.05, 0.03)
+    now[0] += 0.5
+    assert source().reset_counter == 2  # type: ignore[union-attr]
+    # PX4 dead-reckoned on its IMU for 1.5 s: it must take the next pose as it is.
+    now[0] += 1.5
+    assert source().reset_counter == 3  # type: ignore[union-attr]
+    assert source.gap_resets == 1
+
+
+def test_jumps_of_the_matched_pose_are_counted() -> None:
+    jumps = JumpCounter(jump_m=0.10, jump_rad=math.radians(3.0))
+    odom = np.array([0.0, 0.0, 0.0])
+    pose = np.array([5.0, 1.0, 0.5])
+    assert jumps.update(pose, odom, True) == 0
+    # Moving 0.3 m forward by odometry, matched 2 cm off that prediction: scan matching, no jump.
+    fwd = np.array([0.3, 0.0, 0.0])
+    pred = pose + np.array([0.3 * math.cos(0.5), 0.3 * math.sin(0.5), 0.0])
+    assert jumps.update(pred + [0.02, 0.0, 0.0], fwd, True) == 0
+    # A loop closure moves the pose 0.25 m at once.
+    assert jumps.update(pred + [0.27, 0.0, 0.0], fwd, True) == 1
+    # Turned 5 degrees more than the odometry says.
+    assert jumps.update(pred + [0.27, 0.0, math.radians(5.0)], fwd, True) == 2
+    # Fallback poses are neither compared nor remembered.
+    assert jumps.update(np.array([50.0, 50.0, 0.0]), fwd, False) == 2
+    assert jumps.update(pred + [0.27, 0.0, math.radians(5.0)], fwd, True) == 2

@@ -14,7 +14,10 @@ from companion.mavlink.link import MavlinkLink
 from companion.mavlink.vision import (
     R_FLU_FRD,
     R_NED_ENU,
+    VisionPose,
+    VisionStream,
     ned_pose_from_map,
+    pose_covariance,
     quaternion_wxyz,
     vision_odometry_message,
 )
@@ -75,3 +78,31 @@ def test_odometry_message_fields() -> None:
     assert math.isnan(decoded.rollspeed) and math.isnan(decoded.pose_covariance[0])
     no_vel = vision_odometry_message(link, T, 1)
     assert math.isnan(no_vel.vx)
+
+
+def test_pose_covariance_carries_what_the_slam_measures() -> None:
+    link = MavlinkLink("udpout://127.0.0.1:9")
+    T = pose_from_xyz_rpy(1.0, 2.0, 0.5, yaw_rad=0.3)
+    msg = vision_odometry_message(link, T, 1, position_std_m=0.05, yaw_std_rad=math.radians(2.0))
+    cov = mavlink.MAVLink(None).decode(bytearray(msg.pack(link.mav))).pose_covariance
+    # Upper triangle, row-major: x at 0, y at 6, z at 11, roll 15, pitch 18, yaw 20.
+    assert cov[0] == pytest.approx(0.0025) and cov[6] == pytest.approx(0.0025)
+    assert cov[20] == pytest.approx(math.radians(2.0) ** 2)
+    # Height, roll and pitch are PX4's own (the SLAM echoes them): unknown, never claimed.
+    assert all(math.isnan(cov[k]) for k in (11, 15, 18))
+    assert all(cov[k] == 0.0 for k in range(21) if k not in (0, 6, 11, 15, 18, 20))
+    assert all(math.isnan(v) for v in pose_covariance(None, 0.1))
+
+
+def test_vision_stream_counts_new_poses_apart_from_repeats() -> None:
+    link = MavlinkLink("udpout://127.0.0.1:9")
+    sent: list[mavlink.MAVLink_message] = []
+    link.send = sent.append  # type: ignore[method-assign]
+    poses = [VisionPose(1.0, np.eye(4)), VisionPose(1.0, np.eye(4)), VisionPose(1.1, np.eye(4), reset_counter=2,
+                                                                               position_std_m=0.05)]
+    stream = VisionStream(link, lambda: poses.pop(0) if poses else None, 30.0)
+    assert stream.last_sent_s is None
+    assert [stream.send_once() for _ in range(4)] == [True, True, True, False]
+    assert (stream.sent, stream.sent_new, stream.skipped) == (3, 2, 1)
+    assert stream.last_sent_s is not None
+    assert sent[-1].reset_counter == 2 and sent[-1].pose_covariance[0] == pytest.approx(0.0025)

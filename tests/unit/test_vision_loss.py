@@ -1,0 +1,93 @@
+"""When PX4's only position source, the SLAM pose, stops: hold, resume, land (companion.service.vision_loss)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.mavlink.link import MavlinkLink
+from companion.service.vision_loss import VisionLossAction, VisionLossGuard, VisionLossMonitor
+from semmap.errors import ConfigError
+
+HOLD, RESUME, LAND = VisionLossAction.HOLD, VisionLossAction.RESUME, VisionLossAction.LAND
+
+
+def _run(monitor: VisionLossMonitor, last_sent: list[float | None], until_s: float,
+         in_air: bool = True) -> list[tuple[float, VisionLossAction]]:
+    """Step every 0.1 s; ``last_sent`` the times vision went out (None: never)."""
+    out = []
+    for k in range(int(until_s * 10) + 1):
+        now = 0.1 * k
+        sent = [t for t in last_sent if t is not None and t <= now + 1e-9]
+        age = now - sent[-1] if sent else None
+        action = monitor.step(now, age, in_air)
+        if action is not None:
+            out.append((round(now, 1), action))
+    return out
+
+
+def test_a_three_second_loss_holds_then_resumes() -> None:
+    m = VisionLossMonitor(hold_after_s=1.0, land_after_s=4.0)
+    sent = [0.1 * k for k in range(0, 21)] + [0.1 * k for k in range(50, 80)]  # nothing from 2.0 to 5.0 s
+    assert _run(m, sent, 7.9) == [(3.0, HOLD), (5.0, RESUME)]
+    assert m.pose_ok
+
+
+def test_a_long_loss_lands_once() -> None:
+    m = VisionLossMonitor(hold_after_s=1.0, land_after_s=4.0)
+    assert _run(m, [0.0, 0.5], 10.0) == [(1.5, HOLD), (4.5, LAND)]
+    assert not m.pose_ok  # the planner's setpoints are not flown while landing
+
+
+def test_vision_coming_back_during_the_landing_does_not_take_off_again() -> None:
+    m = VisionLossMonitor(hold_after_s=1.0, land_after_s=4.0)
+    assert _run(m, [0.0, 6.0, 6.1, 6.2], 7.0) == [(1.0, HOLD), (4.0, LAND)]
+
+
+def test_on_the_ground_nothing_happens_and_a_landing_ends() -> None:
+    m = VisionLossMonitor(hold_after_s=1.0, land_after_s=4.0)
+    assert _run(m, [None], 10.0, in_air=False) == []
+    _run(m, [0.0], 5.0)
+    assert m.state is LAND
+    assert m.step(6.0, 6.0, in_air=False) is None and m.pose_ok
+
+
+def test_never_any_vision_in_the_air_counts_from_the_first_look() -> None:
+    m = VisionLossMonitor(hold_after_s=1.0, land_after_s=4.0)
+    assert m.step(10.0, None, True) is None
+    assert m.step(11.0, None, True) is HOLD
+    assert m.step(14.0, None, True) is LAND
+
+
+def test_hold_must_come_before_land() -> None:
+    with pytest.raises(ConfigError, match="vision_lost_land_s"):
+        VisionLossMonitor(hold_after_s=4.0, land_after_s=4.0)
+
+
+def test_the_guard_tells_the_ground_station_and_lands() -> None:
+    link = MavlinkLink("udpout://127.0.0.1:9")
+    sent: list[mavlink.MAVLink_message] = []
+    link.send = sent.append  # type: ignore[method-assign]
+    now = [0.0]
+    landed: list[bool] = []
+
+    async def land() -> None:
+        landed.append(True)
+
+    guard = VisionLossGuard(VisionLossMonitor(1.0, 4.0), link, lambda: now[0], lambda: True, land,
+                            clock=lambda: now[0])
+
+    async def main() -> list[VisionLossAction | None]:
+        out = []
+        for t in (0.5, 1.2, 3.0, 4.1, 5.0):
+            now[0] = t
+            out.append(await guard.check())
+        return out
+
+    assert asyncio.run(main()) == [None, HOLD, None, LAND, None]
+    assert landed == [True]
+    texts = [m.text for m in sent if m.get_type() == "STATUSTEXT"]
+    assert texts[0].startswith("SLAM lost: holding") and texts[1].startswith("SLAM lost 4s: landing")
+    assert [m.severity for m in sent] == [mavlink.MAV_SEVERITY_WARNING, mavlink.MAV_SEVERITY_CRITICAL]
