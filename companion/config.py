@@ -256,6 +256,10 @@ class SimConfig(StageConfig):
     autopilot_local_port: int = Field(default=14580, ge=1, le=65535)
     autopilot_offboard_port: int = Field(default=14540, ge=1, le=65535)
     autopilot_gcs_port: int = Field(default=14550, ge=1, le=65535)
+    #: The mock autopilot has no GPS: its horizontal position comes only from the companion's
+    #: external vision, late and noisy like EKF2's (needs ``service.localization: slam`` and
+    #: ``link.external_vision``; :mod:`companion.sim.autopilot.gps_denied`).
+    gps_denied: bool = False
     #: The mock autopilot's reported pose drifts (:class:`companion.sim.odometry.OdometryDriftModel`):
     #: what an indoor EKF without GPS reports. Off = it reports the truth.
     odometry_drift: bool = False

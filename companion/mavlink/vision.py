@@ -137,7 +137,8 @@ class VisionStream:
     (async context manager). ``source()`` returns a :class:`VisionPose` or None (nothing to
     send now). Counts what it sent (:attr:`sent`), how many of those were new poses
 (:attr:`sent_new`: PX4's EKF2 fuses a stamp once) and what it skipped (:attr:`skipped`);
-:attr:`last_sent_s` is when it last sent (``time.monotonic``, None before the first)."""
+:attr:`last_sent_s` / :attr:`last_new_s` are when it last sent a pose / a new pose
+(``time.monotonic``, None before the first)."""
 
     def __init__(self, link: MavlinkLink, source: Callable[[], VisionPose | None], rate_hz: float = 30.0) -> None:
         if rate_hz <= 0.0:
@@ -149,6 +150,7 @@ class VisionStream:
         self.sent_new = 0
         self.skipped = 0
         self.last_sent_s: float | None = None
+        self.last_new_s: float | None = None
         self._last_stamp_s = -math.inf
         self._task: asyncio.Task[None] | None = None
 
@@ -187,6 +189,7 @@ class VisionStream:
         self.last_sent_s = time.monotonic()
         if pose.stamp_s > self._last_stamp_s:
             self.sent_new += 1
+            self.last_new_s = self.last_sent_s
             self._last_stamp_s = pose.stamp_s
         return True
 

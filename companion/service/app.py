@@ -370,23 +370,29 @@ class CompanionService:
         (``lost``: the map cannot be trusted, a stop lands too), or PX4's position source is.
         The vehicle has been holding since its map or pose went stale."""
         self.perception_lost = self.perception_lost or lost
-        if self._mission_task is not None and not self._mission_task.done():
-            self._mission_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._mission_task
+        mission = self._mission_task
+        if mission is not None and not mission.done():
+            # Cancelled now (it stops at its next await), awaited after the landing is commanded:
+            # without a position source PX4 gives up its own estimate within seconds.
+            mission.cancel()
         v = self.vehicle
-        if v is None or not v.snapshot().in_air:
-            log.error("%s: no mission or goal is flown until %s", why,
-                      "the service restarts" if lost else "it is back and a mission is started")
-            return
-        log.error("%s: landing", why)
         try:
-            if v.offboard.state.streams:
-                await v.offboard.release(FlightMode.LAND)
-            else:
-                await v.commands.land()
-        except CompanionError as exc:
-            log.error("%s and landing could not be commanded (%s)", why, exc)
+            if v is None or not v.snapshot().in_air:
+                log.error("%s: no mission or goal is flown until %s", why,
+                          "the service restarts" if lost else "it is back and a mission is started")
+                return
+            log.error("%s: landing", why)
+            try:
+                if v.offboard.state.streams:
+                    await v.offboard.release(FlightMode.LAND)
+                else:
+                    await v.commands.land()
+            except CompanionError as exc:
+                log.error("%s and landing could not be commanded (%s)", why, exc)
+        finally:
+            if mission is not None:
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await mission
 
     # --- the mission --------------------------------------------------------------------
 

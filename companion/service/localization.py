@@ -408,6 +408,9 @@ class ServiceLocalization:
             raise ConfigError("service.localization is 'slam' but link.external_vision is false: the map would be "
                               "in the SLAM's frame and the setpoints in the autopilot's drifting one; set "
                               "link.external_vision: true (PX4 then fuses the SLAM pose)")
+        if cfg.sim.gps_denied and cfg.sim.autopilot == "mock" and not self.enabled:
+            raise ConfigError("sim.gps_denied: the mock autopilot's only position source is the SLAM pose; set "
+                              "service.localization: slam and link.external_vision: true")
         self.shared = SharedLocalization() if self.enabled else None
         self.stream: VisionStream | None = None
         self.vision_source: VisionPoseSource | None = None
@@ -483,7 +486,8 @@ class ServiceLocalization:
         return self.loss_guard_
 
     def vision_age_s(self) -> float | None:
-        """Seconds since the last external-vision message went to PX4 (None: never, or disabled)."""
-        if self.stream is None or self.stream.last_sent_s is None:
+        """Seconds since the last new SLAM pose went to PX4 (None: never, or disabled); the
+        stream repeats a pose until the next scan, and a repeat tells EKF2 nothing."""
+        if self.stream is None or self.stream.last_new_s is None:
             return None
-        return time.monotonic() - self.stream.last_sent_s
+        return time.monotonic() - self.stream.last_new_s

@@ -246,7 +246,7 @@ class SimWorld:
             remote_ports=(s.autopilot_offboard_port, s.autopilot_gcs_port) if remote_ports is None else remote_ports,
             home=GeoOrigin(s.home_lat_deg, s.home_lon_deg, s.home_alt_m),
             params={"COM_DISARM_PRFLT": -1.0, **(params or {})}, seed=s.seed,
-            odometry_drift=drift_from_config(cfg), vision_gain=s.vision_fusion_gain,
+            odometry_drift=drift_from_config(cfg), vision_gain=s.vision_fusion_gain, gps_denied=s.gps_denied,
         )
         if cfg.link.signing_key_path is not None:
             # The mock autopilot signs like PX4 with MAV_SIGN_CFG: the companion's link (the

@@ -104,5 +104,5 @@ def test_vision_stream_counts_new_poses_apart_from_repeats() -> None:
     assert stream.last_sent_s is None
     assert [stream.send_once() for _ in range(4)] == [True, True, True, False]
     assert (stream.sent, stream.sent_new, stream.skipped) == (3, 2, 1)
-    assert stream.last_sent_s is not None
+    assert stream.last_sent_s is not None and stream.last_new_s is not None
     assert sent[-1].reset_counter == 2 and sent[-1].pose_covariance[0] == pytest.approx(0.0025)

@@ -147,7 +147,7 @@ class CommandHandler:
             if ap.faults.prearm_fail:
                 ap.announce(CRITICAL, "Arming denied: pre-arm checks failed")
                 return DENIED
-            if not ap.ready:
+            if not ap.ready or not ap.position_ok:
                 ap.announce(CRITICAL, HEALTH_DENIAL)
                 return TEMPORARILY_REJECTED
             if ap.behaviour.mode_after_disarm and (ap.mode in PREVENTS_ARMING or (

@@ -45,6 +45,7 @@ from companion.sim.autopilot.behaviour import (
 )
 from companion.sim.autopilot.commands import PREVENTS_ARMING, CommandHandler
 from companion.sim.autopilot.estimator import SimEstimator, T_map_body_of
+from companion.sim.autopilot.gps_denied import GPS_DENIED_PARAMS, VisionAiding
 from companion.sim.autopilot.guided import FollowTarget
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
@@ -102,6 +103,9 @@ class MockAutopilot:
     ``odometry_drift``: the reported pose drifts (None = it is the truth); ``vision_gain``:
     how strongly external vision corrects it (0 = received vision is recorded only).
     ``behaviour``: which of PX4's ways to follow (default: all, see :class:`Px4Behaviour`).
+    ``gps_denied``: GPS off, the horizontal position only from the companion's external vision
+    (:mod:`.gps_denied`; the parameters it sets can be overridden in ``params``), the odometry
+    drifting as ``odometry_drift`` or, without one, the default drift.
     """
 
     def __init__(
@@ -121,6 +125,7 @@ class MockAutopilot:
         odometry_drift: OdometryDriftModel | None = None,
         vision_gain: float = 0.0,
         behaviour: Px4Behaviour | None = None,
+        gps_denied: bool = False,
     ) -> None:
         if physics_rate_hz <= 0:
             raise SimulationError(f"physics_rate_hz must be > 0 (got {physics_rate_hz})")
@@ -134,7 +139,10 @@ class MockAutopilot:
         #: The origin of the local frame the mock reports (PX4's EKF origin, below the floor).
         self.ekf_origin = ekf_origin(self.home, self.behaviour.floor_z_ned_m)
         self.system_id = system_id
-        self.params = ParamStore({"MAV_SYS_ID": system_id, **(params or {})})
+        self.params = ParamStore({"MAV_SYS_ID": system_id, **(GPS_DENIED_PARAMS if gps_denied else {}),
+                                  **(params or {})})
+        if gps_denied and odometry_drift is None:
+            odometry_drift = OdometryDriftModel(seed=seed)  # dead reckoning between vision samples drifts
         self.faults = Faults()
         self._dt_s = 1.0 / physics_rate_hz
         self._mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=1)
@@ -148,6 +156,8 @@ class MockAutopilot:
         #: What the mock reports and flies by: the truth through ``odometry_drift``, corrected
         #: by external vision (see :mod:`.estimator`).
         self.estimator = SimEstimator(odometry_drift, vision_gain)
+        #: External vision as the only horizontal aiding while GPS is off (see :mod:`.gps_denied`).
+        self.aiding = VisionAiding(self.params, self.estimator, seed)
         self._mode = FlightMode.HOLD
         self._mode_after_disarm = FlightMode.HOLD
         self._armed = False
@@ -430,7 +440,9 @@ class MockAutopilot:
         self.vehicle.step(dt_s, clock_s=now)
         self.estimator.update(self.vehicle.state(), armed=self._armed)
         self.navigator.tick(self.vehicle.stamp_s)
+        self.aiding.tick(now)
         self._check_offboard(now)
+        self._check_position(now)
         self._update_landed(now)
         self.missions.tick(now)
         if self._reached_resend is not None and now >= self._reached_resend[1]:
@@ -479,6 +491,20 @@ class MockAutopilot:
                 n, e, _d = self.vehicle.position_ned_m
                 self.vehicle.set_target(Target(position_ned_m=(n, e, math.nan),
                                                velocity_ned_m_s=(0.0, 0.0, self.params.get("MPC_LAND_SPEED"))))
+
+    @property
+    def position_ok(self) -> bool:
+        """The estimator has a horizontal position (always with GPS; without, while vision aids it)."""
+        return not self.aiding.active or self.aiding.position_valid(self.now_s())
+
+    def _check_position(self, now: float) -> None:
+        """GPS off and no vision for ``EKF2_NOAID_TOUT``: PX4 has no position and lands."""
+        if not (self.aiding.active and self._armed and self.in_air) or self._mode is FlightMode.LAND:
+            return
+        if self.aiding.position_lost(now):
+            self.announce(mavlink.MAV_SEVERITY_CRITICAL, "Failsafe: no local position, Land")
+            self.failsafes.append(FailsafeEvent(now, "local position lost", FlightMode.LAND))
+            self.set_mode(FlightMode.LAND, failsafe=True)
 
     def _wants_climb(self) -> bool:
         tgt = self.vehicle.target
@@ -530,7 +556,7 @@ class MockAutopilot:
     def snapshot(self) -> telemetry.Snapshot:
         now = self.now_s()
         health = telemetry.SENSORS_OK
-        if self.faults.prearm_fail or not self.ready:
+        if self.faults.prearm_fail or not self.ready or not self.position_ok:
             health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
         for unit, _instance in self.failures:
             health &= ~telemetry.FAILURE_UNIT_SENSOR_BITS[unit]
@@ -762,8 +788,12 @@ class MockAutopilot:
         if stamp_s <= self._last_vision_stamp_s:
             return
         self._last_vision_stamp_s = stamp_s
-        self.estimator.fuse_vision(self.peer_clock.sync_stamp(stamp_s, now), sample.position_ned_m[0],
-                                   sample.position_ned_m[1], yaw)
+        stamp_ours = self.peer_clock.sync_stamp(stamp_s, now)
+        n, e = sample.position_ned_m[0], sample.position_ned_m[1]
+        if self.aiding.active:
+            self.aiding.receive(now, stamp_ours, n, e, yaw)  # fused on EKF2's delayed horizon
+        else:
+            self.estimator.fuse_vision(stamp_ours, n, e, yaw)
 
     # --- mission callbacks ---------------------------------------------------------------
 

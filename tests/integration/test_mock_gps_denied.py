@@ -1,0 +1,120 @@
+"""The mock autopilot without GPS: position only from the companion's external vision, late and
+noisy like EKF2's, and PX4's failsafe when it stops (companion.sim.autopilot.gps_denied)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+from collections.abc import AsyncIterator
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+from raw_mavlink_client import RawClient
+
+from companion.mavlink.vision import vision_odometry_message
+from companion.px4 import FlightMode
+from companion.sim.autopilot import MockAutopilot
+from companion.sim.odometry import OdometryDriftModel
+
+pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(60)]
+
+NAN = math.nan
+ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
+PARAMS = {"MPC_TKO_SPEED": 3.0, "MPC_LAND_SPEED": 1.5, "EKF2_NOAID_TOUT": 1_000_000}
+
+
+@contextlib.asynccontextmanager
+async def gps_denied_mock(drift: OdometryDriftModel | None = None,
+                          **params: float) -> AsyncIterator[tuple[MockAutopilot, RawClient]]:
+    client = RawClient()
+    async with MockAutopilot(local_port=0, remote_ports=[client.port], params={**PARAMS, **params},
+                             gps_denied=True, vision_gain=0.5, odometry_drift=drift) as ap:
+        client.ap_addr = ("127.0.0.1", ap.local_port)
+
+        async def keep_reading() -> None:
+            while True:
+                client._drain()
+                await asyncio.sleep(0.01)
+
+        reader = asyncio.create_task(keep_reading())
+        try:
+            yield ap, client
+        finally:
+            reader.cancel()
+    client.close()
+
+
+@contextlib.asynccontextmanager
+async def vision_from_truth(ap: MockAutopilot, c: RawClient, offset_enu_m: tuple[float, float] = (0.0, 0.0),
+                            rate_hz: float = 30.0) -> AsyncIterator[None]:
+    """Stream the true pose (moved by ``offset_enu_m``) as ODOMETRY, stamped on the mock's clock."""
+
+    async def stream() -> None:
+        while True:
+            stamp, T = ap.T_map_body()
+            T = np.array(T)
+            T[0, 3] += offset_enu_m[0]
+            T[1, 3] += offset_enu_m[1]
+            c.send(vision_odometry_message(c, T, int(stamp * 1e6), position_std_m=0.05))  # type: ignore[arg-type]
+            await asyncio.sleep(1.0 / rate_hz)
+
+    task = asyncio.create_task(stream())
+    try:
+        yield
+    finally:
+        task.cancel()
+
+
+def _est_error_m(ap: MockAutopilot) -> float:
+    est, true = ap.estimated_state().position_ned_m, ap.position_ned_m
+    return math.hypot(est[0] - true[0], est[1] - true[1])
+
+
+async def test_no_vision_no_position_no_arming() -> None:
+    async with gps_denied_mock() as (ap, c):
+        await asyncio.sleep(3.5)  # past the mock's usual readiness delay
+        assert not ap.position_ok
+        assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) != ACCEPTED
+        async with vision_from_truth(ap, c):
+            await ap.wait_until(lambda: ap.position_ok, 5.0, "a position from vision")
+            assert ap.aiding.fused > 0
+            assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+
+
+async def test_vision_is_taken_in_late_like_ekf2() -> None:
+    async with gps_denied_mock(EKF2_EV_DELAY=200.0) as (ap, c):
+        async with vision_from_truth(ap, c):
+            await c.wait_ready(timeout_s=8.0)
+            await ap.wait_until(lambda: ap.position_ok, 5.0, "a position from vision")
+            assert _est_error_m(ap) < 0.05
+        # The companion's pose says the vehicle is 0.5 m further east: the estimate follows only
+        # after EKF2's delayed horizon (0.1 s + EKF2_EV_DELAY 0.2 s).
+        async with vision_from_truth(ap, c, offset_enu_m=(0.5, 0.0)):
+            await asyncio.sleep(0.15)
+            assert _est_error_m(ap) < 0.05
+            await asyncio.sleep(1.0)
+            assert _est_error_m(ap) == pytest.approx(0.5, abs=0.05)
+            assert ap.estimated_state().position_ned_m[1] > ap.position_ned_m[1]  # east in NED is y
+
+
+async def test_without_vision_the_estimate_dead_reckons_and_px4_lands() -> None:
+    drift = OdometryDriftModel(scale_error=0.2, heading_drift_deg_s=5.0, seed=1)
+    async with gps_denied_mock(drift) as (ap, c):
+        async with vision_from_truth(ap, c):
+            await c.wait_ready(timeout_s=8.0)
+            await ap.wait_until(lambda: ap.position_ok, 5.0, "a position from vision")
+            assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+            assert await c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN,
+                                   ap.home.alt_m + 1.5) == ACCEPTED
+            await ap.wait_until(lambda: ap.mode is FlightMode.HOLD and ap.in_air, 15.0, "take-off")
+            assert _est_error_m(ap) < 0.1
+        # Vision stops in the air: PX4 keeps its estimate for EKF2_NOAID_TOUT (1 s here), then has
+        # no position and lands.
+        await asyncio.sleep(0.5)
+        assert ap.mode is FlightMode.HOLD
+        await ap.wait_until(lambda: ap.mode is FlightMode.LAND, 3.0, "the no-position failsafe")
+        assert any("no local position" in t for t in c.status_texts())
+        assert [f.reason for f in ap.failsafes] == ["local position lost"]
+        await ap.wait_until(lambda: not ap.in_air, 15.0, "the landing")
