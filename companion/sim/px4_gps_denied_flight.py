@@ -1,0 +1,238 @@
+"""One GPS-denied flight against PX4 SITL: the whole service flies the demo crossing while PX4's
+only position is the service's SLAM pose, judged against SIH's truth.
+
+:func:`fly_gps_denied` places the seeded room around where SIH's vehicle stands, sets PX4's
+EKF origin (SET_GPS_GLOBAL_ORIGIN, what a ground station does indoors so missions have a
+latitude and longitude), uploads the crossing with MAVSDK and runs the service (SLAM
+localization, external vision) with the camera rendered from the truth
+(:mod:`companion.sim.px4_gps_denied`). During the flight it samples PX4's uORB rate of
+``vehicle_visual_odometry``, the SLAM pose and PX4's estimate; ``slam_loss_s`` > 0 stops the
+camera that long once the first leg is flown. The summary holds the bench's figures.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import CompanionConfig, write_effective_config
+from companion.errors import LinkError
+from companion.geo import GeoOrigin
+from companion.mavlink.failsafe import OffboardState
+from companion.mavsdk_client import MavsdkClient
+from companion.missions import MissionPlan, Waypoint
+from companion.px4 import FlightMode
+from companion.service.app import CompanionService
+from companion.service.checkpoint import checkpoint_path
+from companion.service.demo import _summary, crossing_waypoints_room, feasible_seed
+from companion.service.sim_world import SharedSimState
+from companion.sim.px4_gps_denied import (
+    EstimateRecorder,
+    GpsDeniedSitl,
+    SihTruth,
+    frame_alignment,
+    p95,
+    placement_around_start,
+)
+from companion.sim.px4_sitl import Px4SitlError
+
+log = logging.getLogger(__name__)
+
+#: PX4's uORB rates are sampled this often in flight (seconds).
+UORB_PERIOD_S = 4.0
+#: The SLAM pose is sampled this often (seconds).
+SLAM_PERIOD_S = 0.05
+#: Above this height (m) the vehicle counts as airborne for the error figures.
+AIRBORNE_M = 0.3
+
+
+def gps_denied_config(cfg: CompanionConfig, out: Path, link_url: str) -> CompanionConfig:
+    """``cfg`` for a flight on the SLAM pose: SLAM localization, external vision, no MQTT."""
+    return cfg.model_copy(update={
+        "service": cfg.service.model_copy(update={"localization": "slam", "output_dir": str(out),
+                                                  "map_dir": str(out / "checkpoint")}),
+        "link": cfg.link.model_copy(update={"url": link_url, "external_vision": True}),
+        "mqtt": cfg.mqtt.model_copy(update={"enabled": False}),
+    })
+
+
+async def set_origin_until_home(svc: CompanionService, origin: GeoOrigin) -> None:
+    """SET_GPS_GLOBAL_ORIGIN every second until PX4 reports a home position."""
+    v = svc.vehicle
+    assert v is not None
+    while v.snapshot().home is None:
+        with contextlib.suppress(LinkError):
+            v.link.send(v.link.mav.set_gps_global_origin_encode(
+                v.cfg.target_system, int(origin.lat_deg * 1e7), int(origin.lon_deg * 1e7), int(origin.alt_m * 1e3),
+                int(time.time() * 1e6)))
+        await asyncio.sleep(1.0)
+    log.info("GPS-denied flight: PX4 has a home position (EKF origin set)")
+
+
+async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDeniedSitl, *,
+                         timeout_s: float = 240.0, slam_loss_s: float = 0.0) -> dict[str, Any]:
+    """Fly the demo crossing on the SLAM pose with ``sitl`` (started, not necessarily ready);
+    returns the summary (also ``summary.json`` in ``out_dir``)."""
+    out = Path(out_dir)
+    await asyncio.to_thread(out.mkdir, parents=True, exist_ok=True)
+    t_start = time.monotonic()
+    cfg = gps_denied_config(await asyncio.to_thread(feasible_seed, cfg), out, sitl.onboard_url)
+    with contextlib.suppress(FileNotFoundError):
+        checkpoint_path(cfg).unlink()  # a fresh room: no earlier map
+    placement = placement_around_start(cfg)
+    x0, y0 = placement.room_to_map_xy((0.0, 0.0))
+    x1, y1 = placement.room_to_map_xy((placement.room.width_m, placement.room.depth_m))
+    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"geofence_xy_m": (x0, y0, x1, y1)})})
+    write_effective_config(cfg, out)
+    s = cfg.sim
+    origin = GeoOrigin(s.home_lat_deg, s.home_lon_deg, s.home_alt_m)
+    wps_map = [placement.room_to_map_xy(w) for w in await asyncio.to_thread(crossing_waypoints_room, placement, cfg)]
+    est = EstimateRecorder(cfg.link.target_system)
+    slam: list[tuple[float, float, float]] = []  # our s, x, y
+    uorb_hz: list[float] = []
+    new_pose_rate: list[float] = []
+    loss: dict[str, Any] = {}
+    async with SihTruth(sitl.display_url, placement, SharedSimState()) as truth:
+        await asyncio.to_thread(sitl.stream_truth)
+        await truth.wait_first()
+        plan = MissionPlan(tuple(Waypoint(xyz_map_m=(x, y, cfg.planner.flight_altitude_m), acceptance_radius_m=0.3)
+                                 for x, y in wps_map), origin, "GPS-denied crossing")
+        async with MavsdkClient(sitl.gcs_url, connect_timeout_s=30.0) as client:
+            await client.upload_mission(plan)
+        service = CompanionService(cfg, truth.frame_source(cfg), out_dir=out, fly_mission=True,
+                                   object_classes={o.object_id: o.class_name for o in placement.room.objects})
+        stop = asyncio.Event()
+
+        async def sample_slam() -> None:
+            while True:
+                st = service.localization.latest()
+                if st is not None and st.status == "ok" and (not slam or slam[-1][0] != st.stamp_s):
+                    slam.append((st.stamp_s, float(st.T_map_body[0, 3]), float(st.T_map_body[1, 3])))
+                await asyncio.sleep(SLAM_PERIOD_S)
+
+        async def sample_uorb() -> None:
+            last: tuple[float, int] | None = None
+            while True:
+                await asyncio.sleep(UORB_PERIOD_S)
+                v, stream = service.vehicle, service.localization.stream
+                if v is None or stream is None or v.snapshot().flight_mode is not FlightMode.OFFBOARD:
+                    last = None
+                    continue
+                try:
+                    uorb_hz.append((await asyncio.to_thread(sitl.uorb_top_hz, ["vehicle_visual_odometry"]))
+                                   ["vehicle_visual_odometry"])
+                except Px4SitlError as exc:
+                    log.warning("uorb top failed: %s", exc)
+                now = (time.monotonic(), stream.sent_new)
+                if last is not None:
+                    new_pose_rate.append((now[1] - last[1]) / (now[0] - last[0]))
+                last = now
+
+        async def lose_slam() -> None:
+            def flying_second_leg() -> bool:
+                v, r = service.vehicle, service.runner
+                return (v is not None and r is not None and len(r.reports) >= 1
+                        and v.offboard.state is OffboardState.ACTIVE)
+            while True:
+                if flying_second_leg():
+                    break
+                await asyncio.sleep(0.05)
+            truth.shared.camera_missing = True
+            t0, held_xy = time.monotonic(), None
+            log.warning("GPS-denied flight: the camera stops for %.1f s (SLAM lost)", slam_loss_s)
+            while time.monotonic() - t0 < slam_loss_s:
+                await asyncio.sleep(0.05)
+                v = service.vehicle
+                if held_xy is None and v is not None and v.offboard.state is OffboardState.HOLDING:
+                    held_xy = (time.monotonic(), truth.path_map_m()[-1, :2].copy())
+                if held_xy is not None and time.monotonic() - held_xy[0] > 1.0:
+                    drift = float(np.linalg.norm(truth.path_map_m()[-1, :2] - held_xy[1]))
+                    loss["hold_drift_m"] = max(loss.get("hold_drift_m", 0.0), drift)
+            truth.shared.camera_missing = False
+            loss["held"] = held_xy is not None
+
+        async def on_active(svc: CompanionService) -> None:
+            v = svc.vehicle
+            assert v is not None
+            truth.to_local = v.autopilot_clock.to_local
+            est.attach(v.link)
+            tasks = [set_origin_until_home(svc, origin), sample_slam(), sample_uorb()]
+            if slam_loss_s > 0.0:
+                tasks.append(lose_slam())
+            await asyncio.gather(*tasks)
+
+        async def stopper() -> None:
+            try:
+                await asyncio.wait_for(service.mission_done.wait(), timeout_s)
+            except TimeoutError:
+                log.error("GPS-denied flight: the mission did not finish within %.0f s", timeout_s)
+            stop.set()
+
+        service.on_active = on_active
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(stopper())
+            report = await service.run(stop)
+            stop.set()
+    summary = _summary(cfg, placement, report, truth.path_map_m(), wps_map, [], service, time.monotonic() - t_start)
+    for k in ("setpoint_gaps", "setpoints_received", "stage_timings_ms", "objects_found", "checkpoints"):
+        summary.pop(k, None)
+    summary.update(judge(truth, est, slam))
+    summary["ev_rate_hz_at_px4"] = round(float(np.median(uorb_hz)), 1) if uorb_hz else None
+    summary["ev_new_pose_rate_hz"] = round(float(np.median(new_pose_rate)), 1) if new_pose_rate else None
+    summary["localization"] = report.localization
+    summary["vision_loss_actions"] = report.localization.get("vision_loss_actions", "")
+    if slam_loss_s > 0.0:
+        summary["slam_loss"] = {"seconds": slam_loss_s, **loss}
+    summary["px4_log_events"] = sitl.log_lines_since(0, r"WARN|ERROR|Armed|Disarmed|[Ll]anding|[Tt]akeoff|"
+                                                        r"[Ff]ailsafe|[Oo]ffboard|vision|EV |reset")[-40:]
+    (out / "px4.log").write_text(sitl.log_text(), encoding="utf-8")
+    # The tracks the figures come from, for a look afterwards (our clock, map frames unaligned).
+    np.savez_compressed(out / "tracks.npz", truth=np.array([(t.local_s, t.x_m, t.y_m, t.z_m, t.yaw_rad)
+                                                            for t in truth.samples]).reshape(-1, 5),
+                        px4_estimate=np.array(est.rows).reshape(-1, 5), slam=np.array(slam).reshape(-1, 3))
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
+    return summary
+
+
+def judge(truth: SihTruth, est: EstimateRecorder, slam: list[tuple[float, float, float]]) -> dict[str, Any]:
+    """PX4's estimate (at its arrival) and the SLAM pose (at its capture) against SIH's truth
+    interpolated to those instants, airborne samples, after aligning
+    the frames on the ground before take-off (:func:`frame_alignment`)."""
+    if len(truth.samples) < 2 or len(est.rows) < 10:
+        return {"ekf_vs_truth_error_m_p95": None, "slam_vs_truth_error_m_p95": None}
+    e = np.array(est.rows, dtype=np.float64)
+    e = e[(e[:, 0] >= truth.samples[0].local_s) & (e[:, 0] <= truth.samples[-1].local_s) & np.isfinite(e[:, 4])]
+    t_at_e = truth.at(e[:, 0], "local")
+    airborne = t_at_e[:, 2] > AIRBORNE_M
+    first_air = int(np.argmax(airborne)) if airborne.any() else len(e)
+    ground = np.arange(max(0, first_air - 60), max(0, first_air - 10))  # at rest, vision fused, not yet climbing
+    if len(ground) < 5:
+        return {"ekf_vs_truth_error_m_p95": None, "slam_vs_truth_error_m_p95": None}
+    align = frame_alignment(np.column_stack([e[ground, 1:3], e[ground, 3], e[ground, 4]]), t_at_e[ground])
+    ekf_xy = np.linalg.norm(align.apply(e[airborne, 1:3]) - t_at_e[airborne, :2], axis=1)
+    # Height: PX4's z above where it stood against the truth's height above the floor.
+    z0 = float(np.mean(e[ground, 3] - t_at_e[ground, 2]))
+    ekf_z = np.abs(e[airborne, 3] - z0 - t_at_e[airborne, 2])
+    out: dict[str, Any] = {"ekf_vs_truth_error_m_p95": p95(ekf_xy), "ekf_vs_truth_error_m_max":
+                           round(float(ekf_xy.max()), 3) if ekf_xy.size else None,
+                           "ekf_vs_truth_height_error_m_p95": p95(ekf_z),
+                           "frame_alignment": {"yaw_deg": round(math.degrees(align.yaw_rad), 2),
+                                               "xy_m": [round(float(v), 3) for v in align.t_xy_m]}}
+    if slam:
+        sl = np.array(slam, dtype=np.float64)
+        sl = sl[(sl[:, 0] >= truth.samples[0].local_s) & (sl[:, 0] <= truth.samples[-1].local_s)]
+        t_at_s = truth.at(sl[:, 0], "local")
+        air = t_at_s[:, 2] > AIRBORNE_M
+        err = np.linalg.norm(align.apply(sl[air, 1:3]) - t_at_s[air, :2], axis=1)
+        out["slam_vs_truth_error_m_p95"] = p95(err)
+    else:
+        out["slam_vs_truth_error_m_p95"] = None
+    return out

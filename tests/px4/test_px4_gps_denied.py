@@ -1,0 +1,117 @@
+"""PX4 SITL without GPS takes the companion's ODOMETRY as its position: EKF2 fuses our frames,
+covariances and timestamps, follows a reset_counter bump, and its estimate is SIH's truth.
+
+The pose sent here is SIH's own truth (HIL_STATE_QUATERNION on the display link) through the
+companion's VisionStream, so what is tested is the interface to EKF2, not the SLAM;
+bench/px4_gps_denied.py flies the SLAM pose."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import re
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from companion.config import CompanionConfig, LinkConfig
+from companion.mavlink.vehicle import Vehicle
+from companion.mavlink.vision import VisionPose, VisionStream
+from companion.service.sim_world import SharedSimState
+from companion.sim.px4_gps_denied import GpsDeniedSitl, SihTruth, placement_around_start
+from companion.sim.px4_sitl import sitl_available
+
+pytestmark = [pytest.mark.px4, pytest.mark.slow]
+
+#: The poses go out stamped this long before they arrived here.
+AGE_S = 0.1
+
+
+@pytest.fixture(scope="module")
+def gps_denied_sitl() -> Iterator[GpsDeniedSitl]:
+    ok, why = sitl_available()
+    if not ok:
+        pytest.skip(why)
+    with GpsDeniedSitl() as running:
+        yield running
+
+
+def _age_us(odom: str) -> int:
+    """How much older than its receipt PX4 took a vehicle_visual_odometry sample to be."""
+    m = re.search(r"timestamp_sample: \d+ \((\d+) us before timestamp\)", odom)
+    assert m is not None, odom
+    return int(m.group(1))
+
+
+def _field(text: str, name: str) -> list[float]:
+    m = re.search(rf"^\s*{name}: \[([^\]]*)\]", text, re.M)
+    assert m is not None, f"no {name} in {text!r}"
+    return [float(v) for v in m.group(1).split(",")]
+
+
+def test_ekf2_takes_the_companions_odometry_as_its_position(gps_denied_sitl: GpsDeniedSitl) -> None:
+    sitl = gps_denied_sitl
+    out: dict[str, object] = {}
+
+    async def run() -> None:
+        truth = SihTruth(sitl.display_url, placement_around_start(CompanionConfig()), SharedSimState())
+        offset = np.zeros(3)
+        reset = [0]
+
+        def source() -> VisionPose | None:
+            if truth.latest is None:
+                return None
+            stamp, T = truth.latest
+            T = T.copy()
+            T[:3, 3] += offset
+            # Stamped AGE_S before it arrived (the vehicle stands still): PX4 must fuse it that old.
+            return VisionPose(stamp - AGE_S, T, 100, reset[0], 0.05, math.radians(2.0))
+
+        async with truth, Vehicle(LinkConfig(url=sitl.onboard_url)) as v:
+            await asyncio.to_thread(sitl.stream_truth)
+            await truth.wait_first()
+            async with VisionStream(v.link, source, 30.0):
+                await asyncio.to_thread(sitl.wait_ready)  # no GPS: ready only on our vision
+                # PX4 maps our stamps onto its clock once its TIMESYNC estimate has converged;
+                # until then it stamps the pose on arrival.
+                t0 = time.monotonic()
+                while time.monotonic() - t0 < 60.0:
+                    await asyncio.sleep(1.0)
+                    out["age_us"] = _age_us(await asyncio.to_thread(sitl.listener, "vehicle_visual_odometry"))
+                    if abs(out["age_us"] - AGE_S * 1e6) < 50_000:  # type: ignore[operator]
+                        break
+                rtts = sorted(r for _, _, r in v.autopilot_clock._samples)
+                out["rtt_ms_p10_p50"] = [round(1e3 * rtts[len(rtts) // 10], 1), round(1e3 * rtts[len(rtts) // 2], 1)]
+                out["hz"] = (await asyncio.to_thread(sitl.uorb_top_hz, ["vehicle_visual_odometry"]))[
+                    "vehicle_visual_odometry"]
+                out["odom"] = await asyncio.to_thread(sitl.listener, "vehicle_visual_odometry")
+                out["flags"] = await asyncio.to_thread(sitl.listener, "estimator_status_flags")
+                s = v.snapshot()
+                assert s.position_ned_m is not None and truth.latest is not None
+                t = truth.latest[1][:3, 3]
+                out["err_m"] = math.hypot(s.position_ned_m[0] - t[1], s.position_ned_m[1] - t[0])
+                # The pose jumps 0.5 m east with the reset counter bumped: EKF2 moves to it at once.
+                offset[0], reset[0] = 0.5, 1
+                t0 = time.monotonic()
+                while time.monotonic() - t0 < 3.0:
+                    await asyncio.sleep(0.1)
+                    s = v.snapshot()
+                    assert s.position_ned_m is not None
+                    if abs(s.position_ned_m[1] - (truth.latest[1][0, 3] + 0.5)) < 0.05:
+                        out["reset_after_s"] = time.monotonic() - t0
+                        break
+
+    asyncio.run(run())
+    odom, flags = str(out["odom"]), str(out["flags"])
+    assert float(out["hz"]) >= 20.0, out["hz"]  # type: ignore[arg-type]
+    # Our covariance reached EKF2 as we sent it: x/y 0.05 m, yaw 2 deg, the rest unknown.
+    var = _field(odom, "position_variance")
+    assert var[:2] == pytest.approx([0.0025, 0.0025], rel=1e-3) and math.isnan(var[2]), odom
+    assert _field(odom, "orientation_variance")[2] == pytest.approx(math.radians(2.0) ** 2, rel=1e-2), odom
+    # Stamped at capture on PX4's clock (TIMESYNC), not on arrival: fused as old as it was.
+    assert abs(float(out["age_us"]) - AGE_S * 1e6) < 50_000, out  # type: ignore[arg-type]
+    assert "cs_ev_pos: True" in flags and "cs_ev_yaw: True" in flags and "cs_gnss_pos: False" in flags, flags
+    assert float(out["err_m"]) < 0.05, out  # type: ignore[arg-type]
+    assert "reset_after_s" in out and float(out["reset_after_s"]) < 1.5, out  # type: ignore[arg-type]
