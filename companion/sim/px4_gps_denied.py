@@ -51,7 +51,8 @@ GPS_DENIED_PX4_PARAMS: dict[str, float | int] = {
     "SYS_HAS_GPS": 0,          # no GPS receiver: no GNSS pre-flight checks
     "EKF2_GPS_CTRL": 0,        # and EKF2 fuses no GNSS
     "EKF2_EV_CTRL": 9,         # external vision: horizontal position (1) + yaw (8), not height
-    "EKF2_HGT_REF": 0,         # height from the barometer (vision gives none; a range finder sees furniture)
+    "EKF2_HGT_REF": 2,         # height from the downward range finder (vision gives none; baro drifts by decimetres)
+    "EKF2_RNG_CTRL": 2,        # the range finder always fused
     "EKF2_EV_DELAY": 0.0,      # our stamps are capture times, mapped onto PX4's clock by TIMESYNC
     "EKF2_EVP_NOISE": 0.02,    # floors under the variances we send (ODOMETRY covariance)
     "EKF2_EVA_NOISE": 0.02,

@@ -15,8 +15,7 @@ for the mock, as PX4 does it:
 * with no sample fused for ``EKF2_NOAID_TOUT`` the position is invalid: in the air PX4's
   failsafe lands (:meth:`VisionAiding.position_lost`).
 
-Height, roll and pitch stay PX4's own (baro, range finder, IMU), as with ``EKF2_HGT_REF`` not
-vision.
+Height, roll and pitch stay PX4's own (range finder, IMU), as with ``EKF2_HGT_REF`` 2.
 """
 
 from __future__ import annotations
@@ -34,7 +33,7 @@ HORIZON_S = 0.1
 FUSION_NOISE_M = 0.005
 #: The parameters that turn the mock's GPS off and its vision aiding on (``EKF2_EV_CTRL`` 9:
 #: horizontal position and yaw).
-GPS_DENIED_PARAMS: dict[str, float] = {"SYS_HAS_GPS": 0, "EKF2_GPS_CTRL": 0, "EKF2_EV_CTRL": 9, "EKF2_HGT_REF": 0}
+GPS_DENIED_PARAMS: dict[str, float] = {"SYS_HAS_GPS": 0, "EKF2_GPS_CTRL": 0, "EKF2_EV_CTRL": 9, "EKF2_HGT_REF": 2}
 
 
 class VisionAiding:
