@@ -53,6 +53,9 @@ EV_TARGET_HZ = 20.0
 SLAM_LOSS_S = 3.0
 #: PX4's start on a loaded machine.
 READY_TIMEOUT_S = 240.0
+#: SLAM settings for a motion prior that is no independent measurement (``--weak-prior``).
+WEAK_PRIOR = {"correlative_linear_window_m": 0.3, "correlative_angular_window_deg": 10.0,
+              "translation_weight": 1.0, "rotation_weight": 1.0, "odometry_calibration_window_s": 0.0}
 log = logging.getLogger("bench.px4_gps_denied")
 
 
@@ -95,6 +98,9 @@ def main() -> int:
                     help="onnx (default, as the demo): the shipped model; oracle: the simulator's")
     ap.add_argument("--camera-scale", type=float, default=1.0,
                     help="scale the camera's resolution and intrinsics (0.5: 320x240), for a loaded machine")
+    ap.add_argument("--weak-prior", action="store_true",
+                    help="the SLAM trusts its motion prior less (wider search, weaker pull): without GPS that prior, "
+                         "dead-reckoned from PX4's velocity, is itself built on the vision PX4 fuses")
     ap.add_argument("--out", default=None, help="keep the flights' outputs here (default: a temporary folder)")
     ap.add_argument("--timeout", type=float, default=240.0, help="give a room's mission up after this many seconds")
     args = ap.parse_args()
@@ -113,8 +119,11 @@ def main() -> int:
         cfg = cfg.model_copy(update={"camera": c.model_copy(update={
             "width_px": int(c.width_px * k), "height_px": int(c.height_px * k), "fx_px": c.fx_px * k,
             "fy_px": c.fy_px * k, "cx_px": c.cx_px * k, "cy_px": c.cy_px * k})})
+    if args.weak_prior:
+        cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update=WEAK_PRIOR)})
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench-px4-gps-denied-"))
-    camera = f"{cfg.camera.width_px}x{cfg.camera.height_px} at {cfg.camera.rate_hz:g} Hz, detector {cfg.detector.kind}"
+    camera = (f"{cfg.camera.width_px}x{cfg.camera.height_px} at {cfg.camera.rate_hz:g} Hz, detector "
+              f"{cfg.detector.kind}, SLAM prior {'weak' if args.weak_prior else 'as shipped'}")
     load0 = os.getloadavg()
     t0 = time.monotonic()
     seeds = room_seeds(cfg, args.seed, n)

@@ -84,6 +84,10 @@ class LinkConfig(StageConfig):
     #: EKF2 resets to it instead of rejecting it at its innovation gate.
     vision_reset_jump_m: float = Field(default=0.10, gt=0.0)
     vision_reset_jump_deg: float = Field(default=3.0, gt=0.0)
+    #: PX4 has no horizontal position but our pose (no GPS; docs/mavlink.md "PX4 without GPS"):
+    #: when the pose stops the vehicle holds and then lands (the two settings below). Off,
+    #: PX4 coasts on its other sources while the SLAM has no match.
+    vision_is_position_source: bool = False
     #: No SLAM pose sent for this long while flying on it: hold on PX4's last estimate ...
     vision_lost_hold_s: float = Field(default=1.0, gt=0.0)
     #: ... and land when it has not come back after this long (keep it below PX4's

@@ -408,9 +408,10 @@ class ServiceLocalization:
             raise ConfigError("service.localization is 'slam' but link.external_vision is false: the map would be "
                               "in the SLAM's frame and the setpoints in the autopilot's drifting one; set "
                               "link.external_vision: true (PX4 then fuses the SLAM pose)")
-        if cfg.sim.gps_denied and cfg.sim.autopilot == "mock" and not self.enabled:
+        if cfg.sim.gps_denied and cfg.sim.autopilot == "mock" and not (self.enabled and cfg.link.vision_is_position_source):
             raise ConfigError("sim.gps_denied: the mock autopilot's only position source is the SLAM pose; set "
-                              "service.localization: slam and link.external_vision: true")
+                              "service.localization: slam, link.external_vision: true and "
+                              "link.vision_is_position_source: true")
         self.shared = SharedLocalization() if self.enabled else None
         self.stream: VisionStream | None = None
         self.vision_source: VisionPoseSource | None = None
@@ -478,8 +479,9 @@ class ServiceLocalization:
     def loss_guard(self, link: MavlinkLink, in_air: Callable[[], bool],
                    land: Callable[[], Awaitable[None]]) -> VisionLossGuard | None:
         """The guard that holds and lands when PX4's vision stops (None unless the SLAM pose
-        goes to PX4)."""
-        if self.shared is None or not self.cfg.link.external_vision:
+        goes to PX4 as its only position source, ``link.vision_is_position_source``)."""
+        link_cfg = self.cfg.link
+        if self.shared is None or not link_cfg.external_vision or not link_cfg.vision_is_position_source:
             return None
         monitor = VisionLossMonitor(self.cfg.link.vision_lost_hold_s, self.cfg.link.vision_lost_land_s)
         self.loss_guard_ = VisionLossGuard(monitor, link, self.vision_age_s, in_air, land, clock=time.monotonic)

@@ -60,11 +60,13 @@ AIRBORNE_M = 0.3
 
 
 def gps_denied_config(cfg: CompanionConfig, out: Path, link_url: str) -> CompanionConfig:
-    """``cfg`` for a flight on the SLAM pose: SLAM localization, external vision, no MQTT."""
+    """``cfg`` for a flight on the SLAM pose: SLAM localization, external vision as PX4's only
+    position source, no MQTT."""
     return cfg.model_copy(update={
         "service": cfg.service.model_copy(update={"localization": "slam", "output_dir": str(out),
                                                   "map_dir": str(out / "checkpoint")}),
-        "link": cfg.link.model_copy(update={"url": link_url, "external_vision": True}),
+        "link": cfg.link.model_copy(update={"url": link_url, "external_vision": True,
+                                            "vision_is_position_source": True}),
         "mqtt": cfg.mqtt.model_copy(update={"enabled": False}),
     })
 
