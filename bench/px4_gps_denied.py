@@ -44,6 +44,7 @@ sys.path.insert(0, str(REPO))
 
 from companion.config import load_config  # noqa: E402
 from companion.service.demo import feasible_seed  # noqa: E402
+from companion.sim.odometry import OdometryDriftModel  # noqa: E402
 from companion.sim.px4_gps_denied import GPS_DENIED_PX4_PARAMS, GpsDeniedSitl  # noqa: E402
 from companion.sim.px4_gps_denied_flight import fly_gps_denied  # noqa: E402
 from companion.sim.px4_sitl import Px4SitlError, sitl_available  # noqa: E402
@@ -71,7 +72,8 @@ def room_seeds(cfg: Any, start: int, n: int) -> list[int]:
     return seeds
 
 
-async def fly_room(cfg: Any, seed: int, out: Path, timeout_s: float, slam_loss_s: float) -> dict[str, Any] | None:
+async def fly_room(cfg: Any, seed: int, out: Path, timeout_s: float, slam_loss_s: float,
+                   odometry_sensor: bool) -> dict[str, Any] | None:
     c = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": seed})})
     s = c.sim
     sitl = GpsDeniedSitl(home_lat_lon_alt=(s.home_lat_deg, s.home_lon_deg, s.home_alt_m),
@@ -83,7 +85,9 @@ async def fly_room(cfg: Any, seed: int, out: Path, timeout_s: float, slam_loss_s
         return None
     with sitl:
         t0 = time.monotonic()
-        summary = await fly_gps_denied(c, out / f"room-{seed}", sitl, timeout_s=timeout_s, slam_loss_s=slam_loss_s)
+        odometry = OdometryDriftModel(seed=seed) if odometry_sensor else None
+        summary = await fly_gps_denied(c, out / f"room-{seed}", sitl, timeout_s=timeout_s, slam_loss_s=slam_loss_s,
+                                       odometry=odometry)
         log.info("room %d flown in %.0f s", seed, time.monotonic() - t0)
     return summary
 
@@ -101,6 +105,9 @@ def main() -> int:
     ap.add_argument("--weak-prior", action="store_true",
                     help="the SLAM trusts its motion prior less (wider search, weaker pull): without GPS that prior, "
                          "dead-reckoned from PX4's velocity, is itself built on the vision PX4 fuses")
+    ap.add_argument("--odometry-sensor", action="store_true",
+                    help="the vehicle has an odometry sensor of its own (flow, VIO: the truth drifting as "
+                         "the mock's odometry) for the SLAM's motion prior, instead of PX4's velocity")
     ap.add_argument("--out", default=None, help="keep the flights' outputs here (default: a temporary folder)")
     ap.add_argument("--timeout", type=float, default=240.0, help="give a room's mission up after this many seconds")
     args = ap.parse_args()
@@ -123,14 +130,15 @@ def main() -> int:
         cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update=WEAK_PRIOR)})
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench-px4-gps-denied-"))
     camera = (f"{cfg.camera.width_px}x{cfg.camera.height_px} at {cfg.camera.rate_hz:g} Hz, detector "
-              f"{cfg.detector.kind}, SLAM prior {'weak' if args.weak_prior else 'as shipped'}")
+              f"{cfg.detector.kind}, SLAM prior {'weak' if args.weak_prior else 'as shipped'} from "
+              f"{'an odometry sensor' if args.odometry_sensor else 'PX4 velocity'}")
     load0 = os.getloadavg()
     t0 = time.monotonic()
     seeds = room_seeds(cfg, args.seed, n)
     rooms: dict[str, dict[str, Any]] = {}
     for i, seed in enumerate(seeds):
         loss = SLAM_LOSS_S if (i == len(seeds) - 1 and not args.quick and not args.no_slam_loss) else 0.0
-        summary = asyncio.run(fly_room(cfg, seed, out, args.timeout, loss))
+        summary = asyncio.run(fly_room(cfg, seed, out, args.timeout, loss, args.odometry_sensor))
         if summary is not None:
             rooms[str(seed)] = summary
     load1 = os.getloadavg()

@@ -40,9 +40,11 @@ from companion.service.sim_world import (
     SimPlacement,
     start_point_room_m,
 )
+from companion.sim.odometry import OdometryDriftModel
 from companion.sim.px4_sitl import READY_LINE, Px4Sitl, Px4SitlError
+from companion.sources.poses import map_pose_from_ned
 from companion.sources.sim import room_from_config
-from semmap.frames import make_transform, wrap_angle_rad
+from semmap.frames import make_transform, pose_from_xyz_rpy, rpy_from_rotation, wrap_angle_rad
 
 log = logging.getLogger(__name__)
 
@@ -142,8 +144,16 @@ class SihTruth:
     (the service's :class:`~companion.mavlink.timesync.AutopilotClock`); until then samples
     are stamped on arrival."""
 
-    def __init__(self, url: str, placement: SimPlacement, shared: SharedSimState) -> None:
+    def __init__(self, url: str, placement: SimPlacement, shared: SharedSimState,
+                 odometry: OdometryDriftModel | None = None) -> None:
         self.url = url
+        #: An odometry sensor of its own (optical flow, VIO): the truth through this drift,
+        #: handed to the camera's frames with PX4's estimate as their pose (see
+        #: :meth:`follow_estimate`); None: frames carry no pose, the service poses them from
+        #: PX4's telemetry and dead-reckons its odometry from PX4's velocity.
+        self.odometry = odometry
+        self._estimate: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+        self._floor_down_m: float | None = None
         self.link = MavlinkLink(url)
         self.placement = placement
         self.shared = shared
@@ -181,10 +191,42 @@ class SihTruth:
             self._mapping_warned = True
             log.warning("SIH truth: PX4 time %.3f s maps to %.3f s, %.3f s from its arrival: stamped on arrival",
                         px4_s, mapped, mapped - local_s)
-        self.shared.set_pose(local_s, T)
         self.latest = (local_s, T)
+        if self.odometry is None:
+            self.shared.set_pose(local_s, T)
+        elif self._estimate is not None and self._floor_down_m is not None:
+            self.shared.set_pose(local_s, T, self._estimate_pose(), self._odometry_pose(local_s, T, yaw))
         x, y, z = (float(v) for v in T[:3, 3])
         self.samples.append(TruthSample(px4_s, local_s, x, y, z, yaw))
+
+    def follow_estimate(self, link: LinkLike, target_system: int = 1) -> Callable[[], None]:
+        """Keep PX4's estimate (LOCAL_POSITION_NED, ATTITUDE) from ``link`` as the frames' pose."""
+        rpy = [0.0, 0.0, 0.0]
+
+        def handle(msg: mavlink.MAVLink_message) -> None:
+            if msg.get_srcSystem() != target_system or msg.get_srcComponent() != 1:
+                return
+            if msg.get_type() == "ATTITUDE":
+                rpy[:] = [float(msg.roll), float(msg.pitch), float(msg.yaw)]
+            elif all(math.isfinite(v) for v in (msg.x, msg.y, msg.z)):
+                if self._floor_down_m is None:
+                    self._floor_down_m = float(msg.z)  # it stands on the floor when the service starts
+                self._estimate = ((float(msg.x), float(msg.y), float(msg.z)), (rpy[0], rpy[1], rpy[2]))
+
+        return link.add_listener(handle, ("LOCAL_POSITION_NED", "ATTITUDE"))
+
+    def _estimate_pose(self) -> NDArray[np.float64]:
+        assert self._estimate is not None and self._floor_down_m is not None
+        (n, e, d), rpy = self._estimate
+        T = map_pose_from_ned((n, e, d), rpy)
+        T[2, 3] = self._floor_down_m - d + STANDING_HEIGHT_M  # above the floor, as the truth's z
+        return T
+
+    def _odometry_pose(self, local_s: float, T: NDArray[np.float64], yaw: float) -> NDArray[np.float64]:
+        assert self.odometry is not None
+        x, y, odo_yaw = self.odometry.update(local_s, (float(T[0, 3]), float(T[1, 3]), yaw))
+        roll, pitch, _ = rpy_from_rotation(T[:3, :3])
+        return pose_from_xyz_rpy(float(x), float(y), float(T[2, 3]), roll, pitch, float(odo_yaw))
 
     async def wait_first(self, timeout_s: float = 30.0) -> None:
         deadline = time.monotonic() + timeout_s

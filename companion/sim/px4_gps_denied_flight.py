@@ -34,6 +34,7 @@ from companion.service.app import CompanionService
 from companion.service.checkpoint import checkpoint_path
 from companion.service.demo import _summary, crossing_waypoints_room, feasible_seed
 from companion.service.sim_world import SharedSimState
+from companion.sim.odometry import OdometryDriftModel
 from companion.sim.px4_gps_denied import (
     EstimateRecorder,
     GpsDeniedSitl,
@@ -97,9 +98,11 @@ async def set_origin_until_home(svc: CompanionService, origin: GeoOrigin) -> Non
 
 
 async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDeniedSitl, *,
-                         timeout_s: float = 240.0, slam_loss_s: float = 0.0) -> dict[str, Any]:
+                         timeout_s: float = 240.0, slam_loss_s: float = 0.0,
+                         odometry: OdometryDriftModel | None = None) -> dict[str, Any]:
     """Fly the demo crossing on the SLAM pose with ``sitl`` (started, not necessarily ready);
-    returns the summary (also ``summary.json`` in ``out_dir``)."""
+    returns the summary (also ``summary.json`` in ``out_dir``). ``odometry``: an odometry
+    sensor of the vehicle's own for the SLAM's motion prior (see :class:`SihTruth`)."""
     out = Path(out_dir)
     await asyncio.to_thread(out.mkdir, parents=True, exist_ok=True)
     t_start = time.monotonic()
@@ -119,7 +122,9 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     uorb_hz: list[float] = []
     new_pose_rate: list[float] = []
     loss: dict[str, Any] = {}
-    async with SihTruth(sitl.display_url, placement, SharedSimState()) as truth:
+    if odometry is not None:
+        cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"camera_pose": "autopilot"})})
+    async with SihTruth(sitl.display_url, placement, SharedSimState(), odometry) as truth:
         await asyncio.to_thread(sitl.stream_truth)
         await truth.wait_first()
         plan = MissionPlan(tuple(Waypoint(xyz_map_m=(x, y, cfg.planner.flight_altitude_m), acceptance_radius_m=0.3)
@@ -183,6 +188,7 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
             assert v is not None
             truth.to_local = v.autopilot_clock.to_local
             est.attach(v.link)
+            truth.follow_estimate(v.link, v.cfg.target_system)
             tasks = [set_origin_until_home(svc, origin), sample_slam(), sample_uorb()]
             if slam_loss_s > 0.0:
                 tasks.append(lose_slam())
