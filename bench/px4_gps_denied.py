@@ -19,6 +19,12 @@ The last room also loses the SLAM for 3 s mid-flight (the camera stops): the veh
 on PX4's estimate, touch nothing, and resume or land. Targets: every waypoint, 0 collisions,
 EKF within 0.15 m p95 of the truth, external vision >= 20 Hz at PX4.
 
+By default the SLAM's motion prior is what the service makes of frames without odometry,
+dead-reckoned from PX4's velocity, which without GPS is built from the SLAM's own pose;
+``--odometry-sensor`` gives the vehicle an odometry of its own (the truth through the mock's
+odometry drift, as a flow sensor or VIO would deliver it) and ``--weak-prior`` loosens the
+SLAM's pull towards its prior instead.
+
 PX4 SITL and the whole service load both cores of this machine: the load average is printed
 with the figures; ``--detector oracle --camera-scale 0.5`` leaves the SLAM more of them.
 ``--quick`` flies one room without the SLAM loss (25-45 s). The last line is one JSON object.
