@@ -180,11 +180,14 @@ def report(rooms: dict[str, dict[str, Any]], out: Path, elapsed_s: float,
     slam_loss: dict[str, Any] | None = None
     if loss_room is not None:
         acts = loss_room["vision_loss_actions"].split(",")
+        injected = bool(loss_room["slam_loss"].get("injected"))
         slam_loss = {
+            # False: the flight ended (or never reached its second leg) before the camera could stop.
+            "injected": injected,
             "held": bool(loss_room["slam_loss"].get("held")),
             "hold_drift_m": round(float(loss_room["slam_loss"].get("hold_drift_m", 0.0)), 3),
             "collisions": loss_room["collisions"],
-            "resumed_or_landed": "hold" in acts and acts[acts.index("hold") + 1:][:1] in (["resume"], ["land"]),
+            "resumed_or_landed": injected and "hold" in acts and acts[-1] in ("resume", "land"),
         }
         print(f"\nSLAM lost {SLAM_LOSS_S:.0f} s in room {loss_room['seed']}: {slam_loss}")
     for seed, s in rooms.items():

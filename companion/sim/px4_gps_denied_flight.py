@@ -170,6 +170,7 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
                     break
                 await asyncio.sleep(0.05)
             truth.shared.camera_missing = True
+            loss["injected"] = True
             t0, held_xy = time.monotonic(), None
             log.warning("GPS-denied flight: the camera stops for %.1f s (SLAM lost)", slam_loss_s)
             while time.monotonic() - t0 < slam_loss_s:
