@@ -143,9 +143,9 @@ def _moving_detections(n_frames: int, n_objects: int = 20, seed: int = 0) -> lis
 
 def bench_tracker(quick: bool) -> dict[str, object]:
     """BoT-SORT update time (CMC excluded) with 20 detections per frame; SORT for reference."""
+    from bench._sort_baseline import SORT
     from semmap.config import TrackerConfig
     from semmap.tracking.botsort import BoTSORT
-    from semmap.tracking.sort_baseline import SORT
 
     n = 300 if quick else 2000
     frames = _moving_detections(n + 30)

@@ -14,7 +14,7 @@ semantic map, the planner, the setpoint stream as MAVLink into the mock PX4 - on
 2D map gives) and once with ``map.mode: semantic``. The flights run in lock-step simulated
 time with compute time charged where the service would wait for it (``bench/_safety_loop.py``).
 
-Judged against the true boxes (``companion.sim.judge``): collision with the vertical margin
+Judged against the true boxes (``bench/_judge.py``): collision with the vertical margin
 (the vehicle's radius and height stretched by ``planner.vertical_margin_m`` above and below:
 grazing under a table top counts) and exact; success (goal within 0.3 m before the time limit);
 path length, time and minimum clearance. Per-stage latencies are wall-clock on this machine,
@@ -44,12 +44,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench._judge import FlightVerdict, judge_flight, side_clearance_m  # noqa: E402
 from bench._safety_loop import FlightLog, LockstepFlight  # noqa: E402
 from bench._safety_plots import clearance_histogram, example_room, rates_chart  # noqa: E402
 from bench._safety_scenarios import Scenario, band_at, make_scenarios  # noqa: E402
 from companion.config import CompanionConfig, load_config  # noqa: E402
 from companion.sim.groundtruth import densify  # noqa: E402
-from companion.sim.judge import FlightVerdict, judge_flight, side_clearance_m  # noqa: E402
 from companion.sim.render import renderer_from_config  # noqa: E402
 from companion.sim.world import LAYOUTS  # noqa: E402
 from semmap.costmap import VerticalBand  # noqa: E402

@@ -33,9 +33,9 @@ if not hasattr(np, "asfarray"):  # motmetrics 1.4 still calls it; NumPy 2 remove
 import motmetrics as mm  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from bench._sort_baseline import SORT  # noqa: E402
 from semmap.config import TrackerConfig  # noqa: E402
 from semmap.tracking.botsort import BoTSORT  # noqa: E402
-from semmap.tracking.sort_baseline import SORT  # noqa: E402
 from semmap.types import CameraIntrinsics, Detection, Track  # noqa: E402
 
 #: The MOT data beside the repository (``--mot-dir`` for a checkout elsewhere, e.g. a worktree).

@@ -102,19 +102,14 @@ class ClassConfig(StageConfig):
 
 
 def default_classes() -> list[ClassConfig]:
-    """The six classes of the reference design. Coffee tables and conference tables have a
-    least footprint (that of a small one: 0.75 x 0.45 m, and 1.8 x 0.9 m, six seats): a coffee
-    table's top, a few centimetres into a 0.6 m flight's band, is seen edge-on and maps as a
-    sliver until the vehicle is close; a conference table's top, just above the camera, is
-    seen from underneath at grazing angles, and its far side and ends map short (safety bench
-    room 1012: a 2.1 x 1.3 m table mapped 1.7 x 0.8 m, the path rounded the missing corner).
-    Chairs and desks show enough of themselves in the band; on the safety bench growing them
-    too (chair 0.4 x 0.4, desk 1.0 x 0.5 m) closed passages (two of 50 rooms boxed in, 94 %
-    success) and avoided no collision.
+    """The six classes of the reference design, with the sizes of common furniture as their
+    geometric priors (a dining table is a desk here: same height and size).
 
-    Their geometric priors are the sizes of common furniture (a dining table is a desk here:
-    same height and size; a conference table is longer than 1.9 m or deeper than 0.85 m).
-    Chairs and sofas span seat to backrest: their top plane, where found, is the seat."""
+    Coffee and conference tables have a least footprint (a small one of each), because their
+    tops are seen at grazing angles from a flight band near them (a coffee table's edge-on, a
+    conference table's from underneath) and map short until the vehicle is close. Chairs and
+    desks show enough of themselves in the band, and growing them closes passages. Chairs and
+    sofas span seat to backrest: their top plane, where found, is the seat."""
     return [
         ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75),
                     prior=GeometricPrior(height_m=(0.38, 1.3), footprint_long_m=(0.3, 0.9),

@@ -80,20 +80,11 @@ LAND_WAIT_S = 30.0
 def frozen_heap() -> Iterator[None]:
     """Collect once, then keep the collector off every object alive now until exit.
 
-    The imports, the configuration and (under pytest) the test session leave 160k+ objects
-    that survive for the life of the process; a full (generation-2) collection walks them all,
-    110-160 ms measured on the 2-core test machine, longer with more objects, and it runs on
-    the event-loop thread whenever it triggers: one during flight is a setpoint gap past the
-    100 ms budget (CI saw 129 ms). ``gc.freeze`` moves them to the permanent generation, so
-    later collections walk only what the flight allocates. The collection here runs before
-    anything streams. An outer freeze (the caller's) is left in place on exit.
-
-    Only this once: a second freeze once start-up was done (links, MAVSDK, MQTT clients;
-    without a collection, which would stall the running stream) also froze start-up garbage
-    that the collector never got to, and the SLAM end-to-end test's pose error went over its
-    bound in 4 of 14 runs (0 of 11 without it). The cause is not known (something made then
-    that relies on the collector to be released, or chance at these counts); what start-up
-    allocated stays with the collector."""
+    A full collection walks every object the imports and the configuration left, on the
+    event-loop thread, which stalls the setpoint stream for longer than its period;
+    ``gc.freeze`` moves them to the permanent generation so later collections walk only what
+    the flight allocates. It runs once, before anything streams (freezing again after start-up
+    would keep start-up garbage from the collector). An outer freeze is left in place on exit."""
     already_frozen = gc.get_freeze_count() > 0
     t0 = time.perf_counter()
     gc.collect()

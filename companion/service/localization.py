@@ -33,7 +33,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import multiprocessing as mp
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
@@ -46,6 +45,7 @@ from companion.mavlink.link import MavlinkLink
 from companion.mavlink.vision import VisionPose, VisionStream
 from companion.service.perception_worker import semantic_map_settings
 from companion.service.vision_loss import VisionLossGuard, VisionLossMonitor
+from companion.shared_record import SharedRecord
 from companion.sources.base import FrameSource, WrappedSource
 from semmap.costmap import VerticalBand
 from semmap.errors import ConfigError
@@ -110,22 +110,23 @@ class SharedLocalization:
     ``spawn`` child while it starts."""
 
     def __init__(self) -> None:
-        self._arr = mp.get_context("spawn").Array("d", len(_FIELDS), lock=True)
+        # One writer (the perception process of the moment); the service reads without waiting.
+        self._record = SharedRecord(len(_FIELDS))
 
     def publish(self, values: dict[str, float]) -> None:
         """Write one update (``seq`` is incremented here)."""
-        with self._arr.get_lock():
-            row = list(self._arr[:])
-            for k, v in values.items():
-                row[_IX[k]] = float(v)
-            row[_IX["seq"]] += 1.0
-            row[_IX["published_monotonic_s"]] = time.monotonic()
-            self._arr[:] = row
+        row = self._record.writer_view().copy()
+        for k, v in values.items():
+            row[_IX[k]] = float(v)
+        row[_IX["seq"]] += 1.0
+        row[_IX["published_monotonic_s"]] = time.monotonic()
+        self._record.write(row)
 
     def latest(self) -> LocalizationState | None:
-        """The latest update, None before the first."""
-        with self._arr.get_lock():
-            row = list(self._arr[:])
+        """The latest update, None before the first (or while it cannot be read whole)."""
+        row = self._record.read()
+        if row is None:
+            return None
         if row[_IX["seq"]] <= 0.0:
             return None
         g = row.__getitem__

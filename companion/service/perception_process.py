@@ -357,6 +357,7 @@ class PerceptionProcess:
             assert child is not None
             await child.ended.wait()
             await asyncio.to_thread(child.proc.join, 5.0)
+            child.stop.close()  # the dead child's stop pipe: one descriptor less per restart
             log.error("the perception process %d died (exit code %s): the map goes stale, the vehicle "
                       "holds; starting it again from the last map checkpoint", child.proc.pid, child.proc.exitcode)
             for attempt in range(1, MAX_RESTARTS + 1):

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from companion.config import CompanionConfig
 from companion.geo import GeoOrigin
 from companion.mavlink.signing import read_key_file
+from companion.shared_record import SharedRecord
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.odometry import OdometryDriftModel
 from companion.sim.render import renderer_from_config
@@ -105,9 +106,9 @@ class SharedSimState:
     def __init__(self) -> None:
         ctx = mp.get_context("spawn")
         # [valid, monotonic_s, T_map_body (16, row-major), estimated (0/1), the autopilot's
-        # estimated T_map_body (16), odometry (0/1), T_odom_body (16)]; the array's lock
-        # keeps reads whole.
-        self._pose = ctx.Array("d", 52, lock=True)
+        # estimated T_map_body (16), odometry (0/1), T_odom_body (16)]; written by the world,
+        # read by the camera, neither waiting on the other.
+        self._pose = SharedRecord(52)
         self._missing = ctx.Value("b", 0, lock=False)
         self._corrupt = ctx.Value("b", 0, lock=False)
 
@@ -122,14 +123,12 @@ class SharedSimState:
 
         vals = [1.0, float(monotonic_s), *np.asarray(T_map_body, dtype=np.float64).reshape(16).tolist(),
                 *flag(T_map_body_estimated), *flag(T_odom_body)]
-        with self._pose.get_lock():
-            self._pose[:] = vals
+        self._pose.write(vals)
 
     def poses(self) -> SimPoses | None:
         """The instant, the pose and the estimate published together, or None before the first."""
-        with self._pose.get_lock():
-            vals = list(self._pose[:])
-        if vals[0] == 0.0:
+        vals = self._pose.read()
+        if vals is None or vals[0] == 0.0:
             return None
         est = np.asarray(vals[19:35], dtype=np.float64).reshape(4, 4) if vals[18] else None
         odo = np.asarray(vals[36:52], dtype=np.float64).reshape(4, 4) if vals[35] else None

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import logging
 import math
-import multiprocessing as mp
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -43,6 +42,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from companion.mavlink.state import MapFrame
 from companion.mavlink.vision import R_FLU_FRD, R_NED_ENU
+from companion.shared_record import SharedRecord
 from companion.sources.base import FrameSource, WrappedSource
 from semmap.frames import Transform, make_transform, rotation_from_rpy, rpy_from_rotation
 from semmap.types import Frame
@@ -111,19 +111,17 @@ class SharedPoseHistory:
         if capacity < 2:
             raise ValueError(f"capacity must be at least 2 (got {capacity})")
         self.capacity = capacity
-        ctx = mp.get_context("spawn")
-        self._rows = ctx.Array("d", capacity * _ROW, lock=True)
-        self._count = ctx.Value("q", 0, lock=False)  # samples ever written; guarded by _rows' lock
+        # [samples ever written, rows...]: one writer (the service), readers never block it.
+        self._record = SharedRecord(1 + capacity * _ROW)
 
     def __len__(self) -> int:
-        with self._rows.get_lock():
-            return min(int(self._count.value), self.capacity)
+        return min(int(self._record.writer_view()[0]), self.capacity)
 
     def push(self, stamp_s: float, T_map_body: Transform,  # noqa: N803 - frame names
              odometry_xy_yaw: tuple[float, float, float] | None = None) -> bool:
         """Append one pose (4, 4) at ``stamp_s``, and the odometry pose (x_m, y_m, yaw_rad in
         the odometry frame, ENU) when there is one; False when it is not newer than the last
-        or not finite."""
+        or not finite. Only the process that owns the history (the service) may push."""
         T = np.asarray(T_map_body, dtype=np.float64)
         if T.shape != (4, 4) or not (math.isfinite(stamp_s) and np.all(np.isfinite(T))):
             return False
@@ -132,26 +130,24 @@ class SharedPoseHistory:
             return False
         q = Rotation.from_matrix(T[:3, :3]).as_quat()
         row = [float(stamp_s), *(float(v) for v in T[:3, 3]), *(float(v) for v in q), *odo]
-        with self._rows.get_lock():
-            n = int(self._count.value)
-            if n and self._rows[((n - 1) % self.capacity) * _ROW] >= stamp_s:
-                return False
-            i = (n % self.capacity) * _ROW
-            self._rows[i:i + _ROW] = row
-            self._count.value = n + 1
+        mine = self._record.writer_view()
+        n = int(mine[0])
+        if n and mine[1 + ((n - 1) % self.capacity) * _ROW] >= stamp_s:
+            return False
+        self._record.write_segments(((0, [n + 1]), (1 + (n % self.capacity) * _ROW, row)))
         return True
 
     def latest_stamp_s(self) -> float | None:
-        """The newest sample's stamp (None when empty)."""
-        with self._rows.get_lock():
-            n = int(self._count.value)
-            return None if n == 0 else float(self._rows[((n - 1) % self.capacity) * _ROW])
+        """The newest sample's stamp (None when empty or unreadable just now)."""
+        rows = self._rows_oldest_first()
+        return None if len(rows) == 0 else float(rows[-1, 0])
 
     def _rows_oldest_first(self) -> NDArray[np.float64]:
-        with self._rows.get_lock():
-            n = int(self._count.value)
-            flat = np.array(self._rows[:], dtype=np.float64)
-        rows = flat.reshape(self.capacity, _ROW)
+        flat = self._record.read()
+        if flat is None:  # the writer is mid-write for longer than a reader waits: no samples now
+            return np.empty((0, _ROW))
+        n = int(flat[0])
+        rows = flat[1:].reshape(self.capacity, _ROW)
         if n > self.capacity:
             start = n % self.capacity
             rows = np.concatenate([rows[start:], rows[:start]])

@@ -3,24 +3,19 @@ and one room flown with the metric-only and the semantic map."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from bench._safety_loop import HOME, LockstepAutopilot, LockstepFlight, _CompanionLink  # noqa: E402
-from bench._safety_scenarios import make_scenarios  # noqa: E402
-from companion import px4  # noqa: E402
-from companion.config import CompanionConfig  # noqa: E402
-from companion.mavlink.failsafe import PositionSetpoint  # noqa: E402
-from companion.mavlink.offboard import encode_setpoint  # noqa: E402
-from companion.sim.judge import judge_flight  # noqa: E402
-from companion.sim.render import renderer_from_config  # noqa: E402
-from semmap.detection import detector_from_config  # noqa: E402
+from bench._judge import judge_flight
+from bench._safety_loop import HOME, LockstepAutopilot, LockstepFlight, _CompanionLink
+from bench._safety_scenarios import make_scenarios
+from companion import px4
+from companion.config import CompanionConfig
+from companion.mavlink.failsafe import PositionSetpoint
+from companion.mavlink.offboard import encode_setpoint
+from companion.sim.render import renderer_from_config
+from semmap.detection import detector_from_config
 
 
 def test_lockstep_autopilot_flies_offboard_setpoints_sent_as_mavlink() -> None:

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from bench._icp import register_depth_frames
 from companion.sources import load_tum_pair
 from companion.sources.recorded import TUM_INTRINSICS
 from semmap.frames import invert
-from semmap.icp import register_depth_frames
 
 
 @pytest.mark.parametrize("case", ["case_1", "case_2"])

@@ -3,15 +3,10 @@ of error each miss and false positive is, and the COCO AP it reports."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from bench._detection_eval import (  # noqa: E402
+from bench._detection_eval import (
     bootstrap_map50,
     by_visibility,
     coco_ap50,
@@ -19,7 +14,7 @@ from bench._detection_eval import (  # noqa: E402
     match,
     match_counts,
 )
-from semmap.types import Detection  # noqa: E402
+from semmap.types import Detection
 
 CLASSES = ["chair", "coffee_table", "desk"]
 

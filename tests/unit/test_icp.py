@@ -1,4 +1,4 @@
-"""Point-to-plane ICP (semmap.icp) on synthetic clouds."""
+"""Point-to-plane ICP (bench/_icp.py) on synthetic clouds."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from bench._icp import estimate_normals, icp_point_to_plane, register_clouds, voxel_downsample
 from semmap.errors import PerceptionError
-from semmap.icp import estimate_normals, icp_point_to_plane, register_clouds, voxel_downsample
 
 
 def _room_corner_cloud(rng: np.random.Generator, n: int = 3000) -> np.ndarray:

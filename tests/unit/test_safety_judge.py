@@ -1,4 +1,4 @@
-"""The safety judge (companion.sim.judge): collisions with the vertical margin, success, clearance."""
+"""The safety judge (bench/_judge.py): collisions with the vertical margin, success, clearance."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from bench._judge import judge_flight
 from companion.sim.groundtruth import colliding_owners
-from companion.sim.judge import judge_flight
 from companion.sim.world import Box, FurnitureObject, Room
 from semmap.errors import SimulationError
 

@@ -7,12 +7,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from bench._sort_baseline import SORT
 from semmap.config import TrackerConfig
 from semmap.errors import FrameError
 from semmap.tracking import kalman
 from semmap.tracking.botsort import BoTSORT
 from semmap.tracking.matching import iou_matrix, linear_assignment
-from semmap.tracking.sort_baseline import SORT
 from semmap.types import Detection
 
 
