@@ -75,6 +75,15 @@ ENGAGE_MAX_OFFSET_M = 0.5
 ARM_RETRY_S = 2.0
 #: A leg is given up after this many holds for a vehicle that did not follow its setpoints.
 MAX_TRACKING_FAULTS = 3
+#: A waypoint is reached only by a vehicle this slow (m/s, horizontal): PX4 trails its
+#: setpoints by about half a second, so it can be within the acceptance radius still moving
+#: at cruise speed, and a leg planned from rest (or PX4's Land) would carry it on.
+SETTLED_SPEED_M_S = 0.2
+#: Before it is handed to Land or Hold the vehicle comes to rest this close to its last
+#: setpoint (m), in at most this long (s): the planner checked that point, not where an
+#: overshoot leaves the vehicle.
+SETTLED_OFFSET_M = 0.1
+SETTLE_TIMEOUT_S = 6.0
 
 
 @dataclass(frozen=True)
@@ -121,6 +130,21 @@ def map_frame_of(state: VehicleState) -> MapFrame:
     if frame is None:
         raise MissionError("no home position from the autopilot: heights above home are unknown")
     return frame
+
+
+def horizontal_speed_m_s(state: VehicleState) -> float | None:
+    """The vehicle's horizontal speed (m/s), or None before PX4 reports a velocity."""
+    vel = state.velocity_ned_m_s
+    return None if vel is None else math.hypot(vel[0], vel[1])
+
+
+def arrived(state: VehicleState, goal_xy_m: NDArray[np.floating], acceptance_m: float) -> bool:
+    """The vehicle is within ``acceptance_m`` of ``goal_xy_m`` (map frame) and has come to
+    rest there (:data:`SETTLED_SPEED_M_S`)."""
+    pos = position_enu(state)
+    speed = horizontal_speed_m_s(state)
+    return (pos is not None and speed is not None and speed <= SETTLED_SPEED_M_S
+            and float(np.linalg.norm(pos[:2] - goal_xy_m)) <= acceptance_m)
 
 
 def min_engage_height_m(altitude_m: float) -> float:
@@ -438,11 +462,12 @@ class MissionRunner:
         log.info("leg %d: to (%.2f, %.2f) m", leg.seq, *leg.goal_xy_m)
         while time.monotonic() - t_leg < self.leg_timeout_s:
             self._check_offboard()
-            pos = position_enu(self.vehicle.snapshot())
+            snap = self.vehicle.snapshot()
+            pos = position_enu(snap)
             if pos is None:
                 await asyncio.sleep(RETRY_HOLD_S)
                 continue
-            if np.linalg.norm(pos[:2] - goal) <= leg.acceptance_m:
+            if arrived(snap, goal, leg.acceptance_m):
                 rep.reached = True
                 break
             start = self._plan_start(pos)
@@ -575,9 +600,10 @@ class MissionRunner:
                 if capture_mono_s is not None:
                     self.frame_to_setpoint_ms.append(1e3 * (time.monotonic() - capture_mono_s))
                     capture_mono_s = None
-                pos = position_enu(self.vehicle.snapshot())
+                snap = self.vehicle.snapshot()
+                pos = position_enu(snap)
                 if replan is None and t_traj >= traj.duration_s and pos is not None:
-                    if np.linalg.norm(pos[:2] - goal) <= leg.acceptance_m:
+                    if arrived(snap, goal, leg.acceptance_m):
                         return "reached"
                     if t_traj >= traj.duration_s + settle_s:
                         return "late"
@@ -662,9 +688,34 @@ class MissionRunner:
         return False, None
 
     async def finish(self, then: FlightMode = FlightMode.LAND) -> None:
-        """Hand the vehicle to ``then`` (LAND or HOLD) and stop streaming."""
+        """Bring the vehicle to rest on its last setpoint (:meth:`settle`), then hand it to
+        ``then`` (LAND or HOLD) and stop streaming: PX4's Land and Hold brake gently and stop
+        (and land) up to a metre on from where they were engaged at cruise speed."""
         if self.vehicle.offboard.state.streams:
+            await self.settle()
             await self.vehicle.offboard.release(then)
+
+    async def settle(self, timeout_s: float = SETTLE_TIMEOUT_S) -> None:
+        """Keep the current setpoint until the vehicle is within :data:`SETTLED_OFFSET_M` of it
+        and slower than :data:`SETTLED_SPEED_M_S` (at most ``timeout_s``, then a warning)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            state = self.vehicle.snapshot()
+            sp = self.vehicle.offboard.status().setpoint
+            frame = state.map_frame
+            pos = position_enu(state)
+            if sp is None or frame is None or pos is None:
+                return
+            goal = np.array(frame.from_ned(*sp.position_ned_m)[:2])
+            if arrived(state, goal, SETTLED_OFFSET_M):
+                return
+            if time.monotonic() > deadline or not self.vehicle.offboard.state.streams:
+                speed = horizontal_speed_m_s(state)
+                log.warning("the vehicle did not come to rest on its last setpoint within %.0f s "
+                            "(%.2f m from it, %s m/s)", timeout_s, float(np.linalg.norm(pos[:2] - goal)),
+                            "unknown" if speed is None else f"{speed:.2f}")
+                return
+            await asyncio.sleep(FEED_PERIOD_S)
 
 
 def _remaining(traj: Trajectory, t_s: float) -> NDArray[np.float64]:
