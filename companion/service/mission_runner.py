@@ -298,8 +298,12 @@ class MissionRunner:
             ground_above_home_m = 0.0
             if state.global_position is not None and state.home is not None:
                 ground_above_home_m = state.global_position.altitude_amsl_m - state.home.altitude_amsl_m
+            commanded_s = time.monotonic()
             await v.commands.takeoff(altitude_m + ground_above_home_m)
-            await v.state.wait_for(lambda s: took_off(s, altitude_m), timeout_s,
+            # PX4 reports its mode in a 1 Hz heartbeat: until one sent after the command, the
+            # mode shown is the one before the take-off, not its end.
+            await v.state.wait_for(lambda s: took_off(s, altitude_m) and s.heartbeat_age_s is not None
+                                   and time.monotonic() - s.heartbeat_age_s > commanded_s, timeout_s,
                                    f"the take-off to {altitude_m:.2f} m to finish")
         await self.engage_here(altitude_m)
         await self.climb_to(altitude_m)
@@ -344,14 +348,14 @@ class MissionRunner:
         position at ``altitude_m``, so the map has seen all round (:class:`SurveyTurn`)."""
         total = math.radians(self.cfg.takeoff_survey_deg if turn_deg is None else turn_deg)
         snap = self.vehicle.snapshot()
-        pos = position_enu(snap)
-        if total <= 0.0 or pos is None:
+        xy = self._hold_xy()
+        if total <= 0.0 or xy is None:
             return
         if snap.yaw_ned_rad is None:
             log.warning("survey skipped: no heading from the autopilot yet")
             return
         turn = SurveyTurn(snap.yaw_ned_rad, total, math.radians(self.cfg.max_yaw_rate_deg_s))
-        target = map_frame_of(snap).to_ned(float(pos[0]), float(pos[1]), altitude_m)
+        target = map_frame_of(snap).to_ned(float(xy[0]), float(xy[1]), altitude_m)
         deadline = time.monotonic() + turn.max_duration_s
         log.info("survey: turning %.0f deg on the spot", math.degrees(total))
         while time.monotonic() < deadline:
@@ -392,7 +396,8 @@ class MissionRunner:
         """Climb (or descend) on the spot, in OFFBOARD, to ``altitude_m`` above the floor, the
         setpoint moving at :data:`CLIMB_SPEED_M_S` so the vehicle never lags it far."""
         pos = position_enu(self.vehicle.snapshot())
-        if pos is None:
+        xy = self._hold_xy()
+        if pos is None or xy is None:
             raise MissionError("no vehicle position to climb from")
         z0 = float(pos[2])
         t0 = time.monotonic()
@@ -402,13 +407,26 @@ class MissionRunner:
             # The last setpoint is the altitude itself (z0 plus the rest need not equal it exactly).
             ramp_done = step >= abs(altitude_m - z0)
             z_sp = altitude_m if ramp_done else z0 + math.copysign(step, altitude_m - z0)
-            self.hold_at(pos[:2], z_sp)
+            self.hold_at(xy, z_sp)
             now = position_enu(self.vehicle.snapshot())
             if ramp_done and now is not None and abs(float(now[2]) - altitude_m) <= CLIMB_DONE_M:
                 return
             if time.monotonic() - t0 > timeout_s:
                 raise MissionError(f"the climb to {altitude_m:.2f} m did not end within {timeout_s:.0f} s")
             await asyncio.sleep(FEED_PERIOD_S)
+
+    def _hold_xy(self) -> NDArray[np.float64] | None:
+        """Where the climb and the survey hold (map frame xy): the setpoint being streamed
+        (OFFBOARD was engaged on it, at the vehicle), so a vehicle still drifting from PX4's
+        take-off is brought back rather than followed; the vehicle's position before any."""
+        state = self.vehicle.snapshot()
+        sp = self.vehicle.offboard.status().setpoint
+        frame = state.map_frame
+        if sp is not None and frame is not None and self.vehicle.offboard.state.streams:
+            x, y, _z = frame.from_ned(*sp.position_ned_m)
+            return np.array([x, y])
+        pos = position_enu(state)
+        return None if pos is None else np.asarray(pos[:2], dtype=np.float64)
 
     def hold_at(self, xy_m: NDArray[np.floating], altitude_m: float) -> None:
         """Replace the setpoint with a hold at ``xy_m`` (map frame) and ``altitude_m``, keeping yaw."""

@@ -5,6 +5,7 @@ another rate. Each test fails with the runner that flew PX4 SITL through a desk.
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Awaitable, Callable
 
@@ -32,9 +33,9 @@ def _no_map() -> Costmap:
 
 
 def _fly(behaviour: Px4Behaviour,
-         body: Callable[[MockAutopilot, Vehicle, MissionRunner], Awaitable[None]]) -> None:
+         body: Callable[[MockAutopilot, Vehicle, MissionRunner], Awaitable[None]], survey_deg: float = 0.0) -> None:
     cfg = CompanionConfig()
-    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"takeoff_survey_deg": 0.0})})
+    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"takeoff_survey_deg": survey_deg})})
     link_port = free_udp_port()
     link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}", "ready_timeout_s": 20.0})
 
@@ -75,6 +76,30 @@ def test_offboard_engaged_only_when_airborne_at_the_take_off_height() -> None:
 
     _fly(Px4Behaviour(floor_z_ned_m=-1.5), body)
     assert engaged_at_height and engaged_at_height[0] >= min_engage_height_m(ALTITUDE_M) - 0.05
+
+
+def test_climb_and_survey_hold_the_point_offboard_was_engaged_on() -> None:
+    """PX4 SITL's vehicle (room seed 1) was still drifting from the take-off when OFFBOARD was
+    engaged; the climb and the survey each held wherever it had got to, following it 0.5 m
+    further, into a table. Now they hold the engage point: every setpoint from the first to
+    the end of the survey has the same horizontal position, however the vehicle wanders. The
+    wobble also lifts the vehicle clear of the floor before PX4's 1 Hz heartbeat shows the
+    take-off begun: the take-off is judged from heartbeats sent after the command only (else
+    OFFBOARD is requested during TAKEOFF, which PX4 drops)."""
+    engage_xy: list[tuple[float, float]] = []
+    later_xy: list[tuple[float, float]] = []
+
+    async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
+        await runner.take_off(ALTITUDE_M)
+        sps = [sp.target.position_ned_m for sp in ap.setpoints if sp.target.position_ned_m is not None]
+        engage_xy.append(sps[0][:2])
+        later_xy.extend(p[:2] for p in sps[1:])
+        await runner.finish()
+
+    # A wobble of 0.3 m: the vehicle is rarely where it was a few seconds before.
+    _fly(Px4Behaviour(ready_after_s=0.0, wobble_m=0.3), body, survey_deg=90.0)
+    assert len(later_xy) > 50
+    assert max(math.dist(engage_xy[0], xy) for xy in later_xy) < 0.005
 
 
 def test_take_off_waits_for_readiness_and_ends_the_take_off_before_offboard() -> None:
