@@ -16,6 +16,7 @@ So every leg avoids hollow-bottom furniture the mission author never knew about.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import time
@@ -384,13 +385,33 @@ class MissionRunner:
                                f"{pos[2]:.2f} m above the floor, range below "
                                f"{'none' if state.range_down_m is None else f'{state.range_down_m:.2f} m'}, "
                                f"{min_engage_height_m(altitude_m):.2f} m needed)")
-        self.hold_at(pos[:2], float(pos[2]))
+        xy = pos[:2].copy()
+        self.hold_at(xy, float(pos[2]))
         sp = self.vehicle.offboard.status().setpoint
         assert sp is not None
         offset = math.dist(sp.position_ned_m, map_frame_of(state).to_ned(*pos))
         if offset > ENGAGE_MAX_OFFSET_M:
             raise MissionError(f"not engaging offboard: the first setpoint is {offset:.2f} m from the vehicle")
-        await self.vehicle.offboard.engage()
+
+        async def follow_climb() -> None:
+            # PX4's Hold may still be climbing while the stream warms up (1 s, then up to a
+            # heartbeat for the switch): the hold rises with the vehicle, never pulling it back
+            # down towards the floor when OFFBOARD takes over.
+            top_m = float(pos[2])
+            while True:
+                now = position_enu(self.vehicle.snapshot())
+                if now is not None and float(now[2]) > top_m:
+                    top_m = float(now[2])
+                    self.hold_at(xy, top_m)
+                await asyncio.sleep(FEED_PERIOD_S)
+
+        follower = asyncio.create_task(follow_climb())
+        try:
+            await self.vehicle.offboard.engage()
+        finally:
+            follower.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await follower
 
     async def climb_to(self, altitude_m: float, timeout_s: float = 20.0) -> None:
         """Climb (or descend) on the spot, in OFFBOARD, to ``altitude_m`` above the floor, the

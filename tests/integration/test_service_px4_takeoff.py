@@ -15,7 +15,7 @@ from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.demo import free_udp_port
-from companion.service.mission_runner import MissionRunner, min_engage_height_m
+from companion.service.mission_runner import MissionRunner, min_engage_height_m, took_off
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.autopilot.behaviour import Px4Behaviour
 from companion.sources.poses import SharedPoseHistory, TelemetryPoseRecorder
@@ -100,6 +100,45 @@ def test_climb_and_survey_hold_the_point_offboard_was_engaged_on() -> None:
     _fly(Px4Behaviour(ready_after_s=0.0, wobble_m=0.3), body, survey_deg=90.0)
     assert len(later_xy) > 50
     assert max(math.dist(engage_xy[0], xy) for xy in later_xy) < 0.005
+
+
+def test_offboard_takes_over_a_climbing_hold_without_pulling_it_down() -> None:
+    """PX4 SITL ends a take-off once within NAV_MC_ALT_RAD of its altitude (0.8 m: for 0.6 m, on
+    the floor) and climbs the rest in Hold. OFFBOARD, engaged on a hold at the height the
+    vehicle had when it was requested, pulled the still-climbing vehicle back down to 0.19 m
+    above the floor (engage height 0.3 m). The hold now rises with the vehicle until PX4
+    switches."""
+    heights: list[tuple[bool, float]] = []  # (in OFFBOARD, truth height above the floor)
+
+    async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
+        await runner.arm_when_ready()
+        await v.commands.takeoff(ALTITUDE_M)
+        await ap.wait_until(lambda: ap.mode is FlightMode.HOLD and ap.in_air, 15.0, "the take-off done")
+        n, e, _d = ap.vehicle.position_ned_m
+        ap.set_mode(FlightMode.HOLD, hold_at_ned_m=(n, e, -2.5))  # Hold climbs on
+        await v.state.wait_for(lambda s: took_off(s, ALTITUDE_M) and s.flight_mode is FlightMode.HOLD,
+                               5.0, "Hold in the air")
+        done = asyncio.Event()
+
+        async def watch() -> None:
+            while not done.is_set():
+                heights.append((ap.mode is FlightMode.OFFBOARD, -ap.vehicle.position_ned_m[2]))
+                await asyncio.sleep(0.01)
+
+        watcher = asyncio.create_task(watch())
+        try:
+            await runner.engage_here(ALTITUDE_M)
+            await asyncio.sleep(3.0)
+        finally:
+            done.set()
+            await watcher
+        await runner.finish(FlightMode.HOLD)
+
+    _fly(Px4Behaviour(ready_after_s=0.0), body)
+    switch = next(i for i, (offboard, _h) in enumerate(heights) if offboard)
+    at_switch_m = heights[switch][1]
+    assert at_switch_m > heights[0][1] + 0.3  # it climbed while the stream warmed up
+    assert min(h for _o, h in heights[switch:]) >= at_switch_m - 0.15
 
 
 def test_take_off_waits_for_readiness_and_ends_the_take_off_before_offboard() -> None:
