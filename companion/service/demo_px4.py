@@ -169,6 +169,9 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
     s["mqtt"] = broker is not None
     s["start_map_xy_m"] = [round(v, 3) for v in start]
     s["camera_poses"] = world.poses_published
+    # Each plan's frame-to-setpoint latency (a flight has a handful): benchmarks pool them.
+    s["frame_to_setpoint_ms"] = [round(v, 1) for v in service.runner.frame_to_setpoint_ms] \
+        if service.runner is not None else []
     engaged_ok, engaged = engage_check(flight.timeline.events, cfg.planner.flight_altitude_m,
                                        path=flight.timeline.path)
     s["engage"] = {"ok": engaged_ok, "detail": engaged}

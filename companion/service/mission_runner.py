@@ -16,6 +16,7 @@ So every leg avoids hollow-bottom furniture the mission author never knew about.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import time
@@ -75,6 +76,15 @@ ENGAGE_MAX_OFFSET_M = 0.5
 ARM_RETRY_S = 2.0
 #: A leg is given up after this many holds for a vehicle that did not follow its setpoints.
 MAX_TRACKING_FAULTS = 3
+#: A waypoint is reached only by a vehicle this slow (m/s, horizontal): PX4 trails its
+#: setpoints by about half a second, so it can be within the acceptance radius still moving
+#: at cruise speed, and a leg planned from rest (or PX4's Land) would carry it on.
+SETTLED_SPEED_M_S = 0.2
+#: Before it is handed to Land or Hold the vehicle comes to rest this close to its last
+#: setpoint (m), in at most this long (s): the planner checked that point, not where an
+#: overshoot leaves the vehicle.
+SETTLED_OFFSET_M = 0.1
+SETTLE_TIMEOUT_S = 6.0
 
 
 @dataclass(frozen=True)
@@ -121,6 +131,21 @@ def map_frame_of(state: VehicleState) -> MapFrame:
     if frame is None:
         raise MissionError("no home position from the autopilot: heights above home are unknown")
     return frame
+
+
+def horizontal_speed_m_s(state: VehicleState) -> float | None:
+    """The vehicle's horizontal speed (m/s), or None before PX4 reports a velocity."""
+    vel = state.velocity_ned_m_s
+    return None if vel is None else math.hypot(vel[0], vel[1])
+
+
+def arrived(state: VehicleState, goal_xy_m: NDArray[np.floating], acceptance_m: float) -> bool:
+    """The vehicle is within ``acceptance_m`` of ``goal_xy_m`` (map frame) and has come to
+    rest there (:data:`SETTLED_SPEED_M_S`)."""
+    pos = position_enu(state)
+    speed = horizontal_speed_m_s(state)
+    return (pos is not None and speed is not None and speed <= SETTLED_SPEED_M_S
+            and float(np.linalg.norm(pos[:2] - goal_xy_m)) <= acceptance_m)
 
 
 def min_engage_height_m(altitude_m: float) -> float:
@@ -274,8 +299,12 @@ class MissionRunner:
             ground_above_home_m = 0.0
             if state.global_position is not None and state.home is not None:
                 ground_above_home_m = state.global_position.altitude_amsl_m - state.home.altitude_amsl_m
+            commanded_s = time.monotonic()
             await v.commands.takeoff(altitude_m + ground_above_home_m)
-            await v.state.wait_for(lambda s: took_off(s, altitude_m), timeout_s,
+            # PX4 reports its mode in a 1 Hz heartbeat: until one sent after the command, the
+            # mode shown is the one before the take-off, not its end.
+            await v.state.wait_for(lambda s: took_off(s, altitude_m) and s.heartbeat_age_s is not None
+                                   and time.monotonic() - s.heartbeat_age_s > commanded_s, timeout_s,
                                    f"the take-off to {altitude_m:.2f} m to finish")
         await self.engage_here(altitude_m)
         await self.climb_to(altitude_m)
@@ -320,14 +349,14 @@ class MissionRunner:
         position at ``altitude_m``, so the map has seen all round (:class:`SurveyTurn`)."""
         total = math.radians(self.cfg.takeoff_survey_deg if turn_deg is None else turn_deg)
         snap = self.vehicle.snapshot()
-        pos = position_enu(snap)
-        if total <= 0.0 or pos is None:
+        xy = self._hold_xy()
+        if total <= 0.0 or xy is None:
             return
         if snap.yaw_ned_rad is None:
             log.warning("survey skipped: no heading from the autopilot yet")
             return
         turn = SurveyTurn(snap.yaw_ned_rad, total, math.radians(self.cfg.max_yaw_rate_deg_s))
-        target = map_frame_of(snap).to_ned(float(pos[0]), float(pos[1]), altitude_m)
+        target = map_frame_of(snap).to_ned(float(xy[0]), float(xy[1]), altitude_m)
         deadline = time.monotonic() + turn.max_duration_s
         log.info("survey: turning %.0f deg on the spot", math.degrees(total))
         while time.monotonic() < deadline:
@@ -356,19 +385,40 @@ class MissionRunner:
                                f"{pos[2]:.2f} m above the floor, range below "
                                f"{'none' if state.range_down_m is None else f'{state.range_down_m:.2f} m'}, "
                                f"{min_engage_height_m(altitude_m):.2f} m needed)")
-        self.hold_at(pos[:2], float(pos[2]))
+        xy = pos[:2].copy()
+        self.hold_at(xy, float(pos[2]))
         sp = self.vehicle.offboard.status().setpoint
         assert sp is not None
         offset = math.dist(sp.position_ned_m, map_frame_of(state).to_ned(*pos))
         if offset > ENGAGE_MAX_OFFSET_M:
             raise MissionError(f"not engaging offboard: the first setpoint is {offset:.2f} m from the vehicle")
-        await self.vehicle.offboard.engage()
+
+        async def follow_climb() -> None:
+            # PX4's Hold may still be climbing while the stream warms up (1 s, then up to a
+            # heartbeat for the switch): the hold rises with the vehicle, never pulling it back
+            # down towards the floor when OFFBOARD takes over.
+            top_m = float(pos[2])
+            while True:
+                now = position_enu(self.vehicle.snapshot())
+                if now is not None and float(now[2]) > top_m:
+                    top_m = float(now[2])
+                    self.hold_at(xy, top_m)
+                await asyncio.sleep(FEED_PERIOD_S)
+
+        follower = asyncio.create_task(follow_climb())
+        try:
+            await self.vehicle.offboard.engage()
+        finally:
+            follower.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await follower
 
     async def climb_to(self, altitude_m: float, timeout_s: float = 20.0) -> None:
         """Climb (or descend) on the spot, in OFFBOARD, to ``altitude_m`` above the floor, the
         setpoint moving at :data:`CLIMB_SPEED_M_S` so the vehicle never lags it far."""
         pos = position_enu(self.vehicle.snapshot())
-        if pos is None:
+        xy = self._hold_xy()
+        if pos is None or xy is None:
             raise MissionError("no vehicle position to climb from")
         z0 = float(pos[2])
         t0 = time.monotonic()
@@ -378,13 +428,26 @@ class MissionRunner:
             # The last setpoint is the altitude itself (z0 plus the rest need not equal it exactly).
             ramp_done = step >= abs(altitude_m - z0)
             z_sp = altitude_m if ramp_done else z0 + math.copysign(step, altitude_m - z0)
-            self.hold_at(pos[:2], z_sp)
+            self.hold_at(xy, z_sp)
             now = position_enu(self.vehicle.snapshot())
             if ramp_done and now is not None and abs(float(now[2]) - altitude_m) <= CLIMB_DONE_M:
                 return
             if time.monotonic() - t0 > timeout_s:
                 raise MissionError(f"the climb to {altitude_m:.2f} m did not end within {timeout_s:.0f} s")
             await asyncio.sleep(FEED_PERIOD_S)
+
+    def _hold_xy(self) -> NDArray[np.float64] | None:
+        """Where the climb and the survey hold (map frame xy): the setpoint being streamed
+        (OFFBOARD was engaged on it, at the vehicle), so a vehicle still drifting from PX4's
+        take-off is brought back rather than followed; the vehicle's position before any."""
+        state = self.vehicle.snapshot()
+        sp = self.vehicle.offboard.status().setpoint
+        frame = state.map_frame
+        if sp is not None and frame is not None and self.vehicle.offboard.state.streams:
+            x, y, _z = frame.from_ned(*sp.position_ned_m)
+            return np.array([x, y])
+        pos = position_enu(state)
+        return None if pos is None else np.asarray(pos[:2], dtype=np.float64)
 
     def hold_at(self, xy_m: NDArray[np.floating], altitude_m: float) -> None:
         """Replace the setpoint with a hold at ``xy_m`` (map frame) and ``altitude_m``, keeping yaw."""
@@ -438,11 +501,12 @@ class MissionRunner:
         log.info("leg %d: to (%.2f, %.2f) m", leg.seq, *leg.goal_xy_m)
         while time.monotonic() - t_leg < self.leg_timeout_s:
             self._check_offboard()
-            pos = position_enu(self.vehicle.snapshot())
+            snap = self.vehicle.snapshot()
+            pos = position_enu(snap)
             if pos is None:
                 await asyncio.sleep(RETRY_HOLD_S)
                 continue
-            if np.linalg.norm(pos[:2] - goal) <= leg.acceptance_m:
+            if arrived(snap, goal, leg.acceptance_m):
                 rep.reached = True
                 break
             start = self._plan_start(pos)
@@ -575,9 +639,10 @@ class MissionRunner:
                 if capture_mono_s is not None:
                     self.frame_to_setpoint_ms.append(1e3 * (time.monotonic() - capture_mono_s))
                     capture_mono_s = None
-                pos = position_enu(self.vehicle.snapshot())
+                snap = self.vehicle.snapshot()
+                pos = position_enu(snap)
                 if replan is None and t_traj >= traj.duration_s and pos is not None:
-                    if np.linalg.norm(pos[:2] - goal) <= leg.acceptance_m:
+                    if arrived(snap, goal, leg.acceptance_m):
                         return "reached"
                     if t_traj >= traj.duration_s + settle_s:
                         return "late"
@@ -662,9 +727,34 @@ class MissionRunner:
         return False, None
 
     async def finish(self, then: FlightMode = FlightMode.LAND) -> None:
-        """Hand the vehicle to ``then`` (LAND or HOLD) and stop streaming."""
+        """Bring the vehicle to rest on its last setpoint (:meth:`settle`), then hand it to
+        ``then`` (LAND or HOLD) and stop streaming: PX4's Land and Hold brake gently and stop
+        (and land) up to a metre on from where they were engaged at cruise speed."""
         if self.vehicle.offboard.state.streams:
+            await self.settle()
             await self.vehicle.offboard.release(then)
+
+    async def settle(self, timeout_s: float = SETTLE_TIMEOUT_S) -> None:
+        """Keep the current setpoint until the vehicle is within :data:`SETTLED_OFFSET_M` of it
+        and slower than :data:`SETTLED_SPEED_M_S` (at most ``timeout_s``, then a warning)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            state = self.vehicle.snapshot()
+            sp = self.vehicle.offboard.status().setpoint
+            frame = state.map_frame
+            pos = position_enu(state)
+            if sp is None or frame is None or pos is None:
+                return
+            goal = np.array(frame.from_ned(*sp.position_ned_m)[:2])
+            if arrived(state, goal, SETTLED_OFFSET_M):
+                return
+            if time.monotonic() > deadline or not self.vehicle.offboard.state.streams:
+                speed = horizontal_speed_m_s(state)
+                log.warning("the vehicle did not come to rest on its last setpoint within %.0f s "
+                            "(%.2f m from it, %s m/s)", timeout_s, float(np.linalg.norm(pos[:2] - goal)),
+                            "unknown" if speed is None else f"{speed:.2f}")
+                return
+            await asyncio.sleep(FEED_PERIOD_S)
 
 
 def _remaining(traj: Trajectory, t_s: float) -> NDArray[np.float64]:

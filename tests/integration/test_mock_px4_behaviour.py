@@ -355,7 +355,7 @@ async def test_tracking_lags_and_wobbles() -> None:
     lag_s, worst_m, std_m = await _hover(PX4)
     assert lag_s >= PX4.tracking_delay_s - 0.011  # one physics tick
     assert 0.003 < worst_m < 0.1 and std_m > 0.001
-    lag_s, worst_m, _ = await _hover(replace(PX4, tracking_delay_s=0.0, wobble_m=0.0))
+    lag_s, worst_m, _ = await _hover(replace(PX4, tracking_delay_s=0.0, wobble_m=0.0, velocity_loop_lag=False))
     assert lag_s < 0.05 and worst_m < 0.002
 
 

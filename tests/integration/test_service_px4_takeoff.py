@@ -5,6 +5,7 @@ another rate. Each test fails with the runner that flew PX4 SITL through a desk.
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Awaitable, Callable
 
@@ -14,7 +15,7 @@ from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.demo import free_udp_port
-from companion.service.mission_runner import MissionRunner, min_engage_height_m
+from companion.service.mission_runner import MissionRunner, min_engage_height_m, took_off
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.autopilot.behaviour import Px4Behaviour
 from companion.sources.poses import SharedPoseHistory, TelemetryPoseRecorder
@@ -32,9 +33,9 @@ def _no_map() -> Costmap:
 
 
 def _fly(behaviour: Px4Behaviour,
-         body: Callable[[MockAutopilot, Vehicle, MissionRunner], Awaitable[None]]) -> None:
+         body: Callable[[MockAutopilot, Vehicle, MissionRunner], Awaitable[None]], survey_deg: float = 0.0) -> None:
     cfg = CompanionConfig()
-    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"takeoff_survey_deg": 0.0})})
+    cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"takeoff_survey_deg": survey_deg})})
     link_port = free_udp_port()
     link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}", "ready_timeout_s": 20.0})
 
@@ -75,6 +76,69 @@ def test_offboard_engaged_only_when_airborne_at_the_take_off_height() -> None:
 
     _fly(Px4Behaviour(floor_z_ned_m=-1.5), body)
     assert engaged_at_height and engaged_at_height[0] >= min_engage_height_m(ALTITUDE_M) - 0.05
+
+
+def test_climb_and_survey_hold_the_point_offboard_was_engaged_on() -> None:
+    """PX4 SITL's vehicle (room seed 1) was still drifting from the take-off when OFFBOARD was
+    engaged; the climb and the survey each held wherever it had got to, following it 0.5 m
+    further, into a table. Now they hold the engage point: every setpoint from the first to
+    the end of the survey has the same horizontal position, however the vehicle wanders. The
+    wobble also lifts the vehicle clear of the floor before PX4's 1 Hz heartbeat shows the
+    take-off begun: the take-off is judged from heartbeats sent after the command only (else
+    OFFBOARD is requested during TAKEOFF, which PX4 drops)."""
+    engage_xy: list[tuple[float, float]] = []
+    later_xy: list[tuple[float, float]] = []
+
+    async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
+        await runner.take_off(ALTITUDE_M)
+        sps = [sp.target.position_ned_m for sp in ap.setpoints if sp.target.position_ned_m is not None]
+        engage_xy.append(sps[0][:2])
+        later_xy.extend(p[:2] for p in sps[1:])
+        await runner.finish()
+
+    # A wobble of 0.3 m: the vehicle is rarely where it was a few seconds before.
+    _fly(Px4Behaviour(ready_after_s=0.0, wobble_m=0.3), body, survey_deg=90.0)
+    assert len(later_xy) > 50
+    assert max(math.dist(engage_xy[0], xy) for xy in later_xy) < 0.005
+
+
+def test_offboard_takes_over_a_climbing_hold_without_pulling_it_down() -> None:
+    """PX4 SITL ends a take-off once within NAV_MC_ALT_RAD of its altitude (0.8 m: for 0.6 m, on
+    the floor) and climbs the rest in Hold. OFFBOARD, engaged on a hold at the height the
+    vehicle had when it was requested, pulled the still-climbing vehicle back down to 0.19 m
+    above the floor (engage height 0.3 m). The hold now rises with the vehicle until PX4
+    switches."""
+    heights: list[tuple[bool, float]] = []  # (in OFFBOARD, truth height above the floor)
+
+    async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
+        await runner.arm_when_ready()
+        await v.commands.takeoff(ALTITUDE_M)
+        await ap.wait_until(lambda: ap.mode is FlightMode.HOLD and ap.in_air, 15.0, "the take-off done")
+        n, e, _d = ap.vehicle.position_ned_m
+        ap.set_mode(FlightMode.HOLD, hold_at_ned_m=(n, e, -2.5))  # Hold climbs on
+        await v.state.wait_for(lambda s: took_off(s, ALTITUDE_M) and s.flight_mode is FlightMode.HOLD,
+                               5.0, "Hold in the air")
+        done = asyncio.Event()
+
+        async def watch() -> None:
+            while not done.is_set():
+                heights.append((ap.mode is FlightMode.OFFBOARD, -ap.vehicle.position_ned_m[2]))
+                await asyncio.sleep(0.01)
+
+        watcher = asyncio.create_task(watch())
+        try:
+            await runner.engage_here(ALTITUDE_M)
+            await asyncio.sleep(3.0)
+        finally:
+            done.set()
+            await watcher
+        await runner.finish(FlightMode.HOLD)
+
+    _fly(Px4Behaviour(ready_after_s=0.0), body)
+    switch = next(i for i, (offboard, _h) in enumerate(heights) if offboard)
+    at_switch_m = heights[switch][1]
+    assert at_switch_m > heights[0][1] + 0.3  # it climbed while the stream warmed up
+    assert min(h for _o, h in heights[switch:]) >= at_switch_m - 0.15
 
 
 def test_take_off_waits_for_readiness_and_ends_the_take_off_before_offboard() -> None:

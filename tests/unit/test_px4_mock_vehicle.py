@@ -189,3 +189,31 @@ def test_rtl_goes_to_home_not_the_origin() -> None:
     assert nav.landed_by_navigator
     assert v.position_ned_m == pytest.approx((5.0, -2.0, 0.0), abs=0.05)
     assert lowest_d == pytest.approx(-4.0, abs=0.1)  # climbed to RTL_RETURN_ALT first
+
+
+def test_velocity_loop_gain_trails_a_moving_setpoint_and_overshoots_its_end() -> None:
+    """With PX4's velocity loop (MPC_XY_VEL_P_ACC, no acceleration feed-forward) the vehicle
+    trails a setpoint that speeds up to 1 m/s and slows to a stop at 1 m/s^2, and is still
+    moving when the setpoint has stopped; without it the mock followed exactly."""
+    results = {}
+    for gain in (None, 1.8):
+        v = KinematicMulticopter(position_ned_m=(0.0, 0.0, -1.0))
+        v.motors_on = True
+        x_sp, speed_sp, end_m = 0.0, 0.0, 3.0
+        lags = []
+        while x_sp < end_m:
+            braking = (end_m - x_sp) <= speed_sp ** 2 / 2.0
+            speed_sp = max(0.01, speed_sp - DT) if braking else min(1.0, speed_sp + DT)
+            x_sp = min(end_m, x_sp + speed_sp * DT)
+            v.set_target(Target(position_ned_m=(x_sp, 0.0, -1.0), velocity_ned_m_s=(speed_sp, 0.0, 0.0),
+                                velocity_gain_1_s=gain))
+            v.step(DT)
+            lags.append(x_sp - v.position_ned_m[0])
+        speed_at_end = math.hypot(*v.velocity_ned_m_s[:2])
+        v.set_target(Target(position_ned_m=(end_m, 0.0, -1.0), velocity_gain_1_s=gain))
+        trace = _fly(v, 4.0)
+        results[gain] = (max(lags), speed_at_end, max(p[0] for p, _ in trace) - end_m)
+    assert results[None][0] < 0.02 and results[None][1] < 0.05 and results[None][2] < 0.02
+    lag_m, speed_m_s, overshoot_m = results[1.8]
+    assert 0.2 < lag_m < 0.8 and speed_m_s > 0.2 and overshoot_m > 0.1
+    assert v.position_ned_m[0] == pytest.approx(end_m, abs=0.03)  # and it comes back

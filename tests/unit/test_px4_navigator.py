@@ -12,7 +12,7 @@ from companion.missions import MissionItemInt
 from companion.px4 import FlightMode
 from companion.sim.autopilot.navigator import MissionState, Navigator
 from companion.sim.autopilot.params import ParamStore
-from companion.sim.autopilot.vehicle import KinematicMulticopter
+from companion.sim.autopilot.vehicle import KinematicMulticopter, Target
 
 HOME = GeoOrigin()
 DT = 0.01
@@ -93,3 +93,25 @@ def test_takeoff_mode_ends_in_hold_at_altitude() -> None:
     sim.run(5.0)
     assert sim.modes == [FlightMode.HOLD]
     assert sim.vehicle.position_ned_m[2] == pytest.approx(-2.0, abs=0.05)
+
+
+@pytest.mark.parametrize(("brake_m_s2", "landed_from_entry_m"), [(0.5, 0.9), (0.0, 0.0)])
+def test_land_engaged_at_speed_lands_where_the_brake_stops(brake_m_s2: float, landed_from_entry_m: float) -> None:
+    """PX4 SITL, handed to Land at 0.95 m/s, braked gently and landed 0.9 m on; the naive
+    mock came back to where Land was engaged."""
+    vehicle = KinematicMulticopter(position_ned_m=(0.0, 0.0, -2.0))
+    vehicle.motors_on = True
+    nav = Navigator(vehicle, ParamStore(), HOME, lambda m: None, lambda s: None, lambda s: None,
+                    land_brake_accel_m_s2=brake_m_s2)
+    nav.enter(FlightMode.HOLD, hold_at_ned_m=(0.0, 0.0, -2.0))
+    vehicle.set_target(Target(velocity_ned_m_s=(0.95, 0.0, 0.0)))
+    for _ in range(int(2.0 / DT)):
+        vehicle.step(DT)
+    entry_n = vehicle.position_ned_m[0]
+    assert vehicle.velocity_ned_m_s[0] == pytest.approx(0.95, abs=0.01)
+    nav.enter(FlightMode.LAND)
+    for _ in range(int(8.0 / DT)):
+        vehicle.step(DT)
+        nav.tick(vehicle.stamp_s)
+    assert vehicle.on_ground
+    assert vehicle.position_ned_m[0] - entry_n == pytest.approx(landed_from_entry_m, abs=0.1)

@@ -45,6 +45,14 @@ class Px4Behaviour:
     offboard_loss_px4_actions: bool = True
     #: Offboard setpoints take effect this late (s), as PX4's controllers lag them.
     tracking_delay_s: float = 0.1
+    #: The horizontal velocity loop is PX4's: acceleration ``MPC_XY_VEL_P_ACC`` (1.8 1/s) per
+    #: m/s of velocity error, no acceleration feed-forward, so the vehicle trails a moving
+    #: setpoint by about half a second and reaches a trajectory's end still moving. Off: the
+    #: velocity follows at once within ``MPC_ACC_HOR``.
+    velocity_loop_lag: bool = True
+    #: Land engaged while moving brakes at this rate (m/s^2) and lands where the vehicle stops
+    #: (PX4 SITL: 0.9 m on from 0.95 m/s); 0: it lands where Land was engaged.
+    land_brake_accel_m_s2: float = 0.5
     #: Amplitude (m) of the seeded slow wobble about the setpoint while flying.
     wobble_m: float = 0.03
     #: Mission items without a position (lat/lon 0/0) are flown to 0/0, with PX4's warning
@@ -54,7 +62,7 @@ class Px4Behaviour:
     def __post_init__(self) -> None:
         if not self.clock_rate > 0.0:
             raise ValueError(f"Px4Behaviour.clock_rate must be > 0 (got {self.clock_rate})")
-        for name in ("ready_after_s", "tracking_delay_s", "wobble_m"):
+        for name in ("ready_after_s", "tracking_delay_s", "wobble_m", "land_brake_accel_m_s2"):
             value = getattr(self, name)
             if not value >= 0.0:
                 raise ValueError(f"Px4Behaviour.{name} must be >= 0 (got {value})")
@@ -65,7 +73,7 @@ class Px4Behaviour:
         return cls(floor_z_ned_m=0.0, ready_after_s=0.0, offboard_during_takeoff_dropped=False,
                    mode_after_disarm=False, heartbeat_on_change=True, clock_rate=1.0,
                    offboard_loss_px4_actions=False, tracking_delay_s=0.0, wobble_m=0.0,
-                   null_island_items=False)
+                   null_island_items=False, velocity_loop_lag=False, land_brake_accel_m_s2=0.0)
 
 
 def behaviour_from_settings(settings: list[str], base: Px4Behaviour | None = None) -> Px4Behaviour:

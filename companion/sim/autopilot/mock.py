@@ -170,7 +170,8 @@ class MockAutopilot:
         self.missions.reject_seq = lambda: self.faults.reject_mission_seq
         self.navigator = Navigator(self.vehicle, self.params, self.home, self.set_mode,
                                    self._on_item_reached, self._on_current_changed,
-                                   null_island_items=self.behaviour.null_island_items)
+                                   null_island_items=self.behaviour.null_island_items,
+                                   land_brake_accel_m_s2=self.behaviour.land_brake_accel_m_s2)
         self.navigator.enter(FlightMode.HOLD)
         self.commands = CommandHandler(self)
         # offboard
@@ -753,6 +754,8 @@ class MockAutopilot:
             self._apply_offboard_target(target)
 
     def _apply_offboard_target(self, target: Target) -> None:
+        if self.behaviour.velocity_loop_lag:
+            target = replace(target, velocity_gain_1_s=self.params.get("MPC_XY_VEL_P_ACC"))
         self._offboard_target = target
         if self._mode is FlightMode.OFFBOARD:
             self.vehicle.set_target(target)

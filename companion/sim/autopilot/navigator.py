@@ -85,8 +85,11 @@ class Navigator:
         current_changed: Callable[[int], None],
         *,
         null_island_items: bool = False,
+        land_brake_accel_m_s2: float = 0.0,
     ) -> None:
         self._vehicle = vehicle
+        #: Land engaged while moving lands where a brake at this rate stops (0: where engaged).
+        self.land_brake_accel_m_s2 = land_brake_accel_m_s2
         #: PX4 flies an item's lat/lon 0/0 as given (True) instead of taking it as "here".
         self.null_island_items = null_island_items
         self._params = params
@@ -178,6 +181,8 @@ class Navigator:
             # Holds until a FOLLOW_TARGET arrives, then follows it (see tick).
             self._legs = [_Leg(_Phase.WAIT, (n, e, d), yaw, until_s=math.inf)]
         elif mode is FlightMode.LAND:
+            if self.land_brake_accel_m_s2 > 0.0:
+                n, e, _ = self._brake_point(self.land_brake_accel_m_s2)
             self._legs = [_Leg(_Phase.LAND, (n, e, math.nan), yaw)]
         elif mode is FlightMode.RTL:
             self._legs = self._rtl_legs()
@@ -190,10 +195,11 @@ class Navigator:
             self._start_mission_item(self._now())
         self._apply_leg()
 
-    def _brake_point(self) -> tuple[float, float, float]:
-        """Where the vehicle stops if it brakes now at the horizontal acceleration limit."""
+    def _brake_point(self, accel_m_s2: float | None = None) -> tuple[float, float, float]:
+        """Where the vehicle stops if it brakes now at ``accel_m_s2`` (default: the horizontal
+        acceleration limit)."""
         (n, e, d), (vn, ve, _vd) = self._pos(), self._vehicle.velocity_ned_m_s
-        a = self._vehicle.limits.max_accel_xy_m_s2
+        a = self._vehicle.limits.max_accel_xy_m_s2 if accel_m_s2 is None else accel_m_s2
         speed = math.hypot(vn, ve)
         if speed < 1e-3:
             return (n, e, d)

@@ -62,6 +62,11 @@ class Target:
     speed_xy_m_s: float | None = None
     #: Further limit on the climb rate (takeoff speed, MPC_TKO_SPEED); None = the vehicle limit.
     speed_up_m_s: float | None = None
+    #: Horizontal acceleration per m/s of velocity error (1/s, PX4's MPC_XY_VEL_P_ACC) for a
+    #: target without acceleration feed-forward (offboard setpoints): the velocity trails the
+    #: commanded one with time constant 1/gain. None (the auto modes' smooth trajectories): the
+    #: velocity follows at once, within the acceleration limit.
+    velocity_gain_1_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -196,6 +201,8 @@ class KinematicMulticopter:
         v_des = self._desired_velocity(tgt)
         # Acceleration towards the desired velocity, limited per axis group.
         a = (v_des - self._v) / max(dt_s, 1e-3)
+        if tgt.velocity_gain_1_s is not None:
+            a[:2] = (v_des[:2] - self._v[:2]) * min(tgt.velocity_gain_1_s, 1.0 / max(dt_s, 1e-3))
         a_xy = _limit_norm(a[:2], lim.max_accel_xy_m_s2)
         a_z = float(np.clip(a[2], -lim.max_accel_z_m_s2, lim.max_accel_z_m_s2))
         self._a = np.array([a_xy[0], a_xy[1], a_z])
