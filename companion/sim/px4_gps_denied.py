@@ -55,6 +55,9 @@ GPS_DENIED_PX4_PARAMS: dict[str, float | int] = {
     "EKF2_EV_CTRL": 9,         # external vision: horizontal position (1) + yaw (8), not height
     "EKF2_HGT_REF": 2,         # height from the downward range finder (vision gives none; baro drifts by decimetres)
     "EKF2_RNG_CTRL": 2,        # the range finder always fused
+    "EKF2_MIN_RNG": 0.01,      # what the range finder reads landed (SIH's sits on the floor: 0; 0.01 is PX4's least)
+    "EKF2_GND_EFF_DZ": 0.0,    # baro fused through take-off (SIH's baro has no ground effect): see docs/mavlink.md
+    "EKF2_BARO_NOISE": 0.5,    # SIH's baro (0.08 m s.d. at rest) holds the height while it is the only aid
     "EKF2_EV_DELAY": 0.0,      # our stamps are capture times, mapped onto PX4's clock by TIMESYNC
     "EKF2_EVP_NOISE": 0.02,    # floors under the variances we send (ODOMETRY covariance)
     "EKF2_EVA_NOISE": 0.02,
