@@ -1,0 +1,100 @@
+"""All boxes of one frame together: which object a point belongs to when boxes overlap.
+
+:func:`semmap.geometry.observe_object` sees one box at a time, and a box holds more than its
+object where furniture touches or stands in front: a table's box holds the chairs in front of
+it, a chair behind a table holds the table top. :func:`observe_frame` observes every box, then
+gives each point to the object the other boxes of the frame say it belongs to, and observes a
+box again without the points that are not its own:
+
+* **a nearer object**: a point in the box's cluster that is also in the cluster of another,
+  overlapping box whose object is nearer the camera (by ``NEARER_BY_M``) belongs to that
+  object (it stands in front; this box sees it only where it covers the farther one);
+* **another box's object**: a box whose cluster is mostly the object of another box that sees
+  more of it (the table top filling the lower part of a box round a chair behind the table),
+  or that is not cut by the image border while this one is (a table running out of the
+  image, with a chair in front of it), shows that object: this box's object is what remains
+  behind it, or nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semmap.config import ClassConfig, GeometryConfig
+from semmap.frames import Transform
+from semmap.geometry import ObjectObservation, observe_object, voxel_keys
+from semmap.ransac import Plane
+from semmap.types import CameraIntrinsics, Track
+
+__all__ = ["observe_frame"]
+
+#: Another box's object is nearer when its range is smaller by at least this (metres).
+NEARER_BY_M = 0.2
+#: A box's cluster "is" another box's object when this share of its voxels is.
+SHARED_FRAC = 0.5
+#: Points of other objects are taken out only when they are at least this share of the box's
+#: object (a few shared voxels at a contact line change nothing).
+MIN_FOREIGN_FRAC = 0.1
+
+
+def _boxes_overlap(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def observe_frame(
+    depth_m: NDArray[np.floating], intrinsics: CameraIntrinsics, T_map_camera: Transform,
+    tracks: Sequence[Track], classes: Mapping[str, ClassConfig], params: GeometryConfig,
+    floor: Plane | None = None, depth_range_m: tuple[float, float] = (0.0, math.inf), stamp_s: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> list[ObjectObservation]:
+    """The observations of one frame's tracks (see the module doc), in track order; tracks
+    whose box holds no object of its own have none. ``classes``: class name -> its config."""
+    rng = rng if rng is not None else np.random.default_rng(0)
+
+    def observe(tr: Track, exclude: NDArray[np.float64] | None = None,
+                same: NDArray[np.float64] | None = None) -> ObjectObservation | None:
+        return observe_object(depth_m, intrinsics, T_map_camera, tr, classes[tr.class_name], params, floor,
+                              depth_range_m, stamp_s, rng, exclude_voxels_m=exclude, same_object_as_m=same)
+
+    first = [observe(tr) for tr in tracks]
+    keys = [None if o is None else voxel_keys(o.voxels_map_m, params.voxel_size_m) for o in first]
+    grown = [None if o is None else voxel_keys(o.voxels_map_m, params.voxel_size_m, grow=True) for o in first]
+    out: list[ObjectObservation] = []
+    for i, (tr, o) in enumerate(zip(tracks, first, strict=True)):
+        if o is None:
+            continue
+        ki = keys[i]
+        assert ki is not None
+        foreign: list[NDArray[np.float64]] = []
+        shown = False
+        for j, (other, p) in enumerate(zip(tracks, first, strict=True)):
+            kj = grown[j]
+            if j == i or p is None or kj is None or not _boxes_overlap(tr.xyxy_px, other.xyxy_px):
+                continue
+            shared = np.isin(ki, kj)
+            frac = float(np.count_nonzero(shared)) / max(1, len(ki))
+            nearer = p.range_m < o.range_m - NEARER_BY_M
+            # Mostly another box's object, seen more fully there (more of it, or not cut).
+            shows_other = frac >= SHARED_FRAC and (p.n_voxels > o.n_voxels or (o.at_image_edge and not p.at_image_edge))
+            if (nearer and frac >= MIN_FOREIGN_FRAC) or shows_other:
+                foreign.append(p.voxels_map_m)
+                shown = shown or shows_other
+        if not foreign:
+            out.append(o)
+            continue
+        # Showing another object: this box's own is whatever remains. Else it is the same
+        # cluster as before, less the nearer objects' points.
+        excluded = np.concatenate(foreign)
+        same = None
+        if not shown:
+            same = o.voxels_map_m[~np.isin(ki, voxel_keys(excluded, params.voxel_size_m, grow=True))]
+            if len(same) < params.min_cluster_points:
+                continue  # it was the nearer object's points all along
+        again = observe(tr, excluded, same)
+        if again is not None:
+            out.append(again)
+    return out
