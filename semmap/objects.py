@@ -41,7 +41,7 @@ from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
 from semmap.errors import MapError
 from semmap.geometry import CameraView, ObjectObservation
-from semmap.object_evidence import FootprintEvidence
+from semmap.object_evidence import FootprintEvidence, view_quality
 from semmap.polygons import (
     convex_footprint,
     convex_intersection,
@@ -194,6 +194,9 @@ class _State:
     first_seen_s: float
     last_seen_s: float
     n_observations: int = 0
+    #: Sum of the views' qualities (:func:`semmap.object_evidence.view_quality`): how well
+    #: supported the object is, for choosing which of two duplicates to keep.
+    support: float = 0.0
     #: Quality of the views the shape comes from: 2 x (within footprint_max_range_m) +
     #: (not cut by the image border); -1 before the first.
     shape_tier: int = -1
@@ -301,6 +304,7 @@ class ObjectMap:
                     position_var_m2=float(d["position_std_m"]) ** 2, hull_xy_m=fp,
                     first_seen_s=float(d["first_seen_s"]), last_seen_s=float(d["last_seen_s"]),
                     n_observations=int(d["n_observations"]), shape_tier=0, seen_near=True,
+                    support=float(d["n_observations"]),
                 )
                 z0, z1 = float(d["z_min_m"]), float(d["z_max_m"])
                 top = d.get("top_height_m")
@@ -455,7 +459,8 @@ class ObjectMap:
                     continue
                 a, b = self._objects[other], self._objects[oid]
                 if self._same_object(a, b, other in seen_now and oid in seen_now):
-                    keep, drop = (a, b) if a.object_id < b.object_id else (b, a)
+                    # The better-supported object survives, whatever the ids (ties: the older).
+                    keep, drop = (a, b) if (a.support, -a.object_id) >= (b.support, -b.object_id) else (b, a)
                     self._absorb(keep, drop)
                     merged[drop.object_id] = keep.object_id
                     break
@@ -467,9 +472,13 @@ class ObjectMap:
 
     def _absorb(self, keep: _State, drop: _State) -> None:
         """Fold ``drop`` into ``keep`` and remove it."""
-        p = keep.class_probs * drop.class_probs * len(self.class_names)  # uniform prior once
-        p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
+        # Class evidence fused by weight: multiplying the two posteriors counted the shared
+        # views twice and let a few confident boxes of the wrong object outvote many.
+        wk, wd = max(keep.support, 1e-6), max(drop.support, 1e-6)
+        p = (wk * keep.class_probs + wd * drop.class_probs) / (wk + wd)
+        p = np.maximum(p, _MIN_CLASS_PROB)
         keep.class_probs = p / p.sum()
+        keep.support += drop.support
         keep.logodds = max(keep.logodds, drop.logodds)
         keep.seen_near = keep.seen_near or drop.seen_near
         va, vb = keep.position_var_m2, drop.position_var_m2
@@ -594,7 +603,12 @@ class ObjectMap:
         # but only a nearer one confirms the object (else it stays tentative and times out).
         s.seen_near = s.seen_near or o.range_m <= cfg.footprint_max_range_m
         cap = _logit(cfg.existence_max) if s.seen_near else _logit(cfg.existence_confirm) - _UNCONFIRMED_MARGIN
-        s.logodds = min(s.logodds + cfg.existence_hit_logodds, max(s.logodds, cap))
+        hollow = self.classes[self._class_index[o.class_name]].hollow != "none"
+        q = view_quality(o.score, o.range_m, o.at_image_edge, o.n_voxels,
+                         (o.top_height_m is not None) if hollow else None, cfg.footprint_max_range_m)
+        s.support += q
+        # Existence rises with the quality of the view: one close, clean view can confirm.
+        s.logodds = min(s.logodds + cfg.existence_hit_logodds * q, max(s.logodds, cap))
         s.n_observations += 1
         s.last_seen_s = max(s.last_seen_s, o.stamp_s)
         s.first_seen_s = min(s.first_seen_s, o.stamp_s)
@@ -666,7 +680,11 @@ class ObjectMap:
         if not ids:
             return
         cents = np.array([self._objects[oid].position_m for oid in ids])
-        visible = view.expects_visible(cents)
+        # A miss counts only where the detector should have seen the object: in view, not
+        # occluded (expects_visible), and near enough to be detected.
+        cam = np.asarray(view.T_map_camera, dtype=np.float64)[:3, 3]
+        near = np.linalg.norm(cents - cam, axis=1) <= self.config.footprint_max_range_m
+        visible = view.expects_visible(cents) & near
         for oid, vis in zip(ids, visible, strict=True):
             if vis:
                 s = self._objects[oid]
