@@ -27,10 +27,10 @@ from semmap.polygons import convex_footprint, inside_convex, min_perimeter_recta
 __all__ = ["CELL_M", "FootprintEvidence", "cell_centres", "cell_keys", "view_quality"]
 
 #: A detector score at or above this is full evidence of the box (COCO models top out near it).
-QUALITY_FULL_SCORE = 0.7
+QUALITY_FULL_SCORE = 0.6
 #: Views within this range are full evidence; beyond, the weight falls linearly to
 #: ``QUALITY_FAR_WEIGHT`` at ``far_range_m`` (depth noise grows with range squared).
-QUALITY_NEAR_RANGE_M = 3.0
+QUALITY_NEAR_RANGE_M = 3.5
 QUALITY_FAR_WEIGHT = 0.25
 #: Weight of a view cut by the image border (part of the object is missing).
 QUALITY_EDGE_WEIGHT = 0.6

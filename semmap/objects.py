@@ -355,7 +355,10 @@ class ObjectMap:
             if oid is None:
                 owner = self._surface_owner(obs[i])
                 if owner is not None:
-                    # Not fused (its class and track belong to something else) and no new object.
+                    # No new object, and its geometry is not fused (its track belongs to
+                    # something else); a second box of the same class is still a detection.
+                    if int(np.argmax(self._objects[owner].class_probs)) in self._vote_indices(obs[i].class_name):
+                        self._raise_existence(self._objects[owner], obs[i])
                     assigned[i] = owner
                     shown.add(owner)
                     continue
@@ -598,17 +601,7 @@ class ObjectMap:
         p = s.class_probs * self._class_likelihood(o.class_name, o.score)
         p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
         s.class_probs = p / p.sum()
-        # Beyond footprint_max_range_m depth noise blurs an object into what stands behind it
-        # (a half-hidden whiteboard's box then shows the wall): such views raise existence,
-        # but only a nearer one confirms the object (else it stays tentative and times out).
-        s.seen_near = s.seen_near or o.range_m <= cfg.footprint_max_range_m
-        cap = _logit(cfg.existence_max) if s.seen_near else _logit(cfg.existence_confirm) - _UNCONFIRMED_MARGIN
-        hollow = self.classes[self._class_index[o.class_name]].hollow != "none"
-        q = view_quality(o.score, o.range_m, o.at_image_edge, o.n_voxels,
-                         (o.top_height_m is not None) if hollow else None, cfg.footprint_max_range_m)
-        s.support += q
-        # Existence rises with the quality of the view: one close, clean view can confirm.
-        s.logodds = min(s.logodds + cfg.existence_hit_logodds * q, max(s.logodds, cap))
+        self._raise_existence(s, o)
         s.n_observations += 1
         s.last_seen_s = max(s.last_seen_s, o.stamp_s)
         s.first_seen_s = min(s.first_seen_s, o.stamp_s)
@@ -660,6 +653,24 @@ class ObjectMap:
                 s.view_sum_xy = s.view_sum_xy + d / n
                 s.n_views += 1
         s.footprint_cache = None
+
+    def _vote_indices(self, class_name: str) -> list[int]:
+        return self._votes_for.get(class_name) or [self._class_index[class_name]]
+
+    def _raise_existence(self, s: _State, o: ObjectObservation) -> None:
+        """Existence rises with the quality of the view: one close, clean view can confirm."""
+        cfg = self.config
+        s.snapshot_cache = None
+        # Beyond footprint_max_range_m depth noise blurs an object into what stands behind it
+        # (a half-hidden whiteboard's box then shows the wall): such views raise existence,
+        # but only a nearer one confirms the object (else it stays tentative and times out).
+        s.seen_near = s.seen_near or o.range_m <= cfg.footprint_max_range_m
+        cap = _logit(cfg.existence_max) if s.seen_near else _logit(cfg.existence_confirm) - _UNCONFIRMED_MARGIN
+        hollow = self.classes[self._class_index[o.class_name]].hollow != "none"
+        q = view_quality(o.score, o.range_m, o.at_image_edge, o.n_voxels,
+                         (o.top_height_m is not None) if hollow else None, cfg.footprint_max_range_m)
+        s.support += q
+        s.logodds = min(s.logodds + cfg.existence_hit_logodds * q, max(s.logodds, cap))
 
     def _evidence_footprint(self, s: _State) -> NDArray[np.float64]:
         """The footprint from the evidence (:meth:`FootprintEvidence.footprint`), or from the

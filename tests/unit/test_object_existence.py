@@ -56,3 +56,14 @@ def test_a_duplicate_merge_keeps_the_better_supported_object_and_weighs_class_ev
     # The sliver came first (higher score) and has the lower id; the whole view is kept.
     assert ids == [2, 2] and o.object_id == 2
     assert o.class_name in TABLE_CLASSES
+
+
+def test_a_second_box_of_the_same_object_and_class_in_one_frame_counts_as_a_detection() -> None:
+    def box(track: int) -> object:
+        return dataclasses.replace(obs(track, cls="chair", score=0.45), top_height_m=0.45, range_m=1.5)
+
+    one, two = ObjectMap(default_classes()), ObjectMap(default_classes())
+    one.update([box(1)], 0.0)
+    ids = two.update([box(1), box(2)], 0.0)
+    assert len(two) == 1 and ids[0] == ids[1]
+    assert not one.objects()[0].confirmed and two.objects()[0].confirmed
