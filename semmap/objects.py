@@ -108,6 +108,9 @@ _CONTAINED = 0.6
 #: An unassociated observation whose top plane is within this (metres) of a mapped object's
 #: top, reaching no higher, and lying mostly inside its footprint shows that object's surface.
 _SAME_SURFACE_M = 0.04
+#: A table's top seen again from elsewhere joins it when the footprints overlap at least this
+#: much (intersection over the smaller).
+_SAME_TOP_OVERLAP = 0.05
 
 
 @dataclass(frozen=True, eq=False)
@@ -531,13 +534,24 @@ class ObjectMap:
             dist = float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m))
             same_class = int(np.argmax(s.class_probs)) in ks
             ok = (same_class and (iou >= cfg.reassociate_iou or contained >= _CONTAINED
-                                  or dist <= cfg.reassociate_distance_m)) or (
+                                  or dist <= cfg.reassociate_distance_m
+                                  or (contained > _SAME_TOP_OVERLAP and self._same_top(s, o)))) or (
                 iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou)
             )
             score = max(iou, contained if same_class else 0.0)
             if ok and (best is None or (score, -dist) > (best[0], best[1])):
                 best = (score, -dist, cand)
         return None if best is None else best[2]
+
+    def _same_top(self, s: _State, o: ObjectObservation) -> bool:
+        """The observation shows more of a table-shaped object's top: its top plane is the
+        object's (within ``_SAME_SURFACE_M``) and it reaches no higher. Another part of a long
+        table seen from its other end overlaps the part seen before only at the seam."""
+        k = int(np.argmax(s.class_probs))
+        if self.classes[k].shape != "table" or o.top_height_m is None or not s.top_hist:
+            return False
+        top = _quantile(s.top_hist, 0.5)
+        return abs(o.top_height_m - top) <= _SAME_SURFACE_M and o.z_max_m <= top + _SAME_SURFACE_M
 
     def _surface_owner(self, o: ObjectObservation) -> int | None:
         """The object whose surface an unassociated observation shows, or None.

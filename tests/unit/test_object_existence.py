@@ -67,3 +67,21 @@ def test_a_second_box_of_the_same_object_and_class_in_one_frame_counts_as_a_dete
     ids = two.update([box(1), box(2)], 0.0)
     assert len(two) == 1 and ids[0] == ids[1]
     assert not one.objects()[0].confirmed and two.objects()[0].confirmed
+
+
+def test_a_long_table_seen_from_its_other_end_is_one_table() -> None:
+    m = ObjectMap(default_classes())
+    near_end = np.array([[2.0, 0.0], [3.0, 0.0], [3.0, 1.0], [2.0, 1.0]])
+    first = dataclasses.replace(obs(1, cls="desk", xy=(2.5, 0.5), size=1.0), footprint_xy_m=near_end,
+                                top_height_m=0.73, z_max_m=0.75)
+    m.update([first], 0.0)
+    # The far end, from elsewhere: the same top plane, overlapping the first part at the seam only.
+    far_end = np.array([[2.9, 0.0], [4.0, 0.0], [4.0, 1.0], [2.9, 1.0]])
+    second = dataclasses.replace(obs(2, cls="desk", xy=(3.45, 0.5), size=1.0), footprint_xy_m=far_end,
+                                 top_height_m=0.74, z_max_m=0.76, stamp_s=1.0)
+    m.update([second], 1.0)
+    assert len(m) == 1
+    # A different top beside it (a coffee table's 0.45 m) is another object.
+    low = dataclasses.replace(second, track_id=3, top_height_m=0.45, z_max_m=0.47, stamp_s=2.0)
+    m.update([low], 2.0)
+    assert len(m) == 2
