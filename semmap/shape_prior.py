@@ -37,12 +37,15 @@ TABLE_TOP_MIN_AREA_M2 = 0.08
 TABLE_ABOVE_TOP_M = 0.03
 #: Points below the top belong to the table within this distance outside the top's outline.
 TABLE_OUTLINE_MARGIN_M = 0.10
-#: A seat is at most this high: a large surface above it in a seat's cluster is another top.
+#: A seat is at most this high: a surface between it and ``FOREIGN_TOP_MAX_HEIGHT_M`` (table
+#: heights) in a seat's cluster is another object's top.
 SEAT_MAX_HEIGHT_M = 0.6
-#: Such a foreign top spans at least this area (m^2) and this long side, densely (voxels
-#: cover at least ``FOREIGN_TOP_MIN_FILL`` of its hull): a chair's armrests are two strips.
-FOREIGN_TOP_MIN_AREA_M2 = 0.2
-FOREIGN_TOP_MIN_LONG_M = 0.6
+FOREIGN_TOP_MAX_HEIGHT_M = 0.95
+#: Such a foreign top spans at least this area (m^2) and this short side, densely (voxels
+#: cover at least ``FOREIGN_TOP_MIN_FILL`` of its hull): a backrest's top edge or an armrest
+#: is a strip, and two armrests are a sparse hull.
+FOREIGN_TOP_MIN_AREA_M2 = 0.05
+FOREIGN_TOP_MIN_SHORT_M = 0.15
 FOREIGN_TOP_MIN_FILL = 0.4
 
 
@@ -50,7 +53,7 @@ FOREIGN_TOP_MIN_FILL = 0.4
 class Layer:
     """A horizontal surface: ``height_m`` above the floor, its voxels ``members`` (M,) bool,
     their convex hull ``hull_xy_m`` (K, 2) and its ``area_m2``, ``fill`` (voxel area over hull
-    area) and ``long_side_m``."""
+    area) and its rectangle's ``long_side_m`` and ``short_side_m``."""
 
     height_m: float
     members: NDArray[np.bool_]
@@ -58,6 +61,7 @@ class Layer:
     area_m2: float
     fill: float
     long_side_m: float
+    short_side_m: float
 
 
 def horizontal_layers(
@@ -93,7 +97,8 @@ def horizontal_layers(
         rect = min_perimeter_rectangle(hull)
         sides = np.hypot(*(rect[1] - rect[0])), np.hypot(*(rect[3] - rect[0]))
         fill = min(1.0, float(members.sum()) * voxel_m * voxel_m / area) if area > 0 else 0.0
-        out.append(Layer(float(np.median(h[members])), members, hull, area, fill, float(max(sides))))
+        out.append(Layer(float(np.median(h[members])), members, hull, area, fill, float(max(sides)),
+                         float(min(sides))))
     return out
 
 
@@ -151,8 +156,8 @@ def shape_mask(
         return keep
     if shape == "seat":
         for L in layers:
-            if (L.height_m > SEAT_MAX_HEIGHT_M and L.area_m2 >= FOREIGN_TOP_MIN_AREA_M2
-                    and L.long_side_m >= FOREIGN_TOP_MIN_LONG_M and L.fill >= FOREIGN_TOP_MIN_FILL):
+            if (SEAT_MAX_HEIGHT_M < L.height_m <= FOREIGN_TOP_MAX_HEIGHT_M and L.area_m2 >= FOREIGN_TOP_MIN_AREA_M2
+                    and L.short_side_m >= FOREIGN_TOP_MIN_SHORT_M and L.fill >= FOREIGN_TOP_MIN_FILL):
                 band = np.abs(heights_m - L.height_m) <= LAYER_BIN_M
                 keep &= ~(L.members | (band & _near_hull(L.hull_xy_m, xyz_m[:, :2], 2 * voxel_m)))
         return keep
