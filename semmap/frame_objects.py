@@ -9,6 +9,9 @@ box again without the points that are not its own:
 * **a nearer object**: a point in the box's cluster that is also in the cluster of another,
   overlapping box whose object is nearer the camera (by ``NEARER_BY_M``) belongs to that
   object (it stands in front; this box sees it only where it covers the farther one);
+* **nothing of its own**: a box whose first look found no object of its class (a chair's
+  box holding only the table top in front of it) is looked at again without the other
+  overlapping boxes' objects;
 * **another box's object**: a box whose cluster is mostly the object of another box that sees
   more of it (the table top filling the lower part of a box round a chair behind the table),
   or that is not cut by the image border while this one is (a table running out of the
@@ -66,6 +69,13 @@ def observe_frame(
     out: list[ObjectObservation] = []
     for i, (tr, o) in enumerate(zip(tracks, first, strict=True)):
         if o is None:
+            # Nothing of its own at first look (what it held was another object's top, see
+            # semmap.shape_prior): it may be behind the other boxes' objects.
+            others = [p.voxels_map_m for j, p in enumerate(first)
+                      if j != i and p is not None and _boxes_overlap(tr.xyxy_px, tracks[j].xyxy_px)]
+            behind = observe(tr, np.concatenate(others)) if others else None
+            if behind is not None:
+                out.append(behind)
             continue
         ki = keys[i]
         assert ki is not None

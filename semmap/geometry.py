@@ -484,7 +484,9 @@ def observe_object(
         obj_vox = vox[obj_idx]
         keep = shape_mask(obj_vox, floor.signed_distance_m(obj_vox), class_cfg.shape, params.voxel_size_m,
                           params.min_plane_points)
-        if not keep.all() and keep.sum() >= params.min_cluster_points:
+        if keep.sum() < params.min_cluster_points:
+            return None  # the box shows another object's top only
+        if not keep.all():
             piece = euclidean_clusters(obj_vox[keep], eps)  # what is left may fall apart
             obj_idx = obj_idx[keep][piece == 0]
     obj_vox = vox[obj_idx]
