@@ -415,7 +415,15 @@ class ObjectMap:
         same_class = int(np.argmax(a.class_probs)) == int(np.argmax(b.class_probs))
         return same_class and not both_seen_now and (
             iou >= cfg.reassociate_iou or contained >= _CONTAINED or dist <= cfg.reassociate_distance_m
+            or (contained > _SAME_TOP_OVERLAP and self._same_table_top(a, b))
         )
+
+    def _same_table_top(self, a: _State, b: _State) -> bool:
+        """Two parts of one table's top: both table-shaped, seen near, the same top plane."""
+        k = int(np.argmax(a.class_probs))
+        if self.classes[k].shape != "table" or not (a.top_hist and b.top_hist and a.seen_near and b.seen_near):
+            return False
+        return abs(_quantile(a.top_hist, 0.5) - _quantile(b.top_hist, 0.5)) <= _SAME_SURFACE_M
 
     def _shows_surface_of(self, inner: _State, outer: _State) -> bool:
         """``inner`` is ``outer``'s surface mapped a second time (often under another class): both
@@ -517,17 +525,23 @@ class ObjectMap:
     def _associate(self, o: ObjectObservation, used: set[int]) -> int | None:
         cfg = self.config
         oid = self._track_to_object.get(o.track_id)
+        fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
+        track_object: int | None = None
         if oid is not None and oid in self._objects and oid not in used:
             s = self._objects[oid]
             if np.linalg.norm(s.position_m[:2] - o.centroid_xy_m) <= cfg.track_gate_m:
-                return oid
-            log.debug("track %d jumped %.2f m from object %d: new object", o.track_id,
-                      float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m)), oid)
+                if _consistent(s.hull_xy_m, fp):
+                    return oid
+                # The track's box moved off its object (a camera passing along a long desk
+                # whose first view was a corner): an object this view overlaps takes it.
+                track_object = oid
+            else:
+                log.debug("track %d jumped %.2f m from object %d: new object", o.track_id,
+                          float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m)), oid)
         ks = self._votes_for.get(o.class_name) or [self._class_index[o.class_name]]
         best: tuple[float, float, int] | None = None
-        fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
         for cand in self._nearby(fp.min(axis=0), fp.max(axis=0), o.centroid_xy_m):
-            if cand in used:
+            if cand in used or cand == track_object:
                 continue
             s = self._objects[cand]
             iou, contained = _overlaps(s.hull_xy_m, fp)
@@ -539,9 +553,11 @@ class ObjectMap:
                 iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou)
             )
             score = max(iou, contained if same_class else 0.0)
-            if ok and (best is None or (score, -dist) > (best[0], best[1])):
+            if ok and (best is None or (score, -dist) > (best[0], best[1])) and (track_object is None or score > 0):
                 best = (score, -dist, cand)
-        return None if best is None else best[2]
+        if best is None:
+            return track_object
+        return best[2]
 
     def _same_top(self, s: _State, o: ObjectObservation) -> bool:
         """The observation shows more of a table-shaped object's top: its top plane is the
