@@ -85,3 +85,16 @@ def test_a_long_table_seen_from_its_other_end_is_one_table() -> None:
     low = dataclasses.replace(second, track_id=3, top_height_m=0.45, z_max_m=0.47, stamp_s=2.0)
     m.update([low], 2.0)
     assert len(m) == 2
+
+
+def test_a_track_that_moved_off_its_object_joins_the_object_its_view_overlaps() -> None:
+    m = ObjectMap(default_classes())
+    for t in range(3):
+        m.update([obs(1, cls="desk", xy=(3.0, 0.0), size=1.0, stamp=t)], float(t))
+    (desk,) = m.objects()
+    # A new track first sees something just beyond the desk's end...
+    m.update([obs(2, cls="desk", xy=(3.9, 0.0), size=0.2, stamp=3)], 3.0)
+    assert len(m) == 2
+    # ...then its box slides onto the desk: that view is the desk's, not the corner's.
+    ids = m.update([obs(2, cls="desk", xy=(3.2, 0.0), size=0.5, stamp=4)], 4.0)
+    assert ids == [desk.object_id]
