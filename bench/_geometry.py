@@ -201,7 +201,7 @@ def bench_geometry(quick: bool) -> dict[str, Any]:
             c2, t2 = time.process_time(), time.perf_counter()
             cmp_obs = [observe_object(frame.depth_m, INTRINSICS, T, tr, by_name[tr.class_name], g_cmp,
                                       depth_range_m=DEPTH_RANGE_M, rng=rng, cluster_by="voxels",
-                                      remove_walls=False)
+                                      remove_walls=False, shape_prior=False)
                        for tr in tracks]
             c3, t3 = time.process_time(), time.perf_counter()
             if rep == 0:

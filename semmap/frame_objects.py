@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform
-from semmap.geometry import ObjectObservation, observe_object, voxel_keys
+from semmap.geometry import ObjectObservation, near_points, observe_object, within_a_voxel
 from semmap.ransac import Plane
 from semmap.types import CameraIntrinsics, Track
 
@@ -64,8 +64,6 @@ def observe_frame(
                               depth_range_m, stamp_s, rng, exclude_voxels_m=exclude, same_object_as_m=same)
 
     first = [observe(tr) for tr in tracks]
-    keys = [None if o is None else voxel_keys(o.voxels_map_m, params.voxel_size_m) for o in first]
-    grown = [None if o is None else voxel_keys(o.voxels_map_m, params.voxel_size_m, grow=True) for o in first]
     out: list[ObjectObservation] = []
     for i, (tr, o) in enumerate(zip(tracks, first, strict=True)):
         if o is None:
@@ -77,16 +75,13 @@ def observe_frame(
             if behind is not None:
                 out.append(behind)
             continue
-        ki = keys[i]
-        assert ki is not None
         foreign: list[NDArray[np.float64]] = []
         shown = False
         for j, (other, p) in enumerate(zip(tracks, first, strict=True)):
-            kj = grown[j]
-            if j == i or p is None or kj is None or not _boxes_overlap(tr.xyxy_px, other.xyxy_px):
+            if j == i or p is None or not _boxes_overlap(tr.xyxy_px, other.xyxy_px):
                 continue
-            shared = np.isin(ki, kj)
-            frac = float(np.count_nonzero(shared)) / max(1, len(ki))
+            frac = float(np.count_nonzero(near_points(o.voxels_map_m, p.voxels_map_m, params.voxel_size_m)))
+            frac /= max(1, len(o.voxels_map_m))
             nearer = p.range_m < o.range_m - NEARER_BY_M
             # Mostly another box's object, seen more fully there (more of it, or not cut).
             shows_other = frac >= SHARED_FRAC and (p.n_voxels > o.n_voxels or (o.at_image_edge and not p.at_image_edge))
@@ -101,7 +96,7 @@ def observe_frame(
         excluded = np.concatenate(foreign)
         same = None
         if not shown:
-            same = o.voxels_map_m[~np.isin(ki, voxel_keys(excluded, params.voxel_size_m, grow=True))]
+            same = o.voxels_map_m[~within_a_voxel(o.voxels_map_m, excluded, params.voxel_size_m)]
             if len(same) < params.min_cluster_points:
                 continue  # it was the nearer object's points all along
         again = observe(tr, excluded, same)

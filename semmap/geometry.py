@@ -158,15 +158,34 @@ class CameraView:
         return out
 
 
-def voxel_keys(points_m: NDArray[np.floating], voxel_m: float, grow: bool = False) -> NDArray[np.int64]:
-    """(N,) one integer per voxel ``floor(p / voxel_m)`` of points (N, 3) (21 bits per axis:
-    +-31 km at 3 cm); ``grow``: the keys of every voxel within one voxel of a point's (27 N,
-    unique), so a surface sampled on a voxel boundary matches from either side."""
-    ijk = np.floor(np.asarray(points_m, dtype=np.float64).reshape(-1, 3) / voxel_m).astype(np.int64) + (1 << 20)
-    if grow:
-        steps = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], np.int64)
-        ijk = np.unique((ijk[:, None, :] + steps[None, :, :]).reshape(-1, 3), axis=0)
+def voxel_keys(points_m: NDArray[np.floating], voxel_m: float, shift_m: float = 0.0) -> NDArray[np.int64]:
+    """(N,) one integer per voxel ``floor((p + shift_m) / voxel_m)`` of points (N, 3) (21 bits
+    per axis: +-31 km at 3 cm)."""
+    p = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    ijk = np.floor((p + shift_m) / voxel_m).astype(np.int64) + (1 << 20)
     return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def near_points(a_m: NDArray[np.floating], b_m: NDArray[np.floating], voxel_m: float) -> NDArray[np.bool_]:
+    """(N,) True where a point of ``a_m`` (N, 3) shares a cell of twice ``voxel_m`` with a point
+    of ``b_m`` (M, 3), on that grid or on the grid shifted by a voxel: points a voxel apart
+    always match, two to four voxels apart sometimes (two sorted-key lookups, not a search)."""
+    cell = 2.0 * voxel_m
+    out = np.isin(voxel_keys(a_m, cell), voxel_keys(b_m, cell))
+    out |= np.isin(voxel_keys(a_m, cell, voxel_m), voxel_keys(b_m, cell, voxel_m))
+    return out
+
+
+#: Key differences of the 27 voxels around and including one (see :func:`voxel_keys`).
+_NEIGHBOUR_KEY_STEPS = np.array([(i << 42) + (j << 21) + k for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
+                                dtype=np.int64)
+
+
+def within_a_voxel(a_m: NDArray[np.floating], b_m: NDArray[np.floating], voxel_m: float) -> NDArray[np.bool_]:
+    """(N,) True where a point of ``a_m`` (N, 3) lies in a voxel of a point of ``b_m`` (M, 3) or
+    in one of the 26 around it: exact, for taking other objects' points out of a box."""
+    grown = (voxel_keys(b_m, voxel_m)[:, None] + _NEIGHBOUR_KEY_STEPS[None, :]).reshape(-1)
+    return np.isin(voxel_keys(a_m, voxel_m), grown)
 
 
 def shrink_box(
@@ -392,6 +411,7 @@ def observe_object(
     remove_walls: bool = True,
     exclude_voxels_m: NDArray[np.float64] | None = None,
     same_object_as_m: NDArray[np.float64] | None = None,
+    shape_prior: bool = True,
 ) -> ObjectObservation | None:
     """The object a track's box shows, or None when its depth holds no object.
 
@@ -407,6 +427,7 @@ def observe_object(
     points of other objects (voxel centres, map frame); the box's points in their voxels
     are not this object's. ``same_object_as_m`` (K, 3): the object is the cluster holding most
     of these points (a second look at the same object, see :mod:`semmap.frame_objects`).
+    ``shape_prior``: apply the class's shape prior (:mod:`semmap.shape_prior`).
     """
     floor = floor if floor is not None else Plane.horizontal()
     H, W = np.asarray(depth_m).shape
@@ -455,8 +476,7 @@ def observe_object(
                     return None  # the box shows the wall only
                 tab = tab[:, front]
     if exclude_voxels_m is not None and len(exclude_voxels_m):
-        mine = ~np.isin(voxel_keys(tab[:3].T, params.voxel_size_m),
-                        voxel_keys(exclude_voxels_m, params.voxel_size_m, grow=True))
+        mine = ~within_a_voxel(tab[:3].T, exclude_voxels_m, params.voxel_size_m)
         if np.count_nonzero(mine) < params.min_cluster_points:
             return None  # the box shows other objects only
         tab = tab[:, mine]
@@ -479,7 +499,7 @@ def observe_object(
         best = _pick_cluster(point_label, rng_cam, tab[_U:].T.astype(np.int64), window,
                              params.cluster_min_pixel_frac, params.cluster_min_box_cover)
     obj_idx = np.flatnonzero(vox_label == best)
-    if class_cfg.shape != "free":
+    if shape_prior and class_cfg.shape != "free":
         # Touching furniture is one cluster: the class's shape says which part is this object.
         obj_vox = vox[obj_idx]
         keep = shape_mask(obj_vox, floor.signed_distance_m(obj_vox), class_cfg.shape, params.voxel_size_m,

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from semmap.polygons import convex_footprint, min_perimeter_rectangle, polygon_area_m2
 
@@ -109,19 +110,10 @@ def _solid_part(xy_m: NDArray[np.float64], cell_m: float) -> NDArray[np.bool_]:
     ij = np.floor((xy_m - xy_m.min(axis=0)) / cell_m).astype(np.int64) + 2
     occ = np.zeros(tuple(ij.max(axis=0) + 3), dtype=bool)
     occ[ij[:, 0], ij[:, 1]] = True
-
-    def dilate(a: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        out = a.copy()
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                out |= np.roll(np.roll(a, di, axis=0), dj, axis=1)
-        return out
-
-    def erode(a: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        return ~dilate(~a)
-
-    solid = dilate(erode(erode(dilate(occ))))
-    return solid[ij[:, 0], ij[:, 1]]
+    square = np.ones((3, 3), dtype=bool)
+    closed = ndimage.binary_closing(occ, structure=square)
+    solid = ndimage.binary_opening(closed, structure=square)
+    return np.asarray(solid[ij[:, 0], ij[:, 1]], dtype=bool)
 
 
 def _near_hull(hull: NDArray[np.float64], xy: NDArray[np.float64], margin_m: float) -> NDArray[np.bool_]:
