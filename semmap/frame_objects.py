@@ -48,6 +48,12 @@ def _boxes_overlap(a: tuple[float, float, float, float], b: tuple[float, float, 
     return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
+def _bounds_meet(a_m: NDArray[np.float64], b_m: NDArray[np.float64], margin_m: float) -> bool:
+    """The bounding boxes of two point sets (N, 3), (M, 3) meet within ``margin_m``."""
+    return bool(np.all(a_m.min(axis=0) <= b_m.max(axis=0) + margin_m)
+                and np.all(b_m.min(axis=0) <= a_m.max(axis=0) + margin_m))
+
+
 def observe_frame(
     depth_m: NDArray[np.floating], intrinsics: CameraIntrinsics, T_map_camera: Transform,
     tracks: Sequence[Track], classes: Mapping[str, ClassConfig], params: GeometryConfig,
@@ -67,8 +73,10 @@ def observe_frame(
     out: list[ObjectObservation] = []
     for i, (tr, o) in enumerate(zip(tracks, first, strict=True)):
         if o is None:
-            # Nothing of its own at first look (what it held was another object's top, see
-            # semmap.shape_prior): it may be behind the other boxes' objects.
+            # Nothing of its own at first look (a seat's box whose cluster was another object's
+            # top, see semmap.shape_prior): it may be behind the other boxes' objects.
+            if classes[tr.class_name].shape != "seat":
+                continue
             others = [p.voxels_map_m for j, p in enumerate(first)
                       if j != i and p is not None and _boxes_overlap(tr.xyxy_px, tracks[j].xyxy_px)]
             behind = observe(tr, np.concatenate(others)) if others else None
@@ -80,11 +88,14 @@ def observe_frame(
         for j, (other, p) in enumerate(zip(tracks, first, strict=True)):
             if j == i or p is None or not _boxes_overlap(tr.xyxy_px, other.xyxy_px):
                 continue
+            nearer = p.range_m < o.range_m - NEARER_BY_M
+            fuller = p.n_voxels > o.n_voxels or (o.at_image_edge and not p.at_image_edge)
+            if not (nearer or fuller) or not _bounds_meet(o.voxels_map_m, p.voxels_map_m, 2 * params.voxel_size_m):
+                continue  # neither rule can apply: no need to look at the points
             frac = float(np.count_nonzero(near_points(o.voxels_map_m, p.voxels_map_m, params.voxel_size_m)))
             frac /= max(1, len(o.voxels_map_m))
-            nearer = p.range_m < o.range_m - NEARER_BY_M
             # Mostly another box's object, seen more fully there (more of it, or not cut).
-            shows_other = frac >= SHARED_FRAC and (p.n_voxels > o.n_voxels or (o.at_image_edge and not p.at_image_edge))
+            shows_other = frac >= SHARED_FRAC and fuller
             if (nearer and frac >= MIN_FOREIGN_FRAC) or shows_other:
                 foreign.append(p.voxels_map_m)
                 shown = shown or shows_other

@@ -67,11 +67,13 @@ class Layer:
 
 def horizontal_layers(
     xyz_m: NDArray[np.float64], heights_m: NDArray[np.float64], voxel_m: float, min_points: int,
+    between_m: tuple[float, float] = (-np.inf, np.inf), highest_only: bool = False,
 ) -> list[Layer]:
     """The horizontal surfaces of a cluster's voxels (M, 3) with heights (M,), lowest first:
     height bins (``LAYER_BIN_M``, two adjacent bins together) holding at least ``min_points``
     voxels and ``LAYER_MIN_SHARE`` of the fullest bin pair; of neighbouring candidates the
-    fuller one."""
+    fuller one. Only candidates starting within ``between_m`` are measured; ``highest_only``:
+    just the highest surface spanning ``TABLE_TOP_MIN_AREA_M2`` (what a table prior needs)."""
     h = np.asarray(heights_m, dtype=np.float64)
     if len(h) < min_points:
         return []
@@ -81,10 +83,11 @@ def horizontal_layers(
     pair = counts + np.concatenate([counts[1:], [0]])
     need = max(float(min_points), LAYER_MIN_SHARE * float(pair.max()))
     cand = [k for k in range(len(pair)) if pair[k] >= need
-            and pair[k] >= (pair[k - 1] if k > 0 else 0) and pair[k] >= (pair[k + 1] if k + 1 < len(pair) else 0)]
+            and pair[k] >= (pair[k - 1] if k > 0 else 0) and pair[k] >= (pair[k + 1] if k + 1 < len(pair) else 0)
+            and between_m[0] < lo + k * LAYER_BIN_M <= between_m[1]]
     out: list[Layer] = []
-    for k in cand:
-        if out and k - int(round((out[-1].height_m - lo) / LAYER_BIN_M)) <= 1:
+    for k in (cand[::-1] if highest_only else cand):
+        if out and abs(k - int(round((out[-1].height_m - lo) / LAYER_BIN_M))) <= 1:
             continue  # the same surface over two bin pairs
         pair_members = (idx == k) | (idx == k + 1)
         members = np.abs(h - float(np.median(h[pair_members]))) <= LAYER_BIN_M
@@ -100,7 +103,9 @@ def horizontal_layers(
         fill = min(1.0, float(members.sum()) * voxel_m * voxel_m / area) if area > 0 else 0.0
         out.append(Layer(float(np.median(h[members])), members, hull, area, fill, float(max(sides)),
                          float(min(sides))))
-    return out
+        if highest_only and area >= TABLE_TOP_MIN_AREA_M2:
+            return out[-1:]
+    return [] if highest_only else out
 
 
 def _solid_part(xy_m: NDArray[np.float64], cell_m: float) -> NDArray[np.bool_]:
@@ -137,17 +142,18 @@ def shape_mask(
     keep = np.ones(len(xyz_m), dtype=bool)
     if shape == "free" or len(xyz_m) < min_points:
         return keep
-    layers = horizontal_layers(xyz_m, heights_m, voxel_m, min_points)
     if shape == "table":
-        tops = [L for L in layers if L.area_m2 >= TABLE_TOP_MIN_AREA_M2]
+        tops = horizontal_layers(xyz_m, heights_m, voxel_m, min_points, highest_only=True)
         if not tops:
             return keep
-        top = tops[-1]
+        top = tops[0]
         keep &= heights_m <= top.height_m + TABLE_ABOVE_TOP_M
         keep &= _near_hull(top.hull_xy_m, xyz_m[:, :2], TABLE_OUTLINE_MARGIN_M) | top.members
         return keep
     if shape == "seat":
-        for L in layers:
+        # Candidates are found by their lower bin; a surface at the bounds is found from either.
+        band = (SEAT_MAX_HEIGHT_M - LAYER_BIN_M, FOREIGN_TOP_MAX_HEIGHT_M)
+        for L in horizontal_layers(xyz_m, heights_m, voxel_m, min_points, between_m=band):
             if (SEAT_MAX_HEIGHT_M < L.height_m <= FOREIGN_TOP_MAX_HEIGHT_M and L.area_m2 >= FOREIGN_TOP_MIN_AREA_M2
                     and L.short_side_m >= FOREIGN_TOP_MIN_SHORT_M and L.fill >= FOREIGN_TOP_MIN_FILL):
                 band = np.abs(heights_m - L.height_m) <= LAYER_BIN_M
