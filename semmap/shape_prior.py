@@ -152,8 +152,8 @@ def shape_mask(
         return keep
     if shape == "seat":
         # Candidates are found by their lower bin; a surface at the bounds is found from either.
-        band = (SEAT_MAX_HEIGHT_M - LAYER_BIN_M, FOREIGN_TOP_MAX_HEIGHT_M)
-        for L in horizontal_layers(xyz_m, heights_m, voxel_m, min_points, between_m=band):
+        heights_band = (SEAT_MAX_HEIGHT_M - LAYER_BIN_M, FOREIGN_TOP_MAX_HEIGHT_M)
+        for L in horizontal_layers(xyz_m, heights_m, voxel_m, min_points, between_m=heights_band):
             if (SEAT_MAX_HEIGHT_M < L.height_m <= FOREIGN_TOP_MAX_HEIGHT_M and L.area_m2 >= FOREIGN_TOP_MIN_AREA_M2
                     and L.short_side_m >= FOREIGN_TOP_MIN_SHORT_M and L.fill >= FOREIGN_TOP_MIN_FILL):
                 band = np.abs(heights_m - L.height_m) <= LAYER_BIN_M
