@@ -539,6 +539,8 @@ def observe_object(
             top_plane = fit.plane
             inl = obj_vox[fit.inliers]
             top_height = _median(floor.signed_distance_m(inl))
+    if shape_prior and class_cfg.shape == "table" and top_height is not None:
+        z_min = 0.0  # a table stands on the floor on legs the chairs round it often hide
 
     # Projection onto the map plane: all object points, the top among them, so the space
     # between legs lies inside the hull.
