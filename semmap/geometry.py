@@ -167,12 +167,12 @@ def voxel_keys(points_m: NDArray[np.floating], voxel_m: float, shift_m: float = 
 
 
 def near_points(a_m: NDArray[np.floating], b_m: NDArray[np.floating], voxel_m: float) -> NDArray[np.bool_]:
-    """(N,) True where a point of ``a_m`` (N, 3) shares a cell of twice ``voxel_m`` with a point
-    of ``b_m`` (M, 3), on that grid or on the grid shifted by a voxel: points a voxel apart
-    always match, two to four voxels apart sometimes (two sorted-key lookups, not a search)."""
-    cell = 2.0 * voxel_m
-    out = np.isin(voxel_keys(a_m, cell), voxel_keys(b_m, cell))
-    out |= np.isin(voxel_keys(a_m, cell, voxel_m), voxel_keys(b_m, cell, voxel_m))
+    """(N,) True where a point of ``a_m`` (N, 3) shares a voxel with a point of ``b_m`` (M, 3), on
+    the voxel grid or on the grid shifted by half a voxel: points half a voxel apart always
+    match, also across a voxel boundary (two sorted-key lookups, not a search)."""
+    half = voxel_m / 2.0
+    out = np.isin(voxel_keys(a_m, voxel_m), voxel_keys(b_m, voxel_m))
+    out |= np.isin(voxel_keys(a_m, voxel_m, half), voxel_keys(b_m, voxel_m, half))
     return out
 
 
