@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform
-from semmap.geometry import ObjectObservation, near_points, observe_object, within_a_voxel
+from semmap.geometry import ObjectObservation, observe_object, within_a_voxel
 from semmap.ransac import Plane
 from semmap.types import CameraIntrinsics, Track
 
@@ -92,7 +92,7 @@ def observe_frame(
             fuller = p.n_voxels > o.n_voxels or (o.at_image_edge and not p.at_image_edge)
             if not (nearer or fuller) or not _bounds_meet(o.voxels_map_m, p.voxels_map_m, 2 * params.voxel_size_m):
                 continue  # neither rule can apply: no need to look at the points
-            frac = float(np.count_nonzero(near_points(o.voxels_map_m, p.voxels_map_m, params.voxel_size_m)))
+            frac = float(np.count_nonzero(within_a_voxel(o.voxels_map_m, p.voxels_map_m, params.voxel_size_m)))
             frac /= max(1, len(o.voxels_map_m))
             # Mostly another box's object, seen more fully there (more of it, or not cut).
             shows_other = frac >= SHARED_FRAC and fuller

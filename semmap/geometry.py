@@ -166,16 +166,6 @@ def voxel_keys(points_m: NDArray[np.floating], voxel_m: float, shift_m: float = 
     return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
 
 
-def near_points(a_m: NDArray[np.floating], b_m: NDArray[np.floating], voxel_m: float) -> NDArray[np.bool_]:
-    """(N,) True where a point of ``a_m`` (N, 3) shares a voxel with a point of ``b_m`` (M, 3), on
-    the voxel grid or on the grid shifted by half a voxel: points half a voxel apart always
-    match, also across a voxel boundary (two sorted-key lookups, not a search)."""
-    half = voxel_m / 2.0
-    out = np.isin(voxel_keys(a_m, voxel_m), voxel_keys(b_m, voxel_m))
-    out |= np.isin(voxel_keys(a_m, voxel_m, half), voxel_keys(b_m, voxel_m, half))
-    return out
-
-
 #: Key differences of the 27 voxels around and including one (see :func:`voxel_keys`).
 _NEIGHBOUR_KEY_STEPS = np.array([(i << 42) + (j << 21) + k for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
                                 dtype=np.int64)
