@@ -4,9 +4,11 @@ Used by ``bench/perception.py`` (section ``geometry``) and runnable alone:
 ``python bench/_geometry.py [--quick]``. Frames of seeded simulated rooms (640x480, D455-like
 depth noise) with 4 to 10 visible objects; boxes are the objects' mask boxes.
 
-* ``ours``: per frame, :func:`semmap.geometry.observe_object` for every box (back-projection,
-  map transform, floor cut, wall removal, voxel downsample, Euclidean clustering (exact
-  single linkage), horizontal RANSAC, footprint) plus the object-map update; ``frame_total``
+* ``ours``: per frame, :func:`semmap.frame_objects.observe_frame` over the boxes
+  (:func:`semmap.geometry.observe_object` for every box: back-projection, map transform,
+  floor cut, wall removal, voxel downsample, Euclidean clustering (exact single linkage),
+  shape prior, horizontal RANSAC, footprint; and again for boxes holding other boxes'
+  objects) plus the object-map update; ``frame_total``
   adds the grid engineer's scan extraction, grid and layer update
   (:class:`semmap.semantic_map.SemanticMap`). Targets: p50 <= 10 ms, p99 <= 25 ms.
 * ``open3d``: the same steps with Open3D on the same boxes: ``create_from_depth_image`` on
@@ -55,6 +57,7 @@ from companion.sim.render import DepthNoise, RoomRenderer  # noqa: E402
 from companion.sim.world import generate_room  # noqa: E402
 from semmap.config import GeometryConfig, MapConfig, default_classes  # noqa: E402
 from semmap.costmap import VerticalBand  # noqa: E402
+from semmap.frame_objects import observe_frame  # noqa: E402
 from semmap.frames import invert  # noqa: E402
 from semmap.geometry import observe_object, shrink_box  # noqa: E402
 from semmap.objects import CameraView, ObjectMap  # noqa: E402
@@ -188,9 +191,9 @@ def bench_geometry(quick: bool) -> dict[str, Any]:
             T = frame.T_map_camera
             assert T is not None
             c0, t0 = time.process_time(), time.perf_counter()
-            obs = [observe_object(frame.depth_m, INTRINSICS, T, tr, by_name[tr.class_name], g,
-                                  depth_range_m=DEPTH_RANGE_M, stamp_s=frame.stamp_s, rng=rng) for tr in tracks]
-            omap.update([o for o in obs if o is not None], frame.stamp_s,
+            obs = observe_frame(frame.depth_m, INTRINSICS, T, tracks, by_name, g, depth_range_m=DEPTH_RANGE_M,
+                                stamp_s=frame.stamp_s, rng=rng)
+            omap.update(obs, frame.stamp_s,
                         CameraView(frame.depth_m, INTRINSICS, T, DEPTH_RANGE_M))
             t1 = time.perf_counter()
             if smap is not None:
@@ -198,7 +201,7 @@ def bench_geometry(quick: bool) -> dict[str, Any]:
             c2, t2 = time.process_time(), time.perf_counter()
             cmp_obs = [observe_object(frame.depth_m, INTRINSICS, T, tr, by_name[tr.class_name], g_cmp,
                                       depth_range_m=DEPTH_RANGE_M, rng=rng, cluster_by="voxels",
-                                      remove_walls=False)
+                                      remove_walls=False, shape_prior=False)
                        for tr in tracks]
             c3, t3 = time.process_time(), time.perf_counter()
             if rep == 0:

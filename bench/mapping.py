@@ -45,8 +45,8 @@ from companion.sim.groundtruth import clearance_m  # noqa: E402
 from companion.sim.render import DepthNoise, RoomRenderer  # noqa: E402
 from companion.sim.world import LAYOUTS, Room, generate_room  # noqa: E402
 from semmap.config import ClassConfig, ExtrinsicsConfig, GeometryConfig, MapConfig, default_classes  # noqa: E402
+from semmap.frame_objects import observe_frame  # noqa: E402
 from semmap.frames import pose_from_xyz_rpy  # noqa: E402
-from semmap.geometry import observe_object  # noqa: E402
 from semmap.grid import GridSpec, rasterize_polygon  # noqa: E402
 from semmap.objects import CameraView, MappedObject, ObjectMap  # noqa: E402
 from semmap.types import CameraIntrinsics, Frame, Track  # noqa: E402
@@ -235,12 +235,8 @@ def map_room(
             seen[oid] = seen.get(oid, 0) + 1
         tracks = oracle.tracks(frame)
         t0 = time.perf_counter()
-        obs = []
-        for tr in tracks:
-            o = observe_object(frame.depth_m, INTRINSICS, T, tr, cfg_by_name[tr.class_name], geo,
-                               depth_range_m=DEPTH_RANGE_M, stamp_s=stamp, rng=rng)
-            if o is not None:
-                obs.append(o)
+        obs = observe_frame(frame.depth_m, INTRINSICS, T, tracks, cfg_by_name, geo, depth_range_m=DEPTH_RANGE_M,
+                            stamp_s=stamp, rng=rng)
         times.append((time.perf_counter() - t0) * 1e3)
         omap.update(obs, stamp, CameraView(frame.depth_m, INTRINSICS, T, DEPTH_RANGE_M))
     return room, omap, seen, times

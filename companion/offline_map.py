@@ -38,13 +38,15 @@ from semmap.detection import Detector, detector_from_config
 from semmap.detection.builtin import detector_vote_groups, vote_groups
 from semmap.errors import ConfigError, DataError, FrameError, MapError
 from semmap.export import export_all
+from semmap.frame_objects import observe_frame
 from semmap.frames import transform_points
-from semmap.geometry import ObjectObservation, observe_object
+from semmap.geometry import ObjectObservation
 from semmap.objects import ObjectMap
 from semmap.pointcloud import backproject
 from semmap.ransac import estimate_floor, gravity_aligned_frame
 from semmap.semantic_map import SemanticMap, SemanticMapSettings
 from semmap.tracking.botsort import BoTSORT
+from semmap.tracking.camera_steps import StepAwareTracker
 from semmap.types import Detection, Frame, Track
 
 log = logging.getLogger(__name__)
@@ -183,7 +185,8 @@ class _OneTrackPerBox:
     def __init__(self) -> None:
         self._next = 1
 
-    def update(self, detections: Sequence[Detection], image_rgb: NDArray[np.uint8] | None = None) -> list[Track]:
+    def update(self, detections: Sequence[Detection], image_rgb: NDArray[np.uint8] | None = None,
+               T_map_camera: NDArray[np.float64] | None = None) -> list[Track]:
         out = []
         for d in detections:
             out.append(Track(self._next, d.xyxy_px, d.score, d.class_name))
@@ -231,8 +234,9 @@ def build_offline_map(
               else detector_vote_groups(cfg.detector, class_names, real_camera=True))
     omap = ObjectMap(cfg.classes, cfg.map, vote_groups=groups)
     smap = SemanticMap(settings, omap)
-    tracker: BoTSORT | _OneTrackPerBox = (BoTSORT.from_config(cfg.tracker) if opts.use_tracker
-                                          else _OneTrackPerBox())
+    # Keyframes (camera steps beyond what BoT-SORT follows) are associated in 3D by the object map.
+    tracker: StepAwareTracker | _OneTrackPerBox = (StepAwareTracker(BoTSORT.from_config(cfg.tracker))
+                                                   if opts.use_tracker else _OneTrackPerBox())
     rng = np.random.default_rng(0)
     entries = source.entries
     used = skipped = 0
@@ -253,7 +257,7 @@ def build_offline_map(
         else:
             assert detector is not None
             dets = detector.detect_frame(frame)
-        tracks = tracker.update(dets, frame.rgb)
+        tracks = tracker.update(dets, frame.rgb, T)
         obs = _observe(frame, T, tracks, by_name, cfg, depth_range, rng)
         smap.integrate_frame(frame, T_map_camera=T, observations=obs)
         used += 1
@@ -267,6 +271,9 @@ def build_offline_map(
     files["config"] = write_effective_config(cfg, out)
     log.info("mapped %d frames (%d skipped): %d objects, grid %dx%d", used, skipped, len(smap.objects),
              *smap.spec.shape_rc)
+    if isinstance(tracker, StepAwareTracker) and tracker.steps:
+        log.info("%d of %d frames followed a camera step too large to track in the image: associated in 3D",
+                 tracker.steps, used)
     return OfflineMapResult(smap, omap, T_map_world, used, skipped, files)
 
 
@@ -274,13 +281,8 @@ def _observe(
     frame: Frame, T_map_camera: NDArray[np.float64], tracks: Sequence[Track], by_name: Mapping[str, Any],
     cfg: CompanionConfig, depth_range: tuple[float, float], rng: np.random.Generator,
 ) -> list[ObjectObservation]:
-    obs = []
-    for tr in tracks:
-        o = observe_object(frame.depth_m, frame.intrinsics, T_map_camera, tr, by_name[tr.class_name],
-                           cfg.geometry, depth_range_m=depth_range, stamp_s=frame.stamp_s, rng=rng)
-        if o is not None:
-            obs.append(o)
-    return obs
+    return observe_frame(frame.depth_m, frame.intrinsics, T_map_camera, tracks, by_name, cfg.geometry,
+                         depth_range_m=depth_range, stamp_s=frame.stamp_s, rng=rng)
 
 
 def parse_lat_lon(text: str) -> tuple[float, float]:

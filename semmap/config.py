@@ -44,6 +44,10 @@ class StageConfig(BaseModel):
 
 
 HollowKind = Literal["full", "partial", "none"]
+#: What an object of a class looks like in depth, for separating it from what touches it
+#: (:mod:`semmap.shape_prior`): ``table`` (its top is its highest large horizontal surface),
+#: ``seat`` (a seat with a back above, never a large surface at table height), ``free``.
+ShapeKind = Literal["table", "seat", "free"]
 
 
 class GeometricPrior(StageConfig):
@@ -85,6 +89,8 @@ class ClassConfig(StageConfig):
     min_footprint_m: tuple[float, float] | None = None
     #: The sizes objects of this class come in (null: any); see :class:`GeometricPrior`.
     prior: GeometricPrior | None = None
+    #: The class's shape prior (see :data:`ShapeKind`).
+    shape: ShapeKind = "free"
 
     @field_validator("min_footprint_m")
     @classmethod
@@ -111,14 +117,15 @@ def default_classes() -> list[ClassConfig]:
     desks show enough of themselves in the band, and growing them closes passages. Chairs and
     sofas span seat to backrest: their top plane, where found, is the seat."""
     return [
-        ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75),
+        ClassConfig(name="chair", hollow="full", margin_m=0.20, color_rgb=(230, 25, 75), shape="seat",
                     prior=GeometricPrior(height_m=(0.38, 1.3), footprint_long_m=(0.3, 0.9),
                                          footprint_short_m=(0.3, 0.8))),
-        ClassConfig(name="coffee_table", hollow="full", margin_m=0.20, color_rgb=(60, 180, 75),
+        ClassConfig(name="coffee_table", hollow="full", margin_m=0.20, color_rgb=(60, 180, 75), shape="table",
                     min_footprint_m=(0.75, 0.45),
                     prior=GeometricPrior(height_m=(0.25, 0.58), footprint_long_m=(0.4, 1.6),
                                          footprint_short_m=(0.3, 1.0))),
         ClassConfig(name="conference_table", hollow="partial", margin_m=0.25, color_rgb=(0, 130, 200),
+                    shape="table",
                     min_footprint_m=(1.8, 0.9),
                     prior=GeometricPrior(height_m=(0.68, 0.82), footprint_long_m=(1.9, 8.0),
                                          footprint_short_m=(0.85, 2.5))),
@@ -128,7 +135,7 @@ def default_classes() -> list[ClassConfig]:
         ClassConfig(name="whiteboard", hollow="full", margin_m=0.25, color_rgb=(145, 30, 180),
                     prior=GeometricPrior(height_m=(1.4, 2.4), footprint_long_m=(0.5, 2.5),
                                          footprint_short_m=(0.0, 0.8))),
-        ClassConfig(name="desk", hollow="full", margin_m=0.25, color_rgb=(70, 240, 240),
+        ClassConfig(name="desk", hollow="full", margin_m=0.25, color_rgb=(70, 240, 240), shape="table",
                     prior=GeometricPrior(height_m=(0.62, 0.9), footprint_long_m=(0.7, 2.0),
                                          footprint_short_m=(0.4, 0.95))),
     ]
@@ -345,8 +352,10 @@ class MapConfig(StageConfig):
     #: altitude, what a plain 2D map gives; for comparisons such as ``bench/safety.py``).
     mode: Literal["semantic", "metric"] = "semantic"
     # Object map.
-    existence_hit_logodds: float = Field(default=0.85, gt=0.0)
-    #: Prior before the first observation: one sighting alone does not confirm an object.
+    #: Existence log-odds one view of full quality adds (a close, clean, confident view; see
+    #: :func:`semmap.object_evidence.view_quality`): one such view confirms an object.
+    existence_hit_logodds: float = Field(default=1.4, gt=0.0)
+    #: Prior before the first observation: a weak sighting alone does not confirm an object.
     existence_initial: float = Field(default=0.3, gt=0.0, lt=1.0)
     #: Objects below this existence probability are removed.
     existence_remove_below: float = Field(default=0.15, ge=0.0, lt=1.0)

@@ -44,6 +44,7 @@ from semmap.frames import Transform, invert
 from semmap.pointcloud import valid_depth_mask, window_points_map
 from semmap.polygons import convex_footprint, simplify_polygon
 from semmap.ransac import Plane, fit_plane
+from semmap.shape_prior import shape_mask
 from semmap.types import CameraIntrinsics, Track
 
 #: A box this close to the image border may be cut by it (detector boxes jitter by a few px).
@@ -98,6 +99,9 @@ class ObjectObservation:
     points_xy_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     #: The camera's map-plane position for this view (where the unseen side is); None unknown.
     camera_xy_m: tuple[float, float] | None = None
+    #: (K, 3) the object's downsampled points in the map frame (which points are whose, when
+    #: boxes of one frame overlap; see :mod:`semmap.frame_objects`).
+    voxels_map_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def centroid_xy_m(self) -> NDArray[np.float64]:
@@ -152,6 +156,26 @@ class CameraView:
             measured = float(np.median(patch[ok]))
             out[i] = measured >= z[i] - self.tolerance_m
         return out
+
+
+def voxel_keys(points_m: NDArray[np.floating], voxel_m: float, shift_m: float = 0.0) -> NDArray[np.int64]:
+    """(N,) one integer per voxel ``floor((p + shift_m) / voxel_m)`` of points (N, 3) (21 bits
+    per axis: +-31 km at 3 cm)."""
+    p = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    ijk = np.floor((p + shift_m) / voxel_m).astype(np.int64) + (1 << 20)
+    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+#: Key differences of the 27 voxels around and including one (see :func:`voxel_keys`).
+_NEIGHBOUR_KEY_STEPS = np.array([(i << 42) + (j << 21) + k for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
+                                dtype=np.int64)
+
+
+def within_a_voxel(a_m: NDArray[np.floating], b_m: NDArray[np.floating], voxel_m: float) -> NDArray[np.bool_]:
+    """(N,) True where a point of ``a_m`` (N, 3) lies in a voxel of a point of ``b_m`` (M, 3) or
+    in one of the 26 around it: exact, for taking other objects' points out of a box."""
+    grown = (voxel_keys(b_m, voxel_m)[:, None] + _NEIGHBOUR_KEY_STEPS[None, :]).reshape(-1)
+    return np.isin(voxel_keys(a_m, voxel_m), grown)
 
 
 def shrink_box(
@@ -375,6 +399,9 @@ def observe_object(
     *,
     cluster_by: Literal["box", "voxels"] = "box",
     remove_walls: bool = True,
+    exclude_voxels_m: NDArray[np.float64] | None = None,
+    same_object_as_m: NDArray[np.float64] | None = None,
+    shape_prior: bool = True,
 ) -> ObjectObservation | None:
     """The object a track's box shows, or None when its depth holds no object.
 
@@ -386,7 +413,11 @@ def observe_object(
     nearest large cluster spanning the box (see :func:`_pick_cluster`); "voxels" the cluster
     with most voxels (Open3D's usual choice after ``cluster_dbscan``, for comparisons).
     ``remove_walls``: drop the wall behind the object first (:func:`background_walls`, fitted
-    on the pixels around the box) with everything beyond it.
+    on the pixels around the box) with everything beyond it. ``exclude_voxels_m`` (K, 3):
+    points of other objects (voxel centres, map frame); the box's points in their voxels
+    are not this object's. ``same_object_as_m`` (K, 3): the object is the cluster holding most
+    of these points (a second look at the same object, see :mod:`semmap.frame_objects`).
+    ``shape_prior``: apply the class's shape prior (:mod:`semmap.shape_prior`).
     """
     floor = floor if floor is not None else Plane.horizontal()
     H, W = np.asarray(depth_m).shape
@@ -434,6 +465,11 @@ def observe_object(
                 if np.count_nonzero(front) < params.min_cluster_points:
                     return None  # the box shows the wall only
                 tab = tab[:, front]
+    if exclude_voxels_m is not None and len(exclude_voxels_m):
+        mine = ~within_a_voxel(tab[:3].T, exclude_voxels_m, params.voxel_size_m)
+        if np.count_nonzero(mine) < params.min_cluster_points:
+            return None  # the box shows other objects only
+        tab = tab[:, mine]
     pts = tab[:3].T  # (N, 3) view
     heights, rng_cam, clearance = tab[_H], tab[_RANGE], tab[_CLEAR]
 
@@ -444,13 +480,31 @@ def observe_object(
     point_label = vox_label[inverse]
     if cluster_by == "voxels":
         best = 0  # labels are ordered by voxel count
+    elif same_object_as_m is not None and len(same_object_as_m):
+        # The object seen before (this box's first look, less other objects' points): the
+        # cluster holding most of it, not whatever now spans the box best.
+        ours = np.isin(voxel_keys(vox, params.voxel_size_m), voxel_keys(same_object_as_m, params.voxel_size_m))
+        best = int(np.argmax(np.bincount(vox_label[ours], minlength=int(vox_label.max()) + 1))) if ours.any() else 0
     else:
         best = _pick_cluster(point_label, rng_cam, tab[_U:].T.astype(np.int64), window,
                              params.cluster_min_pixel_frac, params.cluster_min_box_cover)
-    obj_vox = vox[vox_label == best]
+    obj_idx = np.flatnonzero(vox_label == best)
+    if shape_prior and class_cfg.shape != "free":
+        # Touching furniture is one cluster: the class's shape says which part is this object.
+        obj_vox = vox[obj_idx]
+        keep = shape_mask(obj_vox, floor.signed_distance_m(obj_vox), class_cfg.shape, params.voxel_size_m,
+                          params.min_plane_points)
+        if keep.sum() < params.min_cluster_points:
+            return None  # the box shows another object's top only
+        if not keep.all():
+            piece = euclidean_clusters(obj_vox[keep], eps)  # what is left may fall apart
+            obj_idx = obj_idx[keep][piece == 0]
+    obj_vox = vox[obj_idx]
     if len(obj_vox) < params.min_cluster_points:
         return None
-    on_obj = np.flatnonzero(point_label == best)
+    in_obj = np.zeros(len(vox), dtype=bool)
+    in_obj[obj_idx] = True
+    on_obj = np.flatnonzero(in_obj[inverse])
     obj_h = heights[on_obj]
     # Clearance at the object's lowest point: the floor cut removed up to that much of it.
     lowest = int(np.argmin(obj_h))
@@ -475,6 +529,8 @@ def observe_object(
             top_plane = fit.plane
             inl = obj_vox[fit.inliers]
             top_height = _median(floor.signed_distance_m(inl))
+    if shape_prior and class_cfg.shape == "table" and top_height is not None:
+        z_min = 0.0  # a table stands on the floor on legs the chairs round it often hide
 
     # Projection onto the map plane: all object points, the top among them, so the space
     # between legs lies inside the hull.
@@ -501,4 +557,5 @@ def observe_object(
         top_height_m=top_height,
         at_image_edge=bool(touches),
         camera_xy_m=(float(cam_pos[0]), float(cam_pos[1])),
+        voxels_map_m=obj_vox,
     )

@@ -24,7 +24,21 @@ from numpy.typing import NDArray
 
 from semmap.polygons import convex_footprint, inside_convex, min_perimeter_rectangle
 
-__all__ = ["CELL_M", "FootprintEvidence", "cell_centres", "cell_keys"]
+__all__ = ["CELL_M", "FootprintEvidence", "cell_centres", "cell_keys", "view_quality"]
+
+#: A detector score at or above this is full evidence of the box (COCO models top out near it).
+QUALITY_FULL_SCORE = 0.6
+#: Views within this range are full evidence; beyond, the weight falls linearly to
+#: ``QUALITY_FAR_WEIGHT`` at ``far_range_m`` (depth noise grows with range squared).
+QUALITY_NEAR_RANGE_M = 3.5
+QUALITY_FAR_WEIGHT = 0.25
+#: Weight of a view cut by the image border (part of the object is missing).
+QUALITY_EDGE_WEIGHT = 0.6
+#: Voxels of a fully measured object; fewer is a glimpse (weight in proportion).
+QUALITY_FULL_VOXELS = 60
+#: Weight of a view of a hollow-bottom object where no top plane was found (the 3D fit
+#: does not agree with the class).
+QUALITY_NO_TOP_WEIGHT = 0.7
 
 #: Cell size of the evidence, metres.
 CELL_M = 0.02
@@ -98,3 +112,21 @@ class FootprintEvidence:
         corners = np.concatenate([hull + [-h, -h], hull + [h, -h], hull + [h, h], hull + [-h, h]])
         # The rectangle takes the hull of the corners itself: one hull, not two.
         return min_perimeter_rectangle(corners) if shape == "rectangle" else convex_footprint(corners)
+
+
+def view_quality(score: float, range_m: float, at_image_edge: bool, n_voxels: int, has_top: bool | None,
+                 far_range_m: float) -> float:
+    """How much one observation says an object is there, in [0, 1]: the box score, the range,
+    how much of the object the view holds (cut by the border, few voxels) and whether the 3D
+    fit agrees with the class (``has_top``: a hollow class's top plane was found; None when
+    the class has none). A close, clean, confident view is 1."""
+    q = min(1.0, max(0.0, score) / QUALITY_FULL_SCORE)
+    if range_m > QUALITY_NEAR_RANGE_M:
+        t = min(1.0, (range_m - QUALITY_NEAR_RANGE_M) / max(1e-6, far_range_m - QUALITY_NEAR_RANGE_M))
+        q *= 1.0 - (1.0 - QUALITY_FAR_WEIGHT) * t
+    if at_image_edge:
+        q *= QUALITY_EDGE_WEIGHT
+    q *= min(1.0, n_voxels / QUALITY_FULL_VOXELS)
+    if has_top is False:
+        q *= QUALITY_NO_TOP_WEIGHT
+    return q

@@ -41,7 +41,7 @@ from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
 from semmap.errors import MapError
 from semmap.geometry import CameraView, ObjectObservation
-from semmap.object_evidence import FootprintEvidence
+from semmap.object_evidence import FootprintEvidence, view_quality
 from semmap.polygons import (
     convex_footprint,
     convex_intersection,
@@ -108,6 +108,9 @@ _CONTAINED = 0.6
 #: An unassociated observation whose top plane is within this (metres) of a mapped object's
 #: top, reaching no higher, and lying mostly inside its footprint shows that object's surface.
 _SAME_SURFACE_M = 0.04
+#: A table's top seen again from elsewhere joins it when the footprints overlap at least this
+#: much (intersection over the smaller).
+_SAME_TOP_OVERLAP = 0.05
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,6 +197,9 @@ class _State:
     first_seen_s: float
     last_seen_s: float
     n_observations: int = 0
+    #: Sum of the views' qualities (:func:`semmap.object_evidence.view_quality`): how well
+    #: supported the object is, for choosing which of two duplicates to keep.
+    support: float = 0.0
     #: Quality of the views the shape comes from: 2 x (within footprint_max_range_m) +
     #: (not cut by the image border); -1 before the first.
     shape_tier: int = -1
@@ -301,6 +307,7 @@ class ObjectMap:
                     position_var_m2=float(d["position_std_m"]) ** 2, hull_xy_m=fp,
                     first_seen_s=float(d["first_seen_s"]), last_seen_s=float(d["last_seen_s"]),
                     n_observations=int(d["n_observations"]), shape_tier=0, seen_near=True,
+                    support=float(d["n_observations"]),
                 )
                 z0, z1 = float(d["z_min_m"]), float(d["z_max_m"])
                 top = d.get("top_height_m")
@@ -351,7 +358,10 @@ class ObjectMap:
             if oid is None:
                 owner = self._surface_owner(obs[i])
                 if owner is not None:
-                    # Not fused (its class and track belong to something else) and no new object.
+                    # No new object, and its geometry is not fused (its track belongs to
+                    # something else); a second box of the same class is still a detection.
+                    if int(np.argmax(self._objects[owner].class_probs)) in self._vote_indices(obs[i].class_name):
+                        self._raise_existence(self._objects[owner], obs[i])
                     assigned[i] = owner
                     shown.add(owner)
                     continue
@@ -405,7 +415,15 @@ class ObjectMap:
         same_class = int(np.argmax(a.class_probs)) == int(np.argmax(b.class_probs))
         return same_class and not both_seen_now and (
             iou >= cfg.reassociate_iou or contained >= _CONTAINED or dist <= cfg.reassociate_distance_m
+            or (contained > _SAME_TOP_OVERLAP and self._same_table_top(a, b))
         )
+
+    def _same_table_top(self, a: _State, b: _State) -> bool:
+        """Two parts of one table's top: both table-shaped, seen near, the same top plane."""
+        k = int(np.argmax(a.class_probs))
+        if self.classes[k].shape != "table" or not (a.top_hist and b.top_hist and a.seen_near and b.seen_near):
+            return False
+        return abs(_quantile(a.top_hist, 0.5) - _quantile(b.top_hist, 0.5)) <= _SAME_SURFACE_M
 
     def _shows_surface_of(self, inner: _State, outer: _State) -> bool:
         """``inner`` is ``outer``'s surface mapped a second time (often under another class): both
@@ -455,7 +473,8 @@ class ObjectMap:
                     continue
                 a, b = self._objects[other], self._objects[oid]
                 if self._same_object(a, b, other in seen_now and oid in seen_now):
-                    keep, drop = (a, b) if a.object_id < b.object_id else (b, a)
+                    # The better-supported object survives, whatever the ids (ties: the older).
+                    keep, drop = (a, b) if (a.support, -a.object_id) >= (b.support, -b.object_id) else (b, a)
                     self._absorb(keep, drop)
                     merged[drop.object_id] = keep.object_id
                     break
@@ -467,9 +486,13 @@ class ObjectMap:
 
     def _absorb(self, keep: _State, drop: _State) -> None:
         """Fold ``drop`` into ``keep`` and remove it."""
-        p = keep.class_probs * drop.class_probs * len(self.class_names)  # uniform prior once
-        p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
+        # Class evidence fused by weight: multiplying the two posteriors counted the shared
+        # views twice and let a few confident boxes of the wrong object outvote many.
+        wk, wd = max(keep.support, 1e-6), max(drop.support, 1e-6)
+        p = (wk * keep.class_probs + wd * drop.class_probs) / (wk + wd)
+        p = np.maximum(p, _MIN_CLASS_PROB)
         keep.class_probs = p / p.sum()
+        keep.support += drop.support
         keep.logodds = max(keep.logodds, drop.logodds)
         keep.seen_near = keep.seen_near or drop.seen_near
         va, vb = keep.position_var_m2, drop.position_var_m2
@@ -502,30 +525,49 @@ class ObjectMap:
     def _associate(self, o: ObjectObservation, used: set[int]) -> int | None:
         cfg = self.config
         oid = self._track_to_object.get(o.track_id)
+        fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
+        track_object: int | None = None
         if oid is not None and oid in self._objects and oid not in used:
             s = self._objects[oid]
             if np.linalg.norm(s.position_m[:2] - o.centroid_xy_m) <= cfg.track_gate_m:
-                return oid
-            log.debug("track %d jumped %.2f m from object %d: new object", o.track_id,
-                      float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m)), oid)
+                if _consistent(s.hull_xy_m, fp):
+                    return oid
+                # The track's box moved off its object (a camera passing along a long desk
+                # whose first view was a corner): an object this view overlaps takes it.
+                track_object = oid
+            else:
+                log.debug("track %d jumped %.2f m from object %d: new object", o.track_id,
+                          float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m)), oid)
         ks = self._votes_for.get(o.class_name) or [self._class_index[o.class_name]]
         best: tuple[float, float, int] | None = None
-        fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
         for cand in self._nearby(fp.min(axis=0), fp.max(axis=0), o.centroid_xy_m):
-            if cand in used:
+            if cand in used or cand == track_object:
                 continue
             s = self._objects[cand]
             iou, contained = _overlaps(s.hull_xy_m, fp)
             dist = float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m))
             same_class = int(np.argmax(s.class_probs)) in ks
             ok = (same_class and (iou >= cfg.reassociate_iou or contained >= _CONTAINED
-                                  or dist <= cfg.reassociate_distance_m)) or (
+                                  or dist <= cfg.reassociate_distance_m
+                                  or (contained > _SAME_TOP_OVERLAP and self._same_top(s, o)))) or (
                 iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou)
             )
             score = max(iou, contained if same_class else 0.0)
-            if ok and (best is None or (score, -dist) > (best[0], best[1])):
+            if ok and (best is None or (score, -dist) > (best[0], best[1])) and (track_object is None or score > 0):
                 best = (score, -dist, cand)
-        return None if best is None else best[2]
+        if best is None:
+            return track_object
+        return best[2]
+
+    def _same_top(self, s: _State, o: ObjectObservation) -> bool:
+        """The observation shows more of a table-shaped object's top: its top plane is the
+        object's (within ``_SAME_SURFACE_M``) and it reaches no higher. Another part of a long
+        table seen from its other end overlaps the part seen before only at the seam."""
+        k = int(np.argmax(s.class_probs))
+        if self.classes[k].shape != "table" or o.top_height_m is None or not s.top_hist:
+            return False
+        top = _quantile(s.top_hist, 0.5)
+        return abs(o.top_height_m - top) <= _SAME_SURFACE_M and o.z_max_m <= top + _SAME_SURFACE_M
 
     def _surface_owner(self, o: ObjectObservation) -> int | None:
         """The object whose surface an unassociated observation shows, or None.
@@ -589,12 +631,7 @@ class ObjectMap:
         p = s.class_probs * self._class_likelihood(o.class_name, o.score)
         p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
         s.class_probs = p / p.sum()
-        # Beyond footprint_max_range_m depth noise blurs an object into what stands behind it
-        # (a half-hidden whiteboard's box then shows the wall): such views raise existence,
-        # but only a nearer one confirms the object (else it stays tentative and times out).
-        s.seen_near = s.seen_near or o.range_m <= cfg.footprint_max_range_m
-        cap = _logit(cfg.existence_max) if s.seen_near else _logit(cfg.existence_confirm) - _UNCONFIRMED_MARGIN
-        s.logodds = min(s.logodds + cfg.existence_hit_logodds, max(s.logodds, cap))
+        self._raise_existence(s, o)
         s.n_observations += 1
         s.last_seen_s = max(s.last_seen_s, o.stamp_s)
         s.first_seen_s = min(s.first_seen_s, o.stamp_s)
@@ -647,6 +684,24 @@ class ObjectMap:
                 s.n_views += 1
         s.footprint_cache = None
 
+    def _vote_indices(self, class_name: str) -> list[int]:
+        return self._votes_for.get(class_name) or [self._class_index[class_name]]
+
+    def _raise_existence(self, s: _State, o: ObjectObservation) -> None:
+        """Existence rises with the quality of the view: one close, clean view can confirm."""
+        cfg = self.config
+        s.snapshot_cache = None
+        # Beyond footprint_max_range_m depth noise blurs an object into what stands behind it
+        # (a half-hidden whiteboard's box then shows the wall): such views raise existence,
+        # but only a nearer one confirms the object (else it stays tentative and times out).
+        s.seen_near = s.seen_near or o.range_m <= cfg.footprint_max_range_m
+        cap = _logit(cfg.existence_max) if s.seen_near else _logit(cfg.existence_confirm) - _UNCONFIRMED_MARGIN
+        hollow = self.classes[self._class_index[o.class_name]].hollow != "none"
+        q = view_quality(o.score, o.range_m, o.at_image_edge, o.n_voxels,
+                         (o.top_height_m is not None) if hollow else None, cfg.footprint_max_range_m)
+        s.support += q
+        s.logodds = min(s.logodds + cfg.existence_hit_logodds * q, max(s.logodds, cap))
+
     def _evidence_footprint(self, s: _State) -> NDArray[np.float64]:
         """The footprint from the evidence (:meth:`FootprintEvidence.footprint`), or from the
         observed hull before there is any."""
@@ -666,7 +721,11 @@ class ObjectMap:
         if not ids:
             return
         cents = np.array([self._objects[oid].position_m for oid in ids])
-        visible = view.expects_visible(cents)
+        # A miss counts only where the detector should have seen the object: in view, not
+        # occluded (expects_visible), and near enough to be detected.
+        cam = np.asarray(view.T_map_camera, dtype=np.float64)[:3, 3]
+        near = np.linalg.norm(cents - cam, axis=1) <= self.config.footprint_max_range_m
+        visible = view.expects_visible(cents) & near
         for oid, vis in zip(ids, visible, strict=True):
             if vis:
                 s = self._objects[oid]

@@ -99,7 +99,7 @@ def test_occluded_or_out_of_view_objects_keep_their_existence() -> None:
 
 def test_unconfirmed_objects_time_out() -> None:
     m = ObjectMap(default_classes(), MapConfig(tentative_timeout_s=2.0))
-    m.update([obs(99, cls="sofa")], 0.0)
+    m.update([obs(99, cls="sofa", score=0.4)], 0.0)  # a weak sighting: tentative
     m.update([], 1.0)
     assert len(m) == 1
     m.update([], 3.0)

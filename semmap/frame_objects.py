@@ -1,0 +1,116 @@
+"""All boxes of one frame together: which object a point belongs to when boxes overlap.
+
+:func:`semmap.geometry.observe_object` sees one box at a time, and a box holds more than its
+object where furniture touches or stands in front: a table's box holds the chairs in front of
+it, a chair behind a table holds the table top. :func:`observe_frame` observes every box, then
+gives each point to the object the other boxes of the frame say it belongs to, and observes a
+box again without the points that are not its own:
+
+* **a nearer object**: a point in the box's cluster that is also in the cluster of another,
+  overlapping box whose object is nearer the camera (by ``NEARER_BY_M``) belongs to that
+  object (it stands in front; this box sees it only where it covers the farther one);
+* **nothing of its own**: a box whose first look found no object of its class (a chair's
+  box holding only the table top in front of it) is looked at again without the other
+  overlapping boxes' objects;
+* **another box's object**: a box whose cluster is mostly the object of another box that sees
+  more of it (the table top filling the lower part of a box round a chair behind the table),
+  or that is not cut by the image border while this one is (a table running out of the
+  image, with a chair in front of it), shows that object: this box's object is what remains
+  behind it, or nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semmap.config import ClassConfig, GeometryConfig
+from semmap.frames import Transform
+from semmap.geometry import ObjectObservation, observe_object, within_a_voxel
+from semmap.ransac import Plane
+from semmap.types import CameraIntrinsics, Track
+
+__all__ = ["observe_frame"]
+
+#: Another box's object is nearer when its range is smaller by at least this (metres).
+NEARER_BY_M = 0.2
+#: A box's cluster "is" another box's object when this share of its voxels is.
+SHARED_FRAC = 0.5
+#: Points of other objects are taken out only when they are at least this share of the box's
+#: object (a few shared voxels at a contact line change nothing).
+MIN_FOREIGN_FRAC = 0.1
+
+
+def _boxes_overlap(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def _bounds_meet(a_m: NDArray[np.float64], b_m: NDArray[np.float64], margin_m: float) -> bool:
+    """The bounding boxes of two point sets (N, 3), (M, 3) meet within ``margin_m``."""
+    return bool(np.all(a_m.min(axis=0) <= b_m.max(axis=0) + margin_m)
+                and np.all(b_m.min(axis=0) <= a_m.max(axis=0) + margin_m))
+
+
+def observe_frame(
+    depth_m: NDArray[np.floating], intrinsics: CameraIntrinsics, T_map_camera: Transform,
+    tracks: Sequence[Track], classes: Mapping[str, ClassConfig], params: GeometryConfig,
+    floor: Plane | None = None, depth_range_m: tuple[float, float] = (0.0, math.inf), stamp_s: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> list[ObjectObservation]:
+    """The observations of one frame's tracks (see the module doc), in track order; tracks
+    whose box holds no object of its own have none. ``classes``: class name -> its config."""
+    rng = rng if rng is not None else np.random.default_rng(0)
+
+    def observe(tr: Track, exclude: NDArray[np.float64] | None = None,
+                same: NDArray[np.float64] | None = None) -> ObjectObservation | None:
+        return observe_object(depth_m, intrinsics, T_map_camera, tr, classes[tr.class_name], params, floor,
+                              depth_range_m, stamp_s, rng, exclude_voxels_m=exclude, same_object_as_m=same)
+
+    first = [observe(tr) for tr in tracks]
+    out: list[ObjectObservation] = []
+    for i, (tr, o) in enumerate(zip(tracks, first, strict=True)):
+        if o is None:
+            # Nothing of its own at first look (a seat's box whose cluster was another object's
+            # top, see semmap.shape_prior): it may be behind the other boxes' objects.
+            if classes[tr.class_name].shape != "seat":
+                continue
+            others = [p.voxels_map_m for j, p in enumerate(first)
+                      if j != i and p is not None and _boxes_overlap(tr.xyxy_px, tracks[j].xyxy_px)]
+            behind = observe(tr, np.concatenate(others)) if others else None
+            if behind is not None:
+                out.append(behind)
+            continue
+        foreign: list[NDArray[np.float64]] = []
+        shown = False
+        for j, (other, p) in enumerate(zip(tracks, first, strict=True)):
+            if j == i or p is None or not _boxes_overlap(tr.xyxy_px, other.xyxy_px):
+                continue
+            nearer = p.range_m < o.range_m - NEARER_BY_M
+            fuller = p.n_voxels > o.n_voxels or (o.at_image_edge and not p.at_image_edge)
+            if not (nearer or fuller) or not _bounds_meet(o.voxels_map_m, p.voxels_map_m, 2 * params.voxel_size_m):
+                continue  # neither rule can apply: no need to look at the points
+            frac = float(np.count_nonzero(within_a_voxel(o.voxels_map_m, p.voxels_map_m, params.voxel_size_m)))
+            frac /= max(1, len(o.voxels_map_m))
+            # Mostly another box's object, seen more fully there (more of it, or not cut).
+            shows_other = frac >= SHARED_FRAC and fuller
+            if (nearer and frac >= MIN_FOREIGN_FRAC) or shows_other:
+                foreign.append(p.voxels_map_m)
+                shown = shown or shows_other
+        if not foreign:
+            out.append(o)
+            continue
+        # Showing another object: this box's own is whatever remains. Else it is the same
+        # cluster as before, less the nearer objects' points.
+        excluded = np.concatenate(foreign)
+        same = None
+        if not shown:
+            same = o.voxels_map_m[~within_a_voxel(o.voxels_map_m, excluded, params.voxel_size_m)]
+            if len(same) < params.min_cluster_points:
+                continue  # it was the nearer object's points all along
+        again = observe(tr, excluded, same)
+        if again is not None:
+            out.append(again)
+    return out
