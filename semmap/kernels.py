@@ -1,8 +1,8 @@
 """Compile the numba kernels of the per-frame map update before the first frame needs them.
 
 Object geometry (:mod:`semmap.pointcloud`, :mod:`semmap.clustering`, :mod:`semmap.ransac`,
-the wall search in :mod:`semmap.geometry`) and the band scan (:mod:`semmap.scan`) run
-numba-compiled kernels. numba compiles each on its first call, about 8 s for all of them on
+the wall search in :mod:`semmap.geometry`, the surface search in :mod:`semmap.shape_prior`)
+and the band scan (:mod:`semmap.scan`) run numba-compiled kernels. numba compiles each on its first call, about 8 s for all of them on
 this 2-core machine, and caches the machine code (``cache=True``: ``__pycache__`` beside
 the modules, numba's per-user cache where that is read-only, or ``$NUMBA_CACHE_DIR``);
 loading them from the cache takes about 0.3 s. :func:`warm_up` pays either cost up front,
