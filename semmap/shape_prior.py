@@ -67,13 +67,15 @@ class Layer:
 
 def horizontal_layers(
     xyz_m: NDArray[np.float64], heights_m: NDArray[np.float64], voxel_m: float, min_points: int,
-    between_m: tuple[float, float] = (-np.inf, np.inf), highest_only: bool = False,
+    between_m: tuple[float, float] = (-np.inf, np.inf), highest_only: bool = False, min_area_m2: float = 0.0,
 ) -> list[Layer]:
     """The horizontal surfaces of a cluster's voxels (M, 3) with heights (M,), lowest first:
     height bins (``LAYER_BIN_M``, two adjacent bins together) holding at least ``min_points``
     voxels and ``LAYER_MIN_SHARE`` of the fullest bin pair; of neighbouring candidates the
     fuller one. Only candidates starting within ``between_m`` are measured; ``highest_only``:
-    just the highest surface spanning ``TABLE_TOP_MIN_AREA_M2`` (what a table prior needs)."""
+    just the highest surface spanning ``TABLE_TOP_MIN_AREA_M2`` (what a table prior needs).
+    ``min_area_m2``: surfaces spanning less are left out (they still hide a candidate next to
+    them), so a caller that would reject them anyway does not pay for their rectangles."""
     h = np.asarray(heights_m, dtype=np.float64)
     if len(h) < min_points:
         return []
@@ -82,12 +84,16 @@ def horizontal_layers(
     counts = np.bincount(idx)
     pair = counts + np.concatenate([counts[1:], [0]])
     need = max(float(min_points), LAYER_MIN_SHARE * float(pair.max()))
-    cand = [k for k in range(len(pair)) if pair[k] >= need
-            and pair[k] >= (pair[k - 1] if k > 0 else 0) and pair[k] >= (pair[k + 1] if k + 1 < len(pair) else 0)
+    pc = pair.tolist()  # plain ints: the scan below compares each bin with its neighbours
+    cand = [k for k in range(len(pc)) if pc[k] >= need
+            and pc[k] >= (pc[k - 1] if k > 0 else 0) and pc[k] >= (pc[k + 1] if k + 1 < len(pc) else 0)
             and between_m[0] < lo + k * LAYER_BIN_M <= between_m[1]]
+    if highest_only:
+        min_area_m2 = max(min_area_m2, TABLE_TOP_MIN_AREA_M2)  # a smaller highest surface is never returned
     out: list[Layer] = []
+    last_height_m: float | None = None  # of the last surface found, also one too small to return
     for k in (cand[::-1] if highest_only else cand):
-        if out and abs(k - int(round((out[-1].height_m - lo) / LAYER_BIN_M))) <= 1:
+        if last_height_m is not None and abs(k - int(round((last_height_m - lo) / LAYER_BIN_M))) <= 1:
             continue  # the same surface over two bin pairs
         pair_members = (idx == k) | (idx == k + 1)
         members = np.abs(h - float(np.median(h[pair_members]))) <= LAYER_BIN_M
@@ -95,16 +101,18 @@ def horizontal_layers(
         if solid.sum() < min_points:
             continue  # thin structures crossing this height, not a surface
         members[np.flatnonzero(members)[~solid]] = False
+        last_height_m = float(np.median(h[members]))
         xy = xyz_m[members, :2]
         hull = convex_footprint(xy, min_width_m=voxel_m)
         area = polygon_area_m2(hull)
+        if area < min_area_m2:
+            continue
         rect = min_perimeter_rectangle(hull)
         sides = np.hypot(*(rect[1] - rect[0])), np.hypot(*(rect[3] - rect[0]))
         fill = min(1.0, float(members.sum()) * voxel_m * voxel_m / area) if area > 0 else 0.0
-        out.append(Layer(float(np.median(h[members])), members, hull, area, fill, float(max(sides)),
-                         float(min(sides))))
-        if highest_only and area >= TABLE_TOP_MIN_AREA_M2:
-            return out[-1:]
+        out.append(Layer(last_height_m, members, hull, area, fill, float(max(sides)), float(min(sides))))
+        if highest_only:
+            return out
     return [] if highest_only else out
 
 
@@ -191,7 +199,8 @@ def shape_mask(
     if shape == "seat":
         # Candidates are found by their lower bin; a surface at the bounds is found from either.
         heights_band = (SEAT_MAX_HEIGHT_M - LAYER_BIN_M, FOREIGN_TOP_MAX_HEIGHT_M)
-        for L in horizontal_layers(xyz_m, heights_m, voxel_m, min_points, between_m=heights_band):
+        for L in horizontal_layers(xyz_m, heights_m, voxel_m, min_points, between_m=heights_band,
+                                   min_area_m2=FOREIGN_TOP_MIN_AREA_M2):
             if (SEAT_MAX_HEIGHT_M < L.height_m <= FOREIGN_TOP_MAX_HEIGHT_M and L.area_m2 >= FOREIGN_TOP_MIN_AREA_M2
                     and L.short_side_m >= FOREIGN_TOP_MIN_SHORT_M and L.fill >= FOREIGN_TOP_MIN_FILL):
                 band = np.abs(heights_m - L.height_m) <= LAYER_BIN_M
