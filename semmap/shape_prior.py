@@ -194,7 +194,9 @@ def shape_mask(
             return keep
         top = tops[0]
         keep &= heights_m <= top.height_m + TABLE_ABOVE_TOP_M
-        keep &= _near_hull(top.hull_xy_m, xyz_m[:, :2], TABLE_OUTLINE_MARGIN_M) | top.members
+        # The outline test only for the points it decides (below the top, not the top itself).
+        ask = keep & ~top.members
+        keep[ask] = _near_hull(top.hull_xy_m, xyz_m[ask, :2], TABLE_OUTLINE_MARGIN_M)
         return keep
     if shape == "seat":
         # Candidates are found by their lower bin; a surface at the bounds is found from either.
@@ -203,7 +205,11 @@ def shape_mask(
                                    min_area_m2=FOREIGN_TOP_MIN_AREA_M2):
             if (SEAT_MAX_HEIGHT_M < L.height_m <= FOREIGN_TOP_MAX_HEIGHT_M and L.area_m2 >= FOREIGN_TOP_MIN_AREA_M2
                     and L.short_side_m >= FOREIGN_TOP_MIN_SHORT_M and L.fill >= FOREIGN_TOP_MIN_FILL):
-                band = np.abs(heights_m - L.height_m) <= LAYER_BIN_M
-                keep &= ~(L.members | (band & _near_hull(L.hull_xy_m, xyz_m[:, :2], 2 * voxel_m)))
+                # The surface and, at its height, whatever lies at its outline (asked only of
+                # the points still kept that are not the surface already).
+                ask = keep & ~L.members & (np.abs(heights_m - L.height_m) <= LAYER_BIN_M)
+                foreign = L.members.copy()
+                foreign[ask] = _near_hull(L.hull_xy_m, xyz_m[ask, :2], 2 * voxel_m)
+                keep &= ~foreign
         return keep
     raise ValueError(f"unknown shape prior {shape!r} (known: table, seat, free)")
