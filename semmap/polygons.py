@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Literal
 
 import cv2
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -201,30 +202,39 @@ def convex_intersection(
         return np.zeros((0, 2))
     if (a.max(axis=0) < b.min(axis=0)).any() or (b.max(axis=0) < a.min(axis=0)).any():
         return np.zeros((0, 2))
-    # Plain floats: polygons have a handful of vertices, where numpy's per-call cost dominates.
-    out = [tuple(p) for p in _ccw(a).tolist()]
-    clip = [tuple(p) for p in _ccw(b).tolist()]
-    for i in range(len(clip)):
-        if not out:
+    return _clip_convex(np.ascontiguousarray(_ccw(a)), np.ascontiguousarray(_ccw(b)))
+
+
+@numba.njit(cache=True)
+def _clip_convex(subject: NDArray[np.float64], clip: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Sutherland-Hodgman: ``subject`` (M, 2) clipped by each edge of the counter-clockwise
+    convex ``clip`` (L, 2) in turn (compiled: the object map runs it for every pair of nearby
+    footprints each frame)."""
+    out = subject.copy()
+    n_clip = clip.shape[0]
+    for i in range(n_clip):
+        n = out.shape[0]
+        if n == 0:
             break
-        px, py = clip[i]
-        qx, qy = clip[(i + 1) % len(clip)]
-        ex, ey = qx - px, qy - py
-        src = out
-        out = []
-        n = len(src)
+        px, py = clip[i, 0], clip[i, 1]
+        ex, ey = clip[(i + 1) % n_clip, 0] - px, clip[(i + 1) % n_clip, 1] - py
+        nxt = np.empty((2 * n, 2), np.float64)  # each vertex adds itself and a crossing at most
+        k = 0
         for j in range(n):
-            x0, y0 = src[j]
-            x1, y1 = src[(j + 1) % n]
+            x0, y0 = out[j, 0], out[j, 1]
+            x1, y1 = out[(j + 1) % n, 0], out[(j + 1) % n, 1]
             # Left of the directed edge (inside a counter-clockwise clip polygon) is >= 0.
             s0 = ex * (y0 - py) - ey * (x0 - px)
             s1 = ex * (y1 - py) - ey * (x1 - px)
             if s0 >= 0:
-                out.append((x0, y0))
+                nxt[k, 0], nxt[k, 1] = x0, y0
+                k += 1
             if (s0 >= 0) != (s1 >= 0):
                 t = s0 / (s0 - s1)
-                out.append((x0 + t * (x1 - x0), y0 + t * (y1 - y0)))
-    return np.array(out, dtype=np.float64).reshape(-1, 2)
+                nxt[k, 0], nxt[k, 1] = x0 + t * (x1 - x0), y0 + t * (y1 - y0)
+                k += 1
+        out = nxt[:k].copy()
+    return out
 
 
 def convex_iou(a_xy_m: NDArray[np.floating], b_xy_m: NDArray[np.floating]) -> float:
