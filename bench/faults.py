@@ -238,6 +238,9 @@ def _inject_for(name: str, events: dict[str, Any]) -> Callable[..., Any] | None:
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             port = _link_port(svc)
             if name.endswith("signed"):
+                # The offboard-loss action the README's PX4 table prescribes (Hold): PX4's default
+                # (Position mode without RC) descends and lands within the 4 s cut.
+                world.autopilot.params.set("COM_OBL_RC_ACT", 5.0)
                 world.autopilot.faults.drop_link = True
             try:
                 for _ in range(80 if name.endswith("signed") else 60):
