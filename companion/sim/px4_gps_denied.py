@@ -41,7 +41,7 @@ from companion.service.sim_world import (
     start_point_room_m,
 )
 from companion.sim.odometry import OdometryDriftModel
-from companion.sim.px4_sitl import READY_LINE, Px4Sitl, Px4SitlError
+from companion.sim.px4_sitl import READY_LINE, Px4Sitl
 from companion.sources.poses import map_pose_from_ned
 from companion.sources.sim import room_from_config
 from semmap.frames import make_transform, pose_from_xyz_rpy, rpy_from_rotation, wrap_angle_rad
@@ -87,25 +87,12 @@ class GpsDeniedSitl(Px4Sitl):
     def _wait_ready(self) -> None:
         """Start-up returns once PX4's start-up script has run (its MAVLink links and shell
         are up); readiness for take-off is :meth:`wait_ready`'s."""
-        self._wait_for_line(STARTED_LINE)
+        self._wait_for_line(STARTED_LINE, poll_s=0.1)
 
     def wait_ready(self) -> None:
         """Block until PX4 says it is ready for take-off (raises :class:`Px4SitlError` when it
         exits or is not ready within ``ready_timeout_s``)."""
-        self._wait_for_line(READY_LINE)
-
-    def _wait_for_line(self, line: str) -> None:
-        assert self._proc is not None
-        t0 = time.monotonic()
-        while line not in self.log_text():
-            rc = self._proc.poll()
-            if rc is not None:
-                raise Px4SitlError(f"PX4 SITL instance {self.instance} exited with code {rc} before {line!r}; its "
-                                   f"log ({self.log_path}) ends:\n{self.log_tail()}")
-            if time.monotonic() - t0 > self.ready_timeout_s:
-                raise Px4SitlError(f"PX4 SITL instance {self.instance}: no {line!r} within {self.ready_timeout_s:.0f} "
-                                   f"s; its log ({self.log_path}) ends:\n{self.log_tail()}")
-            time.sleep(0.1)
+        self._wait_for_line(READY_LINE, poll_s=0.1)
 
     @property
     def display_url(self) -> str:

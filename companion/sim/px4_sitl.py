@@ -273,22 +273,24 @@ class Px4Sitl:
                  self._proc.pid, self.onboard_url, self.gcs_url, self.log_path)
 
     def _wait_ready(self) -> None:
+        self.ready_after_s = self._wait_for_line(READY_LINE)
+        log.info("PX4 SITL instance %d ready for take-off after %.1f s", self.instance, self.ready_after_s)
+
+    def _wait_for_line(self, line: str, poll_s: float = 0.25) -> float:
+        """Block until ``line`` is in PX4's console log; the seconds it took. Raises
+        :class:`Px4SitlError` when PX4 exits first or ``ready_timeout_s`` passes."""
         assert self._proc is not None
         t0 = time.monotonic()
-        while True:
-            text = self.log_text()
-            if READY_LINE in text:
-                self.ready_after_s = time.monotonic() - t0
-                log.info("PX4 SITL instance %d ready for take-off after %.1f s", self.instance, self.ready_after_s)
-                return
+        while line not in self.log_text():
             rc = self._proc.poll()
             if rc is not None:
-                raise Px4SitlError(f"PX4 SITL instance {self.instance} exited with code {rc} before it was "
-                                   f"ready; its log ({self.log_path}) ends:\n{self.log_tail()}")
+                raise Px4SitlError(f"PX4 SITL instance {self.instance} exited with code {rc} before {line!r}; its "
+                                   f"log ({self.log_path}) ends:\n{self.log_tail()}")
             if time.monotonic() - t0 > self.ready_timeout_s:
-                raise Px4SitlError(f"PX4 SITL instance {self.instance} not ready for take-off within "
-                                   f"{self.ready_timeout_s:.0f} s; its log ({self.log_path}) ends:\n{self.log_tail()}")
-            time.sleep(0.25)
+                raise Px4SitlError(f"PX4 SITL instance {self.instance}: no {line!r} within {self.ready_timeout_s:.0f} "
+                                   f"s; its log ({self.log_path}) ends:\n{self.log_tail()}")
+            time.sleep(poll_s)
+        return time.monotonic() - t0
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """End PX4 (SIGTERM to its process group, SIGKILL after ``timeout_s``); idempotent."""
