@@ -40,8 +40,10 @@ TAKEOFF_ALT_M = 1.0
 TAKEOFF_WATCH_S = 12.0
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def gps_denied_sitl() -> Iterator[GpsDeniedSitl]:
+    """A fresh PX4 for each test: the take-off test needs a vehicle whose estimator has not
+    been moved by another test's vision resets."""
     ok, why = sitl_available()
     if not ok:
         pytest.skip(why)
