@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 from companion.config import CompanionConfig, write_effective_config
 from companion.mavsdk_client import MavsdkClient
 from companion.missions import MissionPlan, Waypoint
+from companion.px4 import FlightMode
 from companion.service.app import CompanionService, ServiceReport
 from companion.service.checkpoint import checkpoint_path
 from companion.service.sim_world import START_INSIDE_M, SimPlacement, SimWorld, start_point_room_m
@@ -55,6 +56,8 @@ from semmap.export import export_all, render_picture
 log = logging.getLogger(__name__)
 
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+#: How long a run waits for a landing the service commanded to touch down (the mock lands at 0.7 m/s).
+LANDING_TIMEOUT_S = 30.0
 
 
 @dataclass
@@ -322,6 +325,11 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
                     await asyncio.wait_for(service.mission_done.wait(), timeout_s)
                 except TimeoutError:
                     log.error("demo: the mission did not finish within %.0f s", timeout_s)
+                # A landing the service commanded (SLAM or perception lost) ends the mission at
+                # once; the run, like a completed mission, ends with the vehicle on the ground.
+                ap, deadline = world.autopilot, time.monotonic() + LANDING_TIMEOUT_S
+                while ap.mode is FlightMode.LAND and ap.in_air and time.monotonic() < deadline:
+                    await asyncio.sleep(0.1)
                 stop.set()
 
             if inject is not None:
