@@ -327,8 +327,10 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
                     log.error("demo: the mission did not finish within %.0f s", timeout_s)
                 # A landing the service commanded (SLAM or perception lost) ends the mission at
                 # once; the run, like a completed mission, ends with the vehicle on the ground.
-                ap, deadline = world.autopilot, time.monotonic() + LANDING_TIMEOUT_S
-                while ap.mode is FlightMode.LAND and ap.in_air and time.monotonic() < deadline:
+                ap = world.autopilot
+                for _ in range(round(LANDING_TIMEOUT_S / 0.1)):
+                    if not (ap.mode is FlightMode.LAND and ap.in_air):
+                        break
                     await asyncio.sleep(0.1)
                 stop.set()
 
