@@ -52,11 +52,11 @@ from companion.service.mission_runner import (
     _remaining,
 )
 from companion.service.perception_worker import PerceptionPipeline, flight_band, new_semantic_map
-from companion.service.sim_world import SimPlacement
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.autopilot import telemetry as ap_telemetry
 from companion.sim.autopilot.behaviour import Px4Behaviour
 from companion.sim.render import RoomRenderer
+from companion.sim.sim_world import SimPlacement
 from planner.planner import Planner
 from planner.trajectory import Trajectory, TrajectoryLimits, time_parametrize
 from planner.types import PlanResult, PlanStatus

@@ -32,7 +32,7 @@ from companion.errors import LinkError
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.state import LandedState, LinkLike, MapFrame
 from companion.px4 import decode_heartbeat
-from companion.service.sim_world import (
+from companion.sim.sim_world import (
     SharedSimState,
     SimCameraSource,
     SimPlacement,

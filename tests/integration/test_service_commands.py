@@ -27,7 +27,8 @@ from companion.config import CompanionConfig, load_config
 from companion.mavlink.failsafe import OffboardState
 from companion.service.app import CompanionService
 from companion.service.checkpoint import checkpoint_path, restore_map
-from companion.service.demo import (
+from companion.service.mission_runner import position_enu
+from companion.sim.demo_e2e import (
     LocalBroker,
     crossing_waypoints_room,
     feasible_seed,
@@ -36,8 +37,7 @@ from companion.service.demo import (
     run_e2e,
     upload_mission_mavsdk,
 )
-from companion.service.mission_runner import position_enu
-from companion.service.sim_world import SimWorld
+from companion.sim.sim_world import SimWorld
 
 #: A closed-loop flight: the full suite runs it, `make check` does not.
 pytestmark = pytest.mark.slow

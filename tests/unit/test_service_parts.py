@@ -19,7 +19,7 @@ from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.localization import Localizer
 from companion.service.mission_runner import SURVEY_CARROT_DEG, SurveyTurn, mission_legs
 from companion.service.perception_worker import check_frame, new_semantic_map
-from companion.service.sim_world import SharedSimState
+from companion.sim.sim_world import SharedSimState
 from semmap.errors import FrameError, MissionError
 from semmap.frames import pose_from_xyz_rpy
 from semmap.types import CameraIntrinsics, Frame

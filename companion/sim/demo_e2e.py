@@ -1,7 +1,7 @@
 """The end-to-end demo: the whole service flying a MAVSDK-uploaded mission through a simulated room.
 
 In one process: the mock autopilot and the simulated RealSense in the seeded furnished room
-(:class:`~companion.service.sim_world.SimWorld`), a real Mosquitto broker when the binary is
+(:class:`~companion.sim.sim_world.SimWorld`), a real Mosquitto broker when the binary is
 installed, and the full :class:`~companion.service.app.CompanionService` (detector, tracker,
 semantic map, planner process, offboard). A mission that crosses the room - waypoints only,
 knowing nothing of the furniture - is uploaded with MAVSDK; the service downloads it and flies
@@ -38,7 +38,6 @@ from companion.missions import MissionPlan, Waypoint
 from companion.px4 import FlightMode
 from companion.service.app import CompanionService, ServiceReport
 from companion.service.checkpoint import checkpoint_path
-from companion.service.sim_world import START_INSIDE_M, SimPlacement, SimWorld, start_point_room_m
 from companion.sim.groundtruth import (
     clearance_m,
     collides,
@@ -46,6 +45,7 @@ from companion.sim.groundtruth import (
     room_grid_spec,
     semantic_costmap,
 )
+from companion.sim.sim_world import START_INSIDE_M, SimPlacement, SimWorld, start_point_room_m
 from companion.sim.world import Room
 from companion.sources.sim import room_from_config
 from planner.planner import Planner
@@ -327,8 +327,10 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
                     log.error("demo: the mission did not finish within %.0f s", timeout_s)
                 # A landing the service commanded (SLAM or perception lost) ends the mission at
                 # once; the run, like a completed mission, ends with the vehicle on the ground.
-                ap, deadline = world.autopilot, time.monotonic() + LANDING_TIMEOUT_S
-                while ap.mode is FlightMode.LAND and ap.in_air and time.monotonic() < deadline:
+                ap = world.autopilot
+                for _ in range(round(LANDING_TIMEOUT_S / 0.1)):
+                    if not (ap.mode is FlightMode.LAND and ap.in_air):
+                        break
                     await asyncio.sleep(0.1)
                 stop.set()
 
