@@ -38,7 +38,8 @@ from companion.errors import ConfigError, LinkError
 from companion.mavlink.signing import SIGNING_KEY_BYTES, read_key_file
 from companion.mavlink.subscription import Message, Subscription
 from companion.mavlink.tlog import TlogWriter
-from companion.mavlink.transport import Transport, UdpTransport, make_transport
+from companion.mavlink.transport import UdpTransport, make_transport
+from companion.mavlink.transport_base import Transport
 from companion.mavlink.urls import parse_url
 
 if TYPE_CHECKING:
