@@ -33,7 +33,6 @@ from companion.errors import LinkError
 from companion.geo import GeoOrigin
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.state import LinkLike
-from companion.mavlink.vision import R_FLU_FRD, R_NED_ENU
 from companion.sim.odometry import OdometryDriftModel
 from companion.sim.px4_sitl import READY_LINE, Px4Sitl
 from companion.sim.sim_world import (
@@ -42,9 +41,16 @@ from companion.sim.sim_world import (
     SimPlacement,
     start_point_room_m,
 )
-from companion.sources.poses import map_pose_from_ned
 from companion.sources.sim import room_from_config
-from semmap.frames import make_transform, pose_from_xyz_rpy, rpy_from_rotation, wrap_angle_rad
+from semmap.frames import (
+    R_FLU_FRD,
+    R_NED_ENU,
+    make_transform,
+    map_pose_from_ned,
+    pose_from_xyz_rpy,
+    rpy_from_rotation,
+    wrap_angle_rad,
+)
 
 log = logging.getLogger(__name__)
 

@@ -39,8 +39,8 @@ from companion.sim.sim_world import (
     start_point_room_m,
 )
 from companion.sim.world import Room
-from companion.sources.poses import map_pose_from_ned
 from companion.sources.sim import room_from_config
+from semmap.frames import map_pose_from_ned
 
 log = logging.getLogger(__name__)
 
