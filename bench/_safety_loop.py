@@ -40,6 +40,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from bench._safety_scenarios import Scenario
 from companion import px4
 from companion.config import CompanionConfig
+from companion.errors import SimulationError
 from companion.geo import GeoOrigin
 from companion.mavlink.failsafe import PositionSetpoint
 from companion.mavlink.offboard import encode_setpoint
@@ -62,7 +63,6 @@ from planner.trajectory import Trajectory, TrajectoryLimits, time_parametrize
 from planner.types import PlanResult, PlanStatus
 from semmap.costmap import Costmap
 from semmap.detection import Detector
-from semmap.errors import SimulationError
 from semmap.frames import enu_to_ned, ned_to_enu, yaw_enu_to_ned, yaw_ned_to_enu
 
 log = logging.getLogger(__name__)

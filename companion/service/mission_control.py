@@ -16,12 +16,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
+from companion.errors import MissionError
 from companion.ground import MqttBridge
 from companion.ground.schema import GoalCommand, MissionCommand, VehicleCommand, command_kind_of
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.mission_runner import Leg, MissionRunner, mission_legs, position_enu
-from semmap.errors import CompanionError, MissionError
+from semmap.errors import CompanionError
 
 log = logging.getLogger(__name__)
 

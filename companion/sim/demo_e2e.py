@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import CompanionConfig, write_effective_config
+from companion.errors import SimulationError
 from companion.mavsdk_client import MavsdkClient
 from companion.missions import MissionPlan, Waypoint
 from companion.px4 import FlightMode
@@ -50,7 +51,6 @@ from companion.sim.world import Room
 from companion.sources.sim import room_from_config
 from planner.planner import Planner
 from semmap.costmap import VerticalBand
-from semmap.errors import SimulationError
 from semmap.export import export_all, render_picture
 
 log = logging.getLogger(__name__)

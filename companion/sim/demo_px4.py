@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import CompanionConfig, write_effective_config
+from companion.errors import LinkError
 from companion.mavsdk_client import MavsdkClient
 from companion.missions import MissionPlan, Waypoint
 from companion.px4 import FlightMode
@@ -39,7 +40,6 @@ from companion.sim.demo_e2e import (
 from companion.sim.px4_probes import engage_check
 from companion.sim.px4_sitl import Px4Sitl, Px4SitlError
 from companion.sim.px4_world import FlightTimeline, Px4World, vehicle_start_map_xy
-from semmap.errors import LinkError
 from semmap.export import export_all
 
 log = logging.getLogger(__name__)

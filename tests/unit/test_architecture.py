@@ -51,3 +51,19 @@ def test_the_command_line_is_one_package() -> None:
     from companion.cli import COMMAND_MODULES
 
     assert all(name.startswith("companion.cli.") for name in COMMAND_MODULES)
+
+
+def test_one_exception_tree_with_each_error_where_its_concept_lives() -> None:
+    import companion.errors as companion_errors
+    import semmap.errors as semmap_errors
+
+    for module in (semmap_errors, companion_errors):
+        errors = [v for v in vars(module).values() if isinstance(v, type) and issubclass(v, BaseException)]
+        assert errors and all(issubclass(e, semmap_errors.CompanionError) for e in errors), module.__name__
+    # The link, mission, ground-link and simulator errors are the companion's own.
+    for name in ("LinkError", "CommandError", "MissionError", "GroundLinkError", "SimulationError"):
+        assert getattr(companion_errors, name).__module__ == "companion.errors", name
+        assert not hasattr(semmap_errors, name), f"semmap.errors defines the companion's {name}"
+    # Every error companion code raises is importable from one place.
+    assert set(companion_errors.__all__) >= {n for n, v in vars(semmap_errors).items()
+                                             if isinstance(v, type) and issubclass(v, BaseException)}

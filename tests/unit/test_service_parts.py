@@ -12,6 +12,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import CompanionConfig
+from companion.errors import MissionError
 from companion.mavlink.mission_download import MissionItem
 from companion.mavlink.state import HomePosition
 from companion.service.app import frozen_heap
@@ -20,7 +21,7 @@ from companion.service.localization import Localizer
 from companion.service.mission_runner import SURVEY_CARROT_DEG, SurveyTurn, mission_legs
 from companion.service.perception_worker import check_frame, new_semantic_map
 from companion.sim.sim_world import SharedSimState
-from semmap.errors import FrameError, MissionError
+from semmap.errors import FrameError
 from semmap.frames import pose_from_xyz_rpy
 from semmap.types import CameraIntrinsics, Frame
 
