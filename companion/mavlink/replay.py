@@ -8,6 +8,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from companion.background import BackgroundTasks
 from companion.errors import DataError, LinkError
 from companion.mavlink.tlog import TlogRecord, iter_tlog
 from companion.mavlink.transport_base import BytesCallback, Transport
@@ -25,8 +26,7 @@ class ReplayTransport(Transport):
         super().__init__(endpoint, on_bytes)
         self.finished = asyncio.Event()
         self.packets = 0
-        self._tg: asyncio.TaskGroup | None = None
-        self._task: asyncio.Task[None] | None = None
+        self._background = BackgroundTasks()
         self._records: Iterator[TlogRecord] | None = None
 
     async def _open(self) -> None:
@@ -34,20 +34,15 @@ class ReplayTransport(Transport):
         if not await asyncio.to_thread(path.is_file):
             raise LinkError(f"{self.endpoint.url}: no such telemetry log {path}")
         self._records = iter_tlog(path)
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
-        self._task = self._tg.create_task(self._replay(), name=f"replay {path.name}")
+        await self._background.open()
+        self._background.start(self._replay(), name=f"replay {path.name}")
 
     async def _close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-        if self._tg is not None:
-            await self._tg.__aexit__(None, None, None)
-            self._tg = None
+        await self._background.close()
 
     @property
     def connected(self) -> bool:
-        return self._tg is not None and not self.finished.is_set()
+        return self._background.running and not self.finished.is_set()
 
     def send(self, data: bytes) -> bool:
         return self._drop("replay is read-only", len(data), quiet=True)

@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from companion.background import BackgroundTasks
 from companion.errors import LinkError
 from companion.mavlink.replay import ReplayTransport
 from companion.mavlink.transport_base import BytesCallback, Transport
@@ -278,22 +279,18 @@ class TcpClientTransport(_TcpBase):
 
     def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
         super().__init__(endpoint, on_bytes)
-        self._tg: asyncio.TaskGroup | None = None
-        self._task: asyncio.Task[None] | None = None
+        self._background = BackgroundTasks()
 
     async def _open(self) -> None:
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
-        self._task = self._tg.create_task(self._connect_loop(), name=f"tcp {self.endpoint.url}")
+        await self._background.open()
+        self._background.start(self._connect_loop(), name=f"tcp {self.endpoint.url}")
 
     async def _close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
+        # The socket closes before the loop is cancelled; its connection_lost runs only at
+        # the next await, by when the loop is cancelled and does not reconnect.
         if self._proto is not None and self._proto.transport is not None:
             self._proto.transport.close()
-        if self._tg is not None:
-            await self._tg.__aexit__(None, None, None)
-            self._tg = None
+        await self._background.close()
 
     async def _connect_loop(self) -> None:
         loop = asyncio.get_running_loop()
