@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.errors import SimulationError
 from companion.sim.groundtruth import clearance_m, colliding_owners, densify
 from companion.sim.world import Room
-from semmap.errors import SimulationError
 
 #: A trajectory is resampled this finely (metres) before it is judged.
 JUDGE_STEP_M = 0.02

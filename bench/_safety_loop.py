@@ -40,6 +40,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from bench._safety_scenarios import Scenario
 from companion import px4
 from companion.config import CompanionConfig
+from companion.errors import SimulationError
 from companion.geo import GeoOrigin
 from companion.mavlink.failsafe import PositionSetpoint
 from companion.mavlink.offboard import encode_setpoint
@@ -52,17 +53,16 @@ from companion.service.mission_runner import (
     _remaining,
 )
 from companion.service.perception_worker import PerceptionPipeline, flight_band, new_semantic_map
-from companion.service.sim_world import SimPlacement
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.autopilot import telemetry as ap_telemetry
 from companion.sim.autopilot.behaviour import Px4Behaviour
 from companion.sim.render import RoomRenderer
+from companion.sim.sim_world import SimPlacement
 from planner.planner import Planner
 from planner.trajectory import Trajectory, TrajectoryLimits, time_parametrize
 from planner.types import PlanResult, PlanStatus
 from semmap.costmap import Costmap
 from semmap.detection import Detector
-from semmap.errors import SimulationError
 from semmap.frames import enu_to_ned, ned_to_enu, yaw_enu_to_ned, yaw_ned_to_enu
 
 log = logging.getLogger(__name__)

@@ -23,7 +23,7 @@ from companion.sim.groundtruth import clearance_m, path_collides
 from companion.sim.render import RoomRenderer
 from companion.sim.world import Room
 from semmap.detection.oracle import OracleDetector
-from semmap.frames import pose_from_xyz_rpy
+from semmap.frames import pose_from_xyz_rpy, wrap_angle_rad
 from semmap.tracking.matching import iou_matrix
 from semmap.types import CameraIntrinsics, Detection, Track
 
@@ -76,7 +76,7 @@ def scripted_flight(
         else:
             continue
         heading = math.atan2(goal[1] - pos[1], goal[0] - pos[0])
-        turn_by((heading - yaw + math.pi) % (2 * math.pi) - math.pi)
+        turn_by(wrap_angle_rad(heading - yaw))
         steps = int(dist / (speed_mps * dt))
         start = pos.copy()
         for k in range(1, steps + 1):

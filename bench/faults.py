@@ -3,7 +3,7 @@ and spoofed, a bad map folder.
 
 ``python bench/faults.py [--quick] [--only NAME ...] [--out DIR]``
 
-Each flight scenario flies the demo mission (:func:`companion.service.demo.run_e2e`: mock
+Each flight scenario flies the demo mission (:func:`companion.sim.demo_e2e.run_e2e`: mock
 autopilot, simulated camera, the whole service with its perception and planner processes)
 with one fault injected once the service is active:
 
@@ -69,9 +69,9 @@ from companion.mavlink.signing import write_key_file  # noqa: E402
 from companion.service import app as service_app  # noqa: E402
 from companion.service.app import CompanionService  # noqa: E402
 from companion.service.checkpoint import checkpoint_path  # noqa: E402
-from companion.service.demo import run_e2e  # noqa: E402
 from companion.service.perception_process import PerceptionProcess  # noqa: E402
-from companion.service.sim_world import SimWorld  # noqa: E402
+from companion.sim.demo_e2e import run_e2e  # noqa: E402
+from companion.sim.sim_world import SimWorld  # noqa: E402
 from planner.worker import PlanningService  # noqa: E402
 from semmap.semantic_map import SemanticMap  # noqa: E402
 

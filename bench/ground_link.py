@@ -40,7 +40,7 @@ import aiomqtt  # noqa: E402
 
 from companion.config import MqttConfig  # noqa: E402
 from companion.ground import CommandValidator, MqttBridge  # noqa: E402
-from companion.ground.schema import encode, map_message  # noqa: E402
+from companion.ground.messages import encode, map_message  # noqa: E402
 from semmap.costmap import Costmap, VerticalBand  # noqa: E402
 from semmap.grid import GridSpec  # noqa: E402
 

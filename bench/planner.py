@@ -167,7 +167,7 @@ def save_picture(path: Path, planner: Planner, costmap: Any, res: Any, metric: A
     """The semantic plan (blue) and the metric-only plan (orange) over the semantic costmap."""
     import cv2
 
-    from companion.cmd_plan import draw_plan
+    from companion.cli.plan import draw_plan
 
     img = draw_plan(planner, costmap, res, (float(q.start[0]), float(q.start[1])),
                     (float(q.goal[0]), float(q.goal[1])))

@@ -49,7 +49,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from companion.config import load_config  # noqa: E402
-from companion.service.demo import feasible_seed  # noqa: E402
+from companion.sim.demo_e2e import feasible_seed  # noqa: E402
 from companion.sim.odometry import OdometryDriftModel  # noqa: E402
 from companion.sim.px4_gps_denied import GPS_DENIED_PX4_PARAMS, GpsDeniedSitl  # noqa: E402
 from companion.sim.px4_gps_denied_flight import fly_gps_denied  # noqa: E402

@@ -49,8 +49,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from companion.config import load_config  # noqa: E402
-from companion.service.demo import feasible_seed  # noqa: E402
-from companion.service.demo_px4 import Px4Flight, fly_px4  # noqa: E402
+from companion.sim.demo_e2e import feasible_seed  # noqa: E402
+from companion.sim.demo_px4 import Px4Flight, fly_px4  # noqa: E402
 from companion.sim.px4_probes import (  # noqa: E402
     ProbeResult,
     probe_landing_rearm,

@@ -46,6 +46,7 @@ from companion.sim.trajectory import fly_route, plan_route  # noqa: E402
 from companion.sim.world import LAYOUTS, generate_room  # noqa: E402
 from semmap.config import ExtrinsicsConfig, SlamConfig, default_classes  # noqa: E402
 from semmap.costmap import VerticalBand  # noqa: E402
+from semmap.frames import wrap_angle_rad  # noqa: E402
 from semmap.scan import BandScan, extract_band_scan  # noqa: E402
 from semmap.semantic_map import SemanticMap, SemanticMapSettings  # noqa: E402
 from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth  # noqa: E402
@@ -190,7 +191,7 @@ def run_flight(seed: int, laps: int = 2, speed_m_s: float = 0.3, rate_hz: float 
         "live_err_max_m": float(np.max(np.linalg.norm(live_a[:, :2] - truth_a[:, :2], axis=1))),
         "ate_slam_m": ate_rmse(final[:, 1:3], truth_a[:, :2]),
         "yaw_err_slam_deg_rms": float(np.degrees(np.sqrt(np.mean(
-            ((final[:, 3] - truth_a[:, 2] + np.pi) % (2 * np.pi) - np.pi) ** 2)))),
+            wrap_angle_rad(final[:, 3] - truth_a[:, 2]) ** 2)))),
         "loop_closures": loops, "revisit_closures": revisits, "fallbacks": n_fallback, "partial_odometry": n_partial,
         **{f"agreement_{k}": v for k, v in agree.items()},
         "local_ms": times, "local_cpu_ms": cpu_times,

@@ -17,6 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
+from companion.errors import LinkError
 from planner.config import PlannerConfig
 from semmap.config import (
     CameraConfig,
@@ -29,7 +30,7 @@ from semmap.config import (
     TrackerConfig,
     default_classes,
 )
-from semmap.errors import ConfigError, LinkError
+from semmap.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

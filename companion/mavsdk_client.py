@@ -38,11 +38,11 @@ from mavsdk.plugins.telemetry import TelemetryError
 
 from companion.errors import CommandError, LinkError, MissionError
 from companion.geo import GeoOrigin
+from companion.mission_validation import check_plan
 from companion.missions import (
     ItemMap,
     MissionItemInt,
     MissionPlan,
-    check_plan,
     command_name,
     items_to_plan,
     plan_to_items,

@@ -1,7 +1,7 @@
 """Sanity checks for mission files: every number finite and in range, or an error naming it.
 
 One owner for what a mission may contain, shared by ``mission check``, ``mission upload`` and
-the parsers in :mod:`companion.missions`: a NaN, an infinity or an out-of-range number is a
+the parsers in :mod:`companion.mission_files`: a NaN, an infinity or an out-of-range number is a
 :class:`~companion.errors.MissionError` naming the file, the item and the field, never a
 0 deg latitude.
 """
@@ -9,24 +9,22 @@ the parsers in :mod:`companion.missions`: a NaN, an infinity or an out-of-range 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
-
-from pymavlink.dialects.v20 import common as mavlink
+from typing import Any
 
 from companion.errors import MissionError
 from companion.geo import GeoOrigin
-
-if TYPE_CHECKING:
-    from companion.missions import MissionPlan
+from companion.missions import (
+    CMD_CHANGE_SPEED,
+    CMD_LAND,
+    CMD_LOITER_TIME,
+    CMD_TAKEOFF,
+    CMD_WAYPOINT,
+    FRAME_GLOBAL,
+    FRAME_GLOBAL_INT,
+    MissionPlan,
+)
 
 _NAN = math.nan
-CMD_WAYPOINT = mavlink.MAV_CMD_NAV_WAYPOINT
-CMD_LOITER_TIME = mavlink.MAV_CMD_NAV_LOITER_TIME
-CMD_LAND = mavlink.MAV_CMD_NAV_LAND
-CMD_TAKEOFF = mavlink.MAV_CMD_NAV_TAKEOFF
-CMD_CHANGE_SPEED = mavlink.MAV_CMD_DO_CHANGE_SPEED
-FRAME_GLOBAL = mavlink.MAV_FRAME_GLOBAL
-FRAME_GLOBAL_INT = mavlink.MAV_FRAME_GLOBAL_INT
 
 #: Sanity bounds, not airspace rules (the service enforces ``planner.max_altitude_m`` in flight):
 #: a number outside them is a typo or a hostile file, never something to fly.

@@ -1,8 +1,10 @@
-"""The project's one exception tree.
+"""The root of the project's one exception tree, and the errors of mapping and planning.
 
-It lives in ``semmap`` because ``semmap`` is the lowest package: ``planner`` and ``companion``
-import it, never the other way round. ``companion.errors`` re-exports every class so service
-code can ``from companion.errors import LinkError``.
+The root, :class:`CompanionError`, lives in ``semmap`` because ``semmap`` is the lowest package:
+``planner`` and ``companion`` import it, never the other way round. Errors of the link, the
+mission, the ground link and the simulator are defined where those live, in
+:mod:`companion.errors`, which also re-exports these so service code imports every error from
+one place.
 
 Third-party exceptions are converted where they enter (``raise LinkError(...) from exc``) so
 callers only ever catch ``CompanionError`` subclasses.
@@ -37,30 +39,3 @@ class MapError(CompanionError):
 
 class PlanningError(CompanionError):
     """The planner could not produce a path (see the reason attribute where set)."""
-
-
-class LinkError(CompanionError):
-    """The MAVLink link failed: bad URL, socket error, malformed message."""
-
-
-class CommandError(LinkError):
-    """An autopilot command was rejected or timed out.
-
-    ``result`` carries the MAVLink ``MAV_RESULT`` name (e.g. ``"DENIED"``) or ``"TIMEOUT"``.
-    """
-
-    def __init__(self, message: str, result: str = "UNKNOWN") -> None:
-        super().__init__(message)
-        self.result = result
-
-
-class MissionError(LinkError):
-    """A mission could not be uploaded, downloaded or parsed; names the failing item."""
-
-
-class GroundLinkError(CompanionError):
-    """The MQTT ground link failed or received an invalid command."""
-
-
-class SimulationError(CompanionError):
-    """The simulated world was asked for something it cannot do."""

@@ -6,8 +6,11 @@ Frames (all right-handed, metres, radians):
   plane (the floor). ROS REP-103 convention, so exported maps load in standard tools.
 * ``body``: FLU, x forward, y left, z up, origin at the vehicle's centre.
 * ``camera``: optical, x right, y down, z forward (OpenCV / RealSense convention).
-* ``ned``: PX4's local frame, x north, y east, z down. Only :mod:`companion` speaks NED; the
-  conversion lives here so it is written exactly once.
+* ``ned``: PX4's local frame, x north, y east, z down, and ``frd``: PX4's body frame, x
+  forward, y right, z down. Only :mod:`companion` speaks NED/FRD; every conversion to and
+  from them (positions, yaw, rotations, quaternions) lives here so it is written exactly once.
+
+Quaternions are (w, x, y, z), MAVLink's order, unless a name says otherwise.
 
 Poses are 4x4 homogeneous matrices named ``T_<to>_<from>``: ``T_map_body`` maps body-frame
 points into the map frame, and composition reads left to right:
@@ -18,11 +21,18 @@ pose to the camera transform; that is only right for a pure translation. We comp
 from __future__ import annotations
 
 import math
+from typing import overload
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 Transform = NDArray[np.float64]  # (4, 4)
+
+#: ENU <-> NED axes (x and y swapped, z negated), its own inverse: ``v_ned = R_NED_ENU @ v_enu``.
+R_NED_ENU: NDArray[np.float64] = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+#: FRD <-> FLU body axes (y and z negated), its own inverse: ``v_flu = R_FLU_FRD @ v_frd``.
+R_FLU_FRD: NDArray[np.float64] = np.diag([1.0, -1.0, -1.0])
 
 #: Rotation taking optical-camera axes to FLU body axes for a camera looking along body +x.
 R_BODY_CAMERA_FORWARD: NDArray[np.float64] = np.array(
@@ -105,8 +115,39 @@ def quaternion_to_rotation(qx: float, qy: float, qz: float, qw: float) -> NDArra
     )
 
 
-def wrap_angle_rad(angle_rad: float) -> float:
-    """Wrap an angle to [-pi, pi)."""
+def rotation_from_quaternion_wxyz(q_wxyz: tuple[float, float, float, float]) -> NDArray[np.float64]:
+    """(3, 3) rotation from a quaternion in (w, x, y, z) order (MAVLink's), normalised first."""
+    w, x, y, z = q_wxyz
+    return quaternion_to_rotation(x, y, z, w)
+
+
+def quaternion_wxyz_from_rotation(R: NDArray[np.float64]) -> tuple[float, float, float, float]:
+    """Unit quaternion (w, x, y, z) of a (3, 3) rotation, with w >= 0 (one canonical sign)."""
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    return float(w), float(x), float(y), float(z)
+
+
+def quaternion_wxyz_from_rpy(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float, float, float]:
+    """Unit quaternion (w, x, y, z) of Z-Y-X Euler angles (:func:`rotation_from_rpy`)."""
+    cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
+    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
+    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
+    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
+
+
+@overload
+def wrap_angle_rad(angle_rad: float) -> float: ...
+
+
+@overload
+def wrap_angle_rad(angle_rad: NDArray[np.float64]) -> NDArray[np.float64]: ...
+
+
+def wrap_angle_rad(angle_rad: float | NDArray[np.float64]) -> float | NDArray[np.float64]:
+    """Wrap an angle (or an array of them, element-wise) to [-pi, pi)."""
     return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
 
 
@@ -130,3 +171,21 @@ def yaw_enu_to_ned(yaw_enu_rad: float) -> float:
 def yaw_ned_to_enu(yaw_ned_rad: float) -> float:
     """NED yaw (from north, clockwise) to ENU yaw (from east, counter-clockwise)."""
     return wrap_angle_rad(math.pi / 2.0 - yaw_ned_rad)
+
+
+# --- map pose (ENU/FLU) <-> PX4 pose (NED/FRD) ---------------------------------------------
+
+def ned_pose_from_map(T_map_body: Transform) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(position (3,) NED metres, rotation (3, 3) FRD->NED) from a (4, 4) map-frame FLU pose."""
+    T = np.asarray(T_map_body, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"T_map_body must be a finite (4, 4) transform (got shape {T.shape})")
+    return R_NED_ENU @ T[:3, 3], R_NED_ENU @ T[:3, :3] @ R_FLU_FRD
+
+
+def map_pose_from_ned(position_ned_m: tuple[float, float, float],
+                      rpy_frd_rad: tuple[float, float, float]) -> Transform:
+    """(4, 4) pose of the FLU body in the map frame (ENU) from PX4's local NED position and
+    FRD attitude (roll, pitch, yaw from north): the inverse of :func:`ned_pose_from_map`."""
+    R_ned_frd = rotation_from_rpy(*rpy_frd_rad)
+    return make_transform(R_NED_ENU @ R_ned_frd @ R_FLU_FRD, R_NED_ENU @ np.asarray(position_ned_m, dtype=np.float64))

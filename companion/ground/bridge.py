@@ -28,47 +28,38 @@ import asyncio
 import contextlib
 import logging
 import random
-import socket
 import ssl
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 import aiomqtt
 import numpy as np
-from aiomqtt.exceptions import MqttConnectError
 from numpy.typing import NDArray
 from paho.mqtt.subscribeoptions import SubscribeOptions
 from pydantic import BaseModel, ValidationError
 
 from companion.config import CompanionConfig, MqttConfig
 from companion.errors import GroundLinkError
-from companion.ground.schema import (
-    Command,
+from companion.ground import connection
+from companion.ground.messages import (
     ObjectItem,
     ObjectsMessage,
-    Rejection,
-    Topics,
-    command_kind_of,
     encode,
     map_message,
     object_items,
     online_message,
     path_message,
-    peek_request_id,
     reply_message,
     status_message,
     telemetry_message,
 )
+from companion.ground.schema import Command, Rejection, Topics, command_kind_of, peek_request_id
 from companion.ground.validation import CommandValidator
 from semmap.costmap import Costmap, ObjectFootprint
-
-#: CONNACK codes that mean the credentials were refused (MQTT 3.1.1: 4 and 5).
-_AUTH_REFUSED = {4, 5, 134, 135}
 
 
 @dataclass(frozen=True)
@@ -90,39 +81,6 @@ class LinkStats:
     dropped_events: int = 0
     commands_accepted: int = 0
     commands_rejected: int = 0
-
-
-def read_password_file(path: str | Path) -> str:
-    """The first line of ``mqtt.password_file`` (trailing whitespace removed)."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise GroundLinkError(f"mqtt.password_file: cannot read {p}: {exc.strerror or exc}") from exc
-    lines = text.splitlines()
-    password = lines[0].rstrip() if lines else ""
-    if not password:
-        raise GroundLinkError(f"mqtt.password_file: {p} is empty")
-    return password
-
-
-def make_tls_context(cfg: MqttConfig) -> ssl.SSLContext | None:
-    """The TLS context for ``cfg`` (None when TLS is off). The broker's name is verified."""
-    if not cfg.use_tls:
-        return None
-    try:
-        ctx = ssl.create_default_context(ssl.Purpose.SERVER_AUTH, cafile=cfg.tls_ca_file)
-    except (OSError, ssl.SSLError) as exc:
-        raise GroundLinkError(f"mqtt.tls_ca_file: cannot load {cfg.tls_ca_file}: {exc}") from exc
-    if cfg.tls_cert_file is not None and cfg.tls_key_file is not None:
-        try:
-            ctx.load_cert_chain(cfg.tls_cert_file, cfg.tls_key_file)
-        except (OSError, ssl.SSLError) as exc:
-            raise GroundLinkError(
-                f"mqtt.tls_cert_file/tls_key_file: cannot load {cfg.tls_cert_file}, "
-                f"{cfg.tls_key_file}: {exc}"
-            ) from exc
-    return ctx
 
 
 def _as_is(msg: BaseModel) -> BaseModel:
@@ -190,8 +148,8 @@ class MqttBridge:
         """Check credentials and TLS files (raising :class:`GroundLinkError`), then connect
         in the background; returns at once, connected or not."""
         if self.cfg.password_file is not None:
-            self._password = read_password_file(self.cfg.password_file)
-        self._tls = make_tls_context(self.cfg)
+            self._password = connection.read_password_file(self.cfg.password_file)
+        self._tls = connection.make_tls_context(self.cfg)
         self._closed.clear()
         self._tasks = [asyncio.create_task(self._map_loop(), name="mqtt-map")]
         if self.cfg.enabled:
@@ -460,44 +418,6 @@ class MqttBridge:
 
     # --- the connection -----------------------------------------------------------------
 
-    def _make_client(self) -> aiomqtt.Client:
-        will = aiomqtt.Will(
-            self.topics.online, encode(online_message(self.cfg.vehicle_id, False)),
-            qos=1, retain=True,
-        )
-        return aiomqtt.Client(
-            self.cfg.host,
-            self.cfg.port,
-            username=self.cfg.username,
-            password=self._password,
-            logger=self._log.getChild("paho"),
-            identifier=self._client_id,
-            will=will,
-            # MQTT 5: only its "retain as published" shows a live-delivered retained command.
-            protocol=aiomqtt.ProtocolVersion.V5,
-            clean_start=True,
-            keepalive=self.cfg.keepalive_s,
-            timeout=self.cfg.timeout_s,
-            tls_context=self._tls,
-            max_queued_incoming_messages=1000,
-            # Small messages (replies, telemetry) must not wait for Nagle's algorithm.
-            socket_options=((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),),
-        )
-
-    def _describe_failure(self, exc: BaseException) -> GroundLinkError:
-        where = f"MQTT broker {self.cfg.host}:{self.cfg.port}"
-        rc = getattr(exc, "rc", None)
-        code = getattr(rc, "value", rc)
-        if isinstance(exc, MqttConnectError) and code in _AUTH_REFUSED:
-            who = f"user {self.cfg.username!r}" if self.cfg.username else "anonymous access"
-            return GroundLinkError(
-                f"{where} refused {who}: {exc} (check mqtt.username and mqtt.password_file)"
-            )
-        text = str(exc) or type(exc).__name__
-        if exc.__cause__ is not None:  # aiomqtt wraps the socket error that ended the session
-            text = f"{text}: {exc.__cause__}"
-        return GroundLinkError(f"{where}: {text}")
-
     async def _run(self) -> None:
         """Connect, run a session, and reconnect with exponential backoff, forever.
 
@@ -508,10 +428,12 @@ class MqttBridge:
         delay_s = self.cfg.reconnect_min_s
         while True:
             try:
-                async with self._make_client() as client:
+                client = connection.make_client(self.cfg, client_id=self._client_id, password=self._password,
+                                     tls=self._tls, online_topic=self.topics.online, logger=self._log)
+                async with client:
                     await self._session(client)
             except aiomqtt.MqttError as exc:
-                err = self._describe_failure(exc)
+                err = connection.describe_failure(self.cfg, exc)
             except Exception as exc:  # never let the link take the service down
                 self._log.exception("ground link: unexpected error")
                 err = GroundLinkError(f"MQTT ground link: unexpected {type(exc).__name__}: {exc}")

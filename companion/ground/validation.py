@@ -14,13 +14,7 @@ import time
 from collections.abc import Callable
 
 from companion.config import MqttConfig
-from companion.ground.schema import (
-    Command,
-    GoalCommand,
-    Rejection,
-    parse_command,
-    peek_request_id,
-)
+from companion.ground.schema import Command, GoalCommand, Rejection, parse_command, peek_request_id
 from planner.config import PlannerConfig
 from semmap.errors import ConfigError
 

@@ -34,11 +34,13 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.background import BackgroundTasks
 from companion.errors import ConfigError, LinkError
 from companion.mavlink.signing import SIGNING_KEY_BYTES, read_key_file
 from companion.mavlink.subscription import Message, Subscription
 from companion.mavlink.tlog import TlogWriter
-from companion.mavlink.transport import Transport, UdpTransport, make_transport
+from companion.mavlink.transport import UdpTransport, make_transport
+from companion.mavlink.transport_base import Transport
 from companion.mavlink.urls import parse_url
 
 if TYPE_CHECKING:
@@ -181,8 +183,7 @@ class MavlinkLink:
         self._transport: Transport | None = None
         self._listeners: list[tuple[frozenset[str] | None, Listener]] = []
         self._subscriptions: list[Subscription] = []
-        self._tg: asyncio.TaskGroup | None = None
-        self._tasks: list[asyncio.Task[Any]] = []
+        self._background = BackgroundTasks()
         self._boot_s = time.monotonic()
         self._received = 0
         self._sent = 0
@@ -226,10 +227,9 @@ class MavlinkLink:
         self._transport = transport
         self._writer.transport = transport
         try:
-            self._tg = asyncio.TaskGroup()
-            await self._tg.__aenter__()
+            await self._background.open()
             if self.heartbeat_rate_hz > 0:
-                self._tasks.append(self._tg.create_task(self._heartbeat_loop(), name="heartbeat"))
+                self._background.start(self._heartbeat_loop(), name="heartbeat")
         except BaseException:
             await self._close_transport()
             raise
@@ -244,13 +244,8 @@ class MavlinkLink:
         tb: TracebackType | None,
     ) -> None:
         try:
-            for task in self._tasks:
-                task.cancel()
-            if self._tg is not None:
-                await self._tg.__aexit__(None, None, None)
+            await self._background.close()
         finally:
-            self._tg = None
-            self._tasks.clear()
             for sub in list(self._subscriptions):
                 sub._end()
             await self._close_transport()

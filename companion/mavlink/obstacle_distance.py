@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.background import BackgroundTasks
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.state import VehicleState
 from semmap.costmap import LETHAL_OBSTACLE, NO_INFORMATION, Costmap
@@ -207,13 +208,11 @@ class ObstacleDistanceFeed:
         self.errors = 0
         self.last_scan: ObstacleDistanceScan | None = None
         self._boot_s = time.monotonic()
-        self._tg: asyncio.TaskGroup | None = None
-        self._task: asyncio.Task[None] | None = None
+        self._background = BackgroundTasks()
 
     async def __aenter__(self) -> "ObstacleDistanceFeed":
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
-        self._task = self._tg.create_task(self._run(), name="obstacle-distance")
+        await self._background.open()
+        self._background.start(self._run(), name="obstacle-distance")
         return self
 
     async def __aexit__(
@@ -222,14 +221,7 @@ class ObstacleDistanceFeed:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        if self._task is not None:
-            self._task.cancel()
-        if self._tg is not None:
-            try:
-                await self._tg.__aexit__(None, None, None)
-            finally:
-                self._tg = None
-                self._task = None
+        await self._background.close()
 
     async def _run(self) -> None:
         next_s = time.monotonic()

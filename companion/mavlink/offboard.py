@@ -31,6 +31,7 @@ from types import TracebackType
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.background import BackgroundTasks
 from companion.errors import LinkError
 from companion.mavlink.commands import VehicleCommands
 from companion.mavlink.failsafe import OffboardFailsafe, OffboardState, PositionSetpoint, Transition
@@ -111,8 +112,7 @@ class SetpointStreamer:
         self.source = source
         self.target_system = target_system
         self.target_component = target_component
-        self._tg: asyncio.TaskGroup | None = None
-        self._task: asyncio.Task[None] | None = None
+        self._background = BackgroundTasks()
         self._ticks = 0
         self._sent = 0
         self._skipped = 0
@@ -123,9 +123,8 @@ class SetpointStreamer:
         self.on_sent: Callable[[float], None] | None = None
 
     async def __aenter__(self) -> "SetpointStreamer":
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
-        self._task = self._tg.create_task(self._run(), name="setpoint-streamer")
+        await self._background.open()
+        self._background.start(self._run(), name="setpoint-streamer")
         return self
 
     async def __aexit__(
@@ -134,14 +133,7 @@ class SetpointStreamer:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        if self._task is not None:
-            self._task.cancel()
-        if self._tg is not None:
-            try:
-                await self._tg.__aexit__(None, None, None)
-            finally:
-                self._tg = None
-                self._task = None
+        await self._background.close()
 
     @property
     def stats(self) -> StreamerStats:

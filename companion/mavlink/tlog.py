@@ -4,7 +4,7 @@ The format is the one QGroundControl and MAVProxy write: for each message, an 8-
 big-endian timestamp (microseconds since the UNIX epoch) followed by the raw MAVLink 1 or 2
 packet. :class:`TlogWriter` appends received packets as they arrive;
 :func:`iter_tlog` reads them back, and the ``tlog://`` URL (see
-:class:`~companion.mavlink.transport.ReplayTransport`) feeds a recording into a
+:class:`~companion.mavlink.replay.ReplayTransport`) feeds a recording into a
 :class:`~companion.mavlink.link.MavlinkLink` as if it came from the wire, so a recorded flight
 replays through exactly the code that handled it live.
 """

@@ -16,30 +16,31 @@ stalled sender is worse than a lost setpoint.
 * Serial (``serial://``): pyserial opens and configures the device; reads are driven by
   ``loop.add_reader`` on its file descriptor, writes go through a small bounded buffer.
 * Replay (``tlog://``): a recorded telemetry log delivered packet by packet with its recorded
-  timing (scaled by ``?speed=``); a read-only link, what we send is dropped.
+  timing (scaled by ``?speed=``); a read-only link, what we send is dropped
+  (:mod:`companion.mavlink.replay`).
+
+The interface they share is :class:`~companion.mavlink.transport_base.Transport`.
 """
 
 from __future__ import annotations
 
-import abc
 import asyncio
 import contextlib
 import logging
 import os
 import socket
 import time
-from collections.abc import Callable, Iterator
-from pathlib import Path
-from types import TracebackType
+from collections.abc import Callable
 from typing import Any
 
-from companion.errors import DataError, LinkError
-from companion.mavlink.tlog import TlogRecord, iter_tlog
+from companion.background import BackgroundTasks
+from companion.errors import LinkError
+from companion.mavlink.replay import ReplayTransport
+from companion.mavlink.transport_base import BytesCallback, Transport
 from companion.mavlink.urls import Endpoint, EndpointKind
 
 log = logging.getLogger(__name__)
 
-BytesCallback = Callable[[bytes], None]
 #: ``(datagram, source address)`` for a datagram that is not from the UDP peer.
 StrangerCallback = Callable[[bytes, Any], None]
 
@@ -51,68 +52,6 @@ UDP_READ_BATCH = 64
 UDP_RECEIVE_BUFFER_BYTES = 1 << 20
 TCP_RECONNECT_MIN_S = 0.2
 TCP_RECONNECT_MAX_S = 2.0
-
-
-class Transport(abc.ABC):
-    """One open byte channel to the peer."""
-
-    #: True when each received chunk is a whole datagram (no message spans two chunks).
-    datagram: bool = False
-
-    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
-        self.endpoint = endpoint
-        self._on_bytes = on_bytes
-        self.bytes_sent = 0
-        self.bytes_received = 0
-        self.send_dropped = 0
-
-    async def __aenter__(self) -> "Transport":
-        try:
-            await self._open()
-        except OSError as exc:
-            raise LinkError(f"{self.endpoint.url}: cannot open: {exc.strerror or exc}") from exc
-        log.info("link transport open: %s", self.describe())
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self._close()
-        log.info("link transport closed: %s", self.endpoint.url)
-
-    @abc.abstractmethod
-    async def _open(self) -> None: ...
-
-    @abc.abstractmethod
-    async def _close(self) -> None: ...
-
-    @abc.abstractmethod
-    def send(self, data: bytes) -> bool:
-        """Queue ``data`` for sending; False (and counted) if it had to be dropped."""
-
-    @property
-    @abc.abstractmethod
-    def connected(self) -> bool:
-        """True when a peer is known/connected, i.e. :meth:`send` can deliver."""
-
-    def describe(self) -> str:
-        return self.endpoint.url
-
-    def _deliver(self, data: bytes) -> None:
-        self.bytes_received += len(data)
-        self._on_bytes(data)
-
-    def _drop(self, reason: str, n: int, quiet: bool = False) -> bool:
-        self.send_dropped += 1
-        if quiet:
-            log.debug("%s: dropped %d outgoing bytes (%s)", self.endpoint.url, n, reason)
-        elif self.send_dropped == 1 or self.send_dropped % 100 == 0:
-            log.warning("%s: dropped outgoing bytes (%s; %d drops so far)",
-                        self.endpoint.url, reason, self.send_dropped)
-        return False
 
 
 # --- UDP ---------------------------------------------------------------------------------
@@ -340,22 +279,18 @@ class TcpClientTransport(_TcpBase):
 
     def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
         super().__init__(endpoint, on_bytes)
-        self._tg: asyncio.TaskGroup | None = None
-        self._task: asyncio.Task[None] | None = None
+        self._background = BackgroundTasks()
 
     async def _open(self) -> None:
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
-        self._task = self._tg.create_task(self._connect_loop(), name=f"tcp {self.endpoint.url}")
+        await self._background.open()
+        self._background.start(self._connect_loop(), name=f"tcp {self.endpoint.url}")
 
     async def _close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
+        # The socket closes before the loop is cancelled; its connection_lost runs only at
+        # the next await, by when the loop is cancelled and does not reconnect.
         if self._proto is not None and self._proto.transport is not None:
             self._proto.transport.close()
-        if self._tg is not None:
-            await self._tg.__aexit__(None, None, None)
-            self._tg = None
+        await self._background.close()
 
     async def _connect_loop(self) -> None:
         loop = asyncio.get_running_loop()
@@ -487,69 +422,6 @@ class SerialTransport(Transport):
             loop.add_writer(self._fd, self._flush)
         else:
             loop.remove_writer(self._fd)
-
-
-# --- replay ------------------------------------------------------------------------------
-
-class ReplayTransport(Transport):
-    """``tlog:///path.tlog``: replays a telemetry log; :attr:`finished` is set at its end."""
-
-    datagram = True  # every delivery is one whole packet
-
-    def __init__(self, endpoint: Endpoint, on_bytes: BytesCallback) -> None:
-        super().__init__(endpoint, on_bytes)
-        self.finished = asyncio.Event()
-        self.packets = 0
-        self._tg: asyncio.TaskGroup | None = None
-        self._task: asyncio.Task[None] | None = None
-        self._records: Iterator[TlogRecord] | None = None
-
-    async def _open(self) -> None:
-        path = Path(self.endpoint.device)
-        if not await asyncio.to_thread(path.is_file):
-            raise LinkError(f"{self.endpoint.url}: no such telemetry log {path}")
-        self._records = iter_tlog(path)
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
-        self._task = self._tg.create_task(self._replay(), name=f"replay {path.name}")
-
-    async def _close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-        if self._tg is not None:
-            await self._tg.__aexit__(None, None, None)
-            self._tg = None
-
-    @property
-    def connected(self) -> bool:
-        return self._tg is not None and not self.finished.is_set()
-
-    def send(self, data: bytes) -> bool:
-        return self._drop("replay is read-only", len(data), quiet=True)
-
-    async def _replay(self) -> None:
-        assert self._records is not None
-        speed = self.endpoint.speed
-        t0_log: float | None = None
-        t0 = time.monotonic()
-        try:
-            for rec in self._records:
-                if t0_log is None:
-                    t0_log = rec.stamp_s
-                if speed > 0:
-                    due = t0 + (rec.stamp_s - t0_log) / speed
-                    delay = due - time.monotonic()
-                    if delay > 0:
-                        await asyncio.sleep(delay)
-                elif self.packets % 100 == 0:
-                    await asyncio.sleep(0)  # as fast as possible, but let the loop breathe
-                self.packets += 1
-                self._deliver(rec.packet)
-        except DataError as exc:
-            log.error("%s: replay stopped: %s", self.endpoint.url, exc)
-        finally:
-            self.finished.set()
-        log.info("%s: replay finished after %d packets", self.endpoint.url, self.packets)
 
 
 def make_transport(endpoint: Endpoint, on_bytes: BytesCallback,

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.background import BackgroundTasks
 from companion.errors import CommandError
 from companion.mavlink.commands import CommandSender, VehicleCommands
 from companion.mavlink.link import MavlinkLink
@@ -99,9 +100,7 @@ class Vehicle:
                 max_distance_m=cfg.obstacle_distance_max_m,
             )
         self._stack: contextlib.AsyncExitStack | None = None
-        self._tg: asyncio.TaskGroup | None = None
-        self._watchdog_task: asyncio.Task[None] | None = None
-        self._clock_task: asyncio.Task[None] | None = None
+        self._background = BackgroundTasks()
         self._connected = False
 
     async def __aenter__(self) -> "Vehicle":
@@ -116,12 +115,9 @@ class Vehicle:
             await stack.enter_async_context(self.offboard)
             if self.obstacle_feed is not None:
                 await stack.enter_async_context(self.obstacle_feed)
-            # The task group is exited with (None, None, None) in __aexit__ so an exception
-            # from the caller's body is not wrapped into an ExceptionGroup.
-            self._tg = asyncio.TaskGroup()
-            await self._tg.__aenter__()
-            self._watchdog_task = self._tg.create_task(self._watchdog(), name="heartbeat-watchdog")
-            self._clock_task = self._tg.create_task(self.autopilot_clock.run(), name="timesync-requests")
+            await self._background.open()
+            self._background.start(self._watchdog(), name="heartbeat-watchdog")
+            self._background.start(self.autopilot_clock.run(), name="timesync-requests")
             self._stack = stack.pop_all()
         return self
 
@@ -132,13 +128,8 @@ class Vehicle:
         tb: TracebackType | None,
     ) -> None:
         stack, self._stack = self._stack, None
-        tg, self._tg = self._tg, None
         try:
-            if tg is not None:
-                for task in (self._watchdog_task, self._clock_task):
-                    if task is not None:
-                        task.cancel()
-                await tg.__aexit__(None, None, None)
+            await self._background.close()
         finally:
             if stack is not None:
                 await stack.__aexit__(exc_type, exc, tb)

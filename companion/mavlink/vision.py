@@ -34,16 +34,12 @@ from types import TracebackType
 import numpy as np
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
-from scipy.spatial.transform import Rotation
 
 from companion.errors import LinkError
 from companion.mavlink.link import MavlinkLink
-from semmap.frames import Transform
+from semmap.frames import R_NED_ENU, Transform, ned_pose_from_map, quaternion_wxyz_from_rotation
 
 log = logging.getLogger(__name__)
-
-R_NED_ENU: NDArray[np.float64] = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-R_FLU_FRD: NDArray[np.float64] = np.diag([1.0, -1.0, -1.0])
 
 _NAN21 = [math.nan] * 21
 #: Indices of the diagonal of MAVLink's upper-triangular 6x6 pose covariance (x y z roll pitch yaw).
@@ -64,24 +60,6 @@ def pose_covariance(position_std_m: float | None, yaw_std_rad: float | None) -> 
     for k, v in zip(_DIAG, (var_xy, var_xy, math.nan, math.nan, math.nan, yaw_var), strict=True):
         cov[k] = v
     return cov
-
-
-def ned_pose_from_map(T_map_body: Transform) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(position (3,) NED metres, rotation (3, 3) FRD->NED) from a (4, 4) map-frame FLU pose."""
-    T = np.asarray(T_map_body, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"T_map_body must be a finite (4, 4) transform (got shape {T.shape})")
-    p_ned = R_NED_ENU @ T[:3, 3]
-    R_ned_frd = R_NED_ENU @ T[:3, :3] @ R_FLU_FRD
-    return p_ned, R_ned_frd
-
-
-def quaternion_wxyz(R: NDArray[np.float64]) -> tuple[float, float, float, float]:
-    """Unit quaternion (w, x, y, z), MAVLink's order, of a (3, 3) rotation."""
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    if w < 0.0:  # one canonical sign
-        x, y, z, w = -x, -y, -z, -w
-    return float(w), float(x), float(y), float(z)
 
 
 def vision_odometry_message(
@@ -111,7 +89,7 @@ def vision_odometry_message(
         vx = vy = vz = math.nan
     return link.mav.odometry_encode(
         time_usec, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,
-        float(p_ned[0]), float(p_ned[1]), float(p_ned[2]), list(quaternion_wxyz(R_ned_frd)),
+        float(p_ned[0]), float(p_ned[1]), float(p_ned[2]), list(quaternion_wxyz_from_rotation(R_ned_frd)),
         vx, vy, vz, math.nan, math.nan, math.nan, pose_covariance(position_std_m, yaw_std_rad), _NAN21,
         reset_counter & 0xFF, mavlink.MAV_ESTIMATOR_TYPE_VISION, int(max(-1, min(100, quality_percent))),
     )

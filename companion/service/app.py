@@ -15,7 +15,8 @@
 
 With ``fly_mission`` the autopilot's mission is downloaded and flown leg by leg with the
 semantic planner (:mod:`companion.service.mission_runner`); goals and mission commands also
-come over MQTT.
+come over MQTT (:mod:`companion.service.mission_control`). The status, telemetry, objects and
+map go to the ground link from :mod:`companion.service.status`. This module only wires.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ import asyncio
 import contextlib
 import gc
 import logging
-import math
 import sys
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -37,7 +37,6 @@ from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
 from companion.ground import MqttBridge
-from companion.ground.schema import GoalCommand, MissionCommand, VehicleCommand, command_kind_of
 from companion.mavlink.obstacle_distance import ObstacleDistanceInput
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
@@ -45,25 +44,20 @@ from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.flight_log import FlightLog
 from companion.service.latency import LatencyStats
 from companion.service.localization import ServiceLocalization
-from companion.service.mission_runner import (
-    Leg,
-    LegReport,
-    MissionRunner,
-    mission_legs,
-    position_enu,
-)
+from companion.service.mission_control import MissionControl
+from companion.service.mission_runner import LegReport, MissionRunner
 from companion.service.perception_process import PerceptionProcess
 from companion.service.perception_worker import (
     PerceptionPipeline,
     new_semantic_map,
 )
+from companion.service.status import StatusPublisher
 from companion.sources.base import FrameSource
 from companion.sources.poses import SharedPoseHistory, TelemetryPosedSource, TelemetryPoseRecorder
 from companion.systemd_notify import SystemdNotifier, Watchdog
 from planner.worker import PlanningService
 from semmap.costmap import ObjectFootprint
-from semmap.errors import CompanionError, MapError, MissionError
-from semmap.frames import yaw_ned_to_enu
+from semmap.errors import CompanionError, MapError
 from semmap.semantic_map import SemanticMap
 
 log = logging.getLogger(__name__)
@@ -137,7 +131,6 @@ class CompanionService:
         self.out_dir = Path(out_dir if out_dir is not None else cfg.service.output_dir)
         self.object_classes = object_classes
         self.fly_mission = fly_mission
-        self.land_after_mission = land_after_mission
         self.notifier = notifier or SystemdNotifier.from_env()
         self.state = "created"
         self.report = ServiceReport()
@@ -156,18 +149,15 @@ class CompanionService:
         self.runner: MissionRunner | None = None
         self.ground: MqttBridge | None = None
         self.restored = False
-        self.mission_done = asyncio.Event()
-        self._mission_task: asyncio.Task[None] | None = None
+        #: The mission, goals and ground commands (the flight task of this run).
+        self.missions = MissionControl(cfg, land_after_mission=land_after_mission)
+        #: Set when the mission has ended (flown, failed or aborted), not by a pause.
+        self.mission_done = self.missions.done
+        #: The status, telemetry, objects and map on the ground link while the service runs.
+        self.status: StatusPublisher | None = None
         self._background_tasks: set[asyncio.Task[None]] = set()
-        #: Set once perception could not be started again: the vehicle lands (stop included).
-        self.perception_lost = False
-        #: The mission's legs not flown yet (the first is the one in progress); kept by a pause.
-        self.legs_left: list[Leg] = []
-        #: True between a ``pause`` and the ``start`` that resumes the mission.
-        self.mission_paused = False
         self._stop: asyncio.Event | None = None
         self._t0 = time.monotonic()
-        self._path_xy: NDArray[np.float64] = np.zeros((0, 2))
         #: Called once the service is active (tests inject faults from here).
         self.on_active: Callable[[CompanionService], Any] | None = None
 
@@ -221,31 +211,36 @@ class CompanionService:
             stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
             await stack.enter_async_context(loc.vision_stream(self.vehicle.link))
             vehicle = self.vehicle
+            missions = self.missions
             guard = loc.loss_guard(vehicle.link, lambda: vehicle.snapshot().in_air,
-                                   lambda: self._land_here("the SLAM pose (PX4's position source) is lost"))
+                                   lambda: missions.land_here("the SLAM pose (PX4's position source) is lost"))
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
             self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
-            self._update_goal_fence()
+            self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,
+                                        on_path=missions.on_path, capture_time=perception.capture_time)
+            missions.bind(self.vehicle, self.runner, self.ground)
+            status = self.status = StatusPublisher(cfg, self.vehicle, self.ground, perception, self.runner, loc,
+                                                   self.notifier, state=lambda: self.state, map_spec=self.smap.spec,
+                                                   started_at=self._t0)
+            status.update_goal_fence()
             watchdog = await stack.enter_async_context(Watchdog(self.notifier))
             watchdog.register("status-loop", 5.0)
             # A hung perception process (or camera) stops the pings: systemd restarts us.
             watchdog.register("perception", PERCEPTION_SILENCE_S)
             perception.on_frame = lambda: watchdog.alive("perception")
-            perception.on_failed = lambda: self._background(self._land_here("perception is gone", lost=True),
+            perception.on_failed = lambda: self._background(missions.land_here("perception is gone", lost=True),
                                                             "perception-lost")
-            self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,
-                                        on_path=self._on_path, capture_time=perception.capture_time)
             self.state = "active"
             self.notifier.ready("active")
             log.info("service active")
             try:
                 async with asyncio.TaskGroup() as tg:
-                    loops = [tg.create_task(self._status_loop(watchdog), name="status"),
-                             tg.create_task(self._command_loop(), name="ground-commands")]
+                    loops = [tg.create_task(status.run(watchdog), name="status"),
+                             tg.create_task(missions.command_loop(), name="ground-commands")]
                     if guard is not None:
                         loops.append(tg.create_task(guard.run(), name="vision-loss"))
                     if self.fly_mission:
-                        self._mission_task = tg.create_task(self._mission(), name="mission")
+                        missions.start_mission(tg)
                     if self.on_active is not None:
                         res = self.on_active(self)
                         if asyncio.iscoroutine(res):
@@ -259,6 +254,7 @@ class CompanionService:
             finally:
                 self.state = "stopped"
                 self.report.flight_log_rows = flight_log.rows
+                self.report.mission_error = missions.error
                 if self.runner is not None:
                     self.report.legs = list(self.runner.reports)
                     self.report.plan_ms = [ms for r in self.runner.reports for ms in r.plan_ms]
@@ -327,13 +323,10 @@ class CompanionService:
     async def deactivate(self) -> None:
         """Stop flying: cancel the mission, then hold or land (``service.on_sigterm``) while
         setpoints still stream, then stop streaming. The map is saved on the way out."""
-        if self._mission_task is not None and not self._mission_task.done():
-            self._mission_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._mission_task
+        await self.missions.cancel()
         v = self.vehicle
         if v is not None and v.offboard.state.streams:
-            land = self.cfg.service.on_sigterm == "land" or self.perception_lost
+            land = self.cfg.service.on_sigterm == "land" or self.missions.perception_lost
             then = FlightMode.LAND if land else FlightMode.HOLD
             try:
                 await v.offboard.release(then)
@@ -356,225 +349,7 @@ class CompanionService:
         self._background_tasks.add(task)
         task.add_done_callback(self._background_tasks.discard)
 
-    async def _land_here(self, why: str, lost: bool = False) -> None:
-        """Stop the mission and land where the vehicle is: perception is gone for good
-        (``lost``: the map cannot be trusted, a stop lands too), or PX4's position source is.
-        The vehicle has been holding since its map or pose went stale."""
-        self.perception_lost = self.perception_lost or lost
-        mission = self._mission_task
-        if mission is not None and not mission.done():
-            # Cancelled now (it stops at its next await), awaited after the landing is commanded:
-            # without a position source PX4 gives up its own estimate within seconds.
-            mission.cancel()
-        v = self.vehicle
-        try:
-            if v is None or not v.snapshot().in_air:
-                log.error("%s: no mission or goal is flown until %s", why,
-                          "the service restarts" if lost else "it is back and a mission is started")
-                return
-            log.error("%s: landing", why)
-            try:
-                if v.offboard.state.streams:
-                    await v.offboard.release(FlightMode.LAND)
-                else:
-                    await v.commands.land()
-            except CompanionError as exc:
-                log.error("%s and landing could not be commanded (%s)", why, exc)
-        finally:
-            if mission is not None:
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await mission
-
-    # --- the mission --------------------------------------------------------------------
-
-    async def _mission(self, resume: bool = False) -> None:
-        """Fly the autopilot's mission (downloaded now), or with ``resume`` the legs a pause
-        left; each leg is dropped from :attr:`legs_left` once flown (reached or given up)."""
-        v, runner = self.vehicle, self.runner
-        assert v is not None and runner is not None
-        self.mission_paused = False
-        try:
-            await v.wait_connected(timeout_s=30.0)
-            if not resume:
-                state = await v.state.wait_for(lambda s: s.home is not None and s.position_ned_m is not None,
-                                               self.cfg.link.ready_timeout_s, "the home position")
-                assert state.home is not None
-                items = await v.download_mission()
-                self.legs_left = mission_legs(items, state.home, self.cfg.planner.flight_altitude_m)
-                log.info("mission: %d legs at %.2f m", len(self.legs_left), self.cfg.planner.flight_altitude_m)
-            else:
-                log.info("mission resumed: %d legs left", len(self.legs_left))
-            await runner.take_off(self.cfg.planner.flight_altitude_m)
-            while self.legs_left:
-                runner.reports.append(await runner.fly_leg(self.legs_left[0]))
-                self.legs_left.pop(0)
-            if self.land_after_mission:
-                await runner.finish(FlightMode.LAND)
-                await v.state.wait_for(lambda s: not s.armed, 60.0, "the vehicle to land and disarm")
-        except CompanionError as exc:
-            self.report.mission_error = str(exc)
-            log.error("mission: %s", exc)
-            if v.offboard.state.streams:
-                # The vehicle is still ours: hand it to PX4's Hold rather than keep streaming
-                # setpoints for a mission that has ended.
-                with contextlib.suppress(CompanionError):
-                    await v.offboard.release(FlightMode.HOLD)
-        finally:
-            if not self.mission_paused:
-                self.mission_done.set()
-
-    async def _fly_goal(self, cmd: GoalCommand) -> None:
-        v, runner, ground = self.vehicle, self.runner, self.ground
-        assert v is not None and runner is not None and ground is not None
-        altitude = cmd.altitude_m or self.cfg.planner.flight_altitude_m
-        try:
-            if not v.offboard.state.streams:
-                await runner.take_off(altitude)
-            rep = await runner.fly_leg(Leg(-1, (cmd.x_m, cmd.y_m), altitude))
-            ground.publish_reply("goal", rep.reached, cmd.request_id,
-                                 None if rep.reached else f"goal not reached ({rep.failed_plans} failed plans)")
-        except CompanionError as exc:
-            ground.publish_reply("goal", False, cmd.request_id, str(exc))
-
-    def _on_path(self, path_xy_m: NDArray[np.float64]) -> None:
-        self._path_xy = path_xy_m
-        if self.ground is not None:
-            z = np.full((len(path_xy_m), 1), self.cfg.planner.flight_altitude_m)
-            self.ground.publish_path(np.hstack([path_xy_m, z]))
-
-    # --- ground link and status ---------------------------------------------------------
-
-    async def _command_loop(self) -> None:
-        ground, v = self.ground, self.vehicle
-        assert ground is not None and v is not None
-        async for cmd in ground.commands():
-            log.info("ground command: %s", type(cmd).__name__)
-            try:
-                await self._handle(cmd)
-            except CompanionError as exc:
-                log.warning("ground command %s refused: %s", command_kind_of(cmd), exc)
-                ground.publish_reply(command_kind_of(cmd), False, cmd.request_id, str(exc))
-
-    async def _handle(self, cmd: GoalCommand | MissionCommand | VehicleCommand) -> None:
-        v = self.vehicle
-        assert v is not None
-        busy = self._mission_task is not None and not self._mission_task.done()
-        if isinstance(cmd, GoalCommand):
-            if busy:
-                raise MissionError("a mission or goal is being flown; abort it first")
-            self._mission_task = asyncio.create_task(self._fly_goal(cmd), name="goal")
-        elif isinstance(cmd, MissionCommand):
-            await self._mission_command(cmd.action, busy)
-        elif isinstance(cmd, VehicleCommand):
-            if busy:
-                assert self._mission_task is not None
-                self._mission_task.cancel()
-            if v.offboard.state.streams:
-                await v.offboard.release(FlightMode.LAND if cmd.action == "land" else FlightMode.HOLD)
-            elif cmd.action == "land":
-                await v.commands.land()
-            else:
-                await v.commands.hold()
-
-    async def _mission_command(self, action: str, busy: bool) -> None:
-        """``start`` (or resume after a pause), ``pause`` (hold here, keep the legs left) or
-        ``abort`` (hold here, forget the mission). Raises :class:`MissionError` when the
-        command does not fit the mission's state (answered on the reply topic)."""
-        v = self.vehicle
-        assert v is not None
-        if action == "start":
-            if busy:
-                raise MissionError("a mission or goal is already being flown")
-            resume = self.mission_paused and bool(self.legs_left)
-            self.mission_done.clear()
-            self._mission_task = asyncio.create_task(self._mission(resume=resume), name="mission")
-            return
-        if not busy and not (action == "abort" and self.mission_paused):
-            raise MissionError(f"no mission is being flown to {action}")
-        if busy:
-            assert self._mission_task is not None
-            self.mission_paused = action == "pause" and self._mission_task.get_name() == "mission"
-            self._mission_task.cancel()
-            await asyncio.wait({self._mission_task})
-        if action == "abort":
-            self.mission_paused = False
-            self.legs_left = []
-            self.mission_done.set()
-        pos = position_enu(v.snapshot())
-        if pos is not None and v.offboard.state.streams and self.runner is not None:
-            self.runner.hold_at(pos[:2], float(pos[2]))
-        log.info("mission %s: holding at the current position%s", "paused" if action == "pause" else "aborted",
-                 f" ({len(self.legs_left)} legs left)" if action == "pause" else "")
-
-    async def _status_loop(self, watchdog: Watchdog) -> None:
-        v, ground, perception = self.vehicle, self.ground, self.perception
-        assert v is not None and ground is not None and perception is not None
-        period = 1.0 / self.cfg.service.telemetry_rate_hz
-        status_every = max(1, round(self.cfg.service.telemetry_rate_hz / self.cfg.service.status_rate_hz))
-        n_objects = -1
-        k = 0
-        while True:
-            watchdog.alive("status-loop")
-            s = v.snapshot()
-            pos = position_enu(s)
-            if pos is not None:
-                vel = s.velocity_ned_m_s or (0.0, 0.0, 0.0)
-                yaw = yaw_ned_to_enu(s.yaw_ned_rad) if s.yaw_ned_rad is not None else 0.0
-                ground.publish_telemetry(pos, (vel[1], vel[0], -vel[2]), yaw, s.armed, s.in_air,
-                                         s.flight_mode.name if s.flight_mode else "UNKNOWN",
-                                         None if s.battery_remaining is None else 100.0 * s.battery_remaining)
-            if k % status_every == 0:
-                timings = self.status_timings_ms()
-                health = {"mavlink": v.connected, "camera": perception.is_fresh(),
-                          "map_fresh": perception.is_fresh(), "perception": perception.running,
-                          "ground": ground.connected, **self.localization.health()}
-                detail = f"offboard {v.offboard.state.value}, {perception.counters()['processed']} frames"
-                if self.localization.enabled:
-                    detail += f"; {self.localization.detail()}"
-                ground.publish_status(self.state, time.monotonic() - self._t0, timings, health, detail)
-                self.notifier.status(f"{self.state}: {detail}")
-                self._update_goal_fence()
-                objects = perception.objects
-                if len(objects) != n_objects:
-                    n_objects = len(objects)
-                    ground.publish_objects(objects)
-                with contextlib.suppress(CompanionError):
-                    ground.publish_map(perception.costmap())
-            k += 1
-            await asyncio.sleep(period)
-
-    def status_timings_ms(self) -> dict[str, float]:
-        """The status message's ``stage_timings_ms``: the latest frame's ``detect``, ``track``,
-        ``geometry``, ``grid``; the latest ``plan``; the latest end-to-end ``frame_to_map`` and
-        ``frame_to_setpoint`` and their 95th percentiles so far (``*_p95``; see
-        :meth:`latency_summary` for the definitions)."""
-        timings: dict[str, float] = {}
-        p = self.perception
-        if p is not None and p.latest is not None:
-            timings.update(p.latest.timings_ms)
-        if self.runner is not None and self.runner.last_plan_ms is not None:
-            timings["plan"] = self.runner.last_plan_ms
-        lat = {"frame_to_map": p.frame_to_map_ms if p is not None else (),
-               "frame_to_setpoint": self.runner.frame_to_setpoint_ms if self.runner is not None else ()}
-        for name, values in lat.items():
-            if values:
-                timings[name] = values[-1]
-                p95 = LatencyStats(values).summary().get("p95_ms")
-                if p95 is not None:
-                    timings[f"{name}_p95"] = float(p95)
-        return {n: round(t, 2) for n, t in timings.items() if math.isfinite(t)}
-
-    def _update_goal_fence(self) -> None:
-        """Goals over MQTT must lie in the map (when no geofence is configured): tell the
-        ground link's validator the map's current extent (the grid may grow)."""
-        if self.ground is None or self.smap is None:
-            return
-        spec = self.perception.spec if self.perception is not None and self.perception.spec else self.smap.spec
-        x0, y0 = spec.origin_xy_m
-        self.ground.validator.set_map_extent((x0, y0, x0 + spec.cols * spec.resolution_m,
-                                              y0 + spec.rows * spec.resolution_m))
-
     @property
     def path_xy_m(self) -> NDArray[np.float64]:
         """The latest planned path (K, 2), map frame."""
-        return self._path_xy
+        return self.missions.path_xy_m

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.errors import MissionError
 from companion.mavlink.commands import CommandDeniedError, CommandTemporarilyRejectedError
 from companion.mavlink.failsafe import OffboardState, PositionSetpoint
 from companion.mavlink.mission_download import MissionItem, waypoint_ned_m
@@ -40,7 +41,7 @@ from planner.trajectory import Trajectory, TrajectoryLimits, time_parametrize
 from planner.types import PlanResult, PlanStatus
 from planner.worker import PlanningService
 from semmap.costmap import Costmap
-from semmap.errors import CompanionError, MissionError
+from semmap.errors import CompanionError
 from semmap.frames import enu_to_ned, ned_to_enu, yaw_enu_to_ned, yaw_ned_to_enu
 
 log = logging.getLogger(__name__)

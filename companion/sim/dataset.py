@@ -35,10 +35,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.errors import SimulationError
 from companion.sim.groundtruth import clearance_m
 from companion.sim.render import DepthNoise, RoomRenderer
 from companion.sim.world import FurnitureObject, Room, generate_room
-from semmap.errors import SimulationError
 from semmap.frames import make_transform, rotation_from_rpy
 from semmap.types import CameraIntrinsics
 

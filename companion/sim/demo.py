@@ -22,13 +22,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import CompanionConfig, write_effective_config
+from companion.errors import SimulationError
 from companion.sim.groundtruth import metric_costmap, room_grid_spec, semantic_costmap
 from companion.sim.render import RoomRenderer, renderer_from_config
 from companion.sim.trajectory import Trajectory, check_clearance, doorway_transit
 from companion.sim.world import Room
 from companion.sources.sim import SimFrameSource, room_from_config
 from semmap.costmap import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION, Costmap, VerticalBand
-from semmap.errors import SimulationError
 from semmap.types import Frame
 
 log = logging.getLogger(__name__)

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.errors import SimulationError
 from companion.sim import furniture as fu
 from companion.sim.world import (
     BUILDERS,
@@ -44,7 +45,6 @@ from companion.sim.world import (
     _segment_hits_polygon,
     _walls_with_doorways,
 )
-from semmap.errors import SimulationError
 
 #: Spacing ranges (metres) of each relation kind; the test of 200 rooms checks them.
 TUCK_M = (0.10, 0.35)  # chair footprint under the table's

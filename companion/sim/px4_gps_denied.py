@@ -33,18 +33,24 @@ from companion.errors import LinkError
 from companion.geo import GeoOrigin
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.state import LinkLike
-from companion.mavlink.vision import R_FLU_FRD, R_NED_ENU
-from companion.service.sim_world import (
+from companion.sim.odometry import OdometryDriftModel
+from companion.sim.px4_sitl import READY_LINE, Px4Sitl
+from companion.sim.sim_world import (
     SharedSimState,
     SimCameraSource,
     SimPlacement,
     start_point_room_m,
 )
-from companion.sim.odometry import OdometryDriftModel
-from companion.sim.px4_sitl import READY_LINE, Px4Sitl
-from companion.sources.poses import map_pose_from_ned
 from companion.sources.sim import room_from_config
-from semmap.frames import make_transform, pose_from_xyz_rpy, rpy_from_rotation, wrap_angle_rad
+from semmap.frames import (
+    R_FLU_FRD,
+    R_NED_ENU,
+    make_transform,
+    map_pose_from_ned,
+    pose_from_xyz_rpy,
+    rpy_from_rotation,
+    wrap_angle_rad,
+)
 
 log = logging.getLogger(__name__)
 

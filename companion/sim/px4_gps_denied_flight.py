@@ -32,8 +32,7 @@ from companion.missions import MissionPlan, Waypoint
 from companion.px4 import FlightMode
 from companion.service.app import CompanionService
 from companion.service.checkpoint import checkpoint_path
-from companion.service.demo import _summary, crossing_waypoints_room, feasible_seed
-from companion.service.sim_world import SharedSimState
+from companion.sim.demo_e2e import _summary, crossing_waypoints_room, feasible_seed
 from companion.sim.odometry import OdometryDriftModel
 from companion.sim.px4_gps_denied import (
     EstimateRecorder,
@@ -44,6 +43,7 @@ from companion.sim.px4_gps_denied import (
     placement_around_start,
 )
 from companion.sim.px4_sitl import Px4SitlError
+from companion.sim.sim_world import SharedSimState
 
 log = logging.getLogger(__name__)
 

@@ -162,8 +162,8 @@ async def probe_offboard_loss(sitl: Px4Sitl, cfg: CompanionConfig, workdir: Path
     once PX4 reports OFFBOARD in the air for ``in_offboard_s`` the companion (its whole process
     group) is killed. PX4 must leave OFFBOARD within ``COM_OF_LOSS_T`` (plus the heartbeat's
     lag), stay within 1 m of where the setpoints stopped, land and disarm."""
-    from companion.service.demo import crossing_waypoints_room, feasible_seed
-    from companion.service.demo_px4 import upload_crossing
+    from companion.sim.demo_e2e import crossing_waypoints_room, feasible_seed
+    from companion.sim.demo_px4 import upload_crossing
     from companion.sim.px4_world import Px4World, vehicle_start_map_xy
 
     name = "offboard_loss"
@@ -315,7 +315,7 @@ async def probe_landing_rearm(sitl: Px4Sitl, cfg: CompanionConfig, out_dir: Path
                               timeout_s: float = 240.0) -> tuple[ProbeResult, Any]:
     """Land in OFFBOARD (:func:`land_in_offboard`), then fly the demo with the service: it must
     arm and take off again. Returns the verdict and the flight (a :class:`Px4Flight`)."""
-    from companion.service.demo_px4 import fly_px4
+    from companion.sim.demo_px4 import fly_px4
 
     name = "landing_rearm"
     offset = len(sitl.log_text())

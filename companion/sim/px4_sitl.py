@@ -35,7 +35,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
 
-from semmap.errors import SimulationError
+from companion.errors import SimulationError
 
 log = logging.getLogger(__name__)
 

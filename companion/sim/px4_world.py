@@ -32,15 +32,15 @@ from companion.errors import LinkError
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.state import LandedState, LinkLike, MapFrame
 from companion.px4 import decode_heartbeat
-from companion.service.sim_world import (
+from companion.sim.sim_world import (
     SharedSimState,
     SimCameraSource,
     SimPlacement,
     start_point_room_m,
 )
 from companion.sim.world import Room
-from companion.sources.poses import map_pose_from_ned
 from companion.sources.sim import room_from_config
+from semmap.frames import map_pose_from_ned
 
 log = logging.getLogger(__name__)
 

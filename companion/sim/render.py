@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.errors import SimulationError
 from companion.sim.d455 import (
     SHINY_COS,
     ColorModel,
@@ -47,7 +48,6 @@ from companion.sim.d455 import (
 )
 from companion.sim.furniture import SHINY_CLUTTER
 from companion.sim.world import Box, Room
-from semmap.errors import SimulationError
 from semmap.frames import Transform
 from semmap.types import CameraIntrinsics, Frame
 

@@ -27,6 +27,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from companion.errors import SimulationError
 from companion.sim.groundtruth import (
     clearance_m,
     densify,
@@ -36,7 +37,6 @@ from companion.sim.groundtruth import (
 )
 from companion.sim.world import FurnitureObject, Room
 from semmap.costmap import VerticalBand
-from semmap.errors import SimulationError
 from semmap.frames import Transform, pose_from_xyz_rpy, wrap_angle_rad
 from semmap.grid import GridSpec, rasterize_polygon
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from semmap.errors import SimulationError
+from companion.errors import SimulationError
 
 WALL_THICKNESS_M = 0.12
 #: Room generators: furniture alone at random spots, or arranged as people arrange it.

@@ -41,10 +41,17 @@ from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation, Slerp
 
 from companion.mavlink.state import MapFrame
-from companion.mavlink.vision import R_FLU_FRD, R_NED_ENU
 from companion.shared_record import SharedRecord
 from companion.sources.base import FrameSource, WrappedSource
-from semmap.frames import Transform, make_transform, rotation_from_rpy, rpy_from_rotation
+from semmap.frames import (
+    Transform,
+    make_transform,
+    map_pose_from_ned,
+    ned_to_enu,
+    rotation_from_rpy,
+    rpy_from_rotation,
+    wrap_angle_rad,
+)
 from semmap.types import Frame
 
 log = logging.getLogger(__name__)
@@ -186,15 +193,6 @@ class SharedPoseHistory:
         return rows[max(0, k - 1):k + 1]
 
 
-def map_pose_from_ned(position_ned_m: tuple[float, float, float],
-                      rpy_frd_rad: tuple[float, float, float]) -> Transform:
-    """(4, 4) pose of the FLU body in the map frame (ENU) from PX4's local NED position and
-    FRD attitude (roll, pitch, yaw from north): the inverse of
-    :func:`companion.mavlink.vision.ned_pose_from_map`."""
-    R_ned_frd = rotation_from_rpy(*rpy_frd_rad)
-    return make_transform(R_NED_ENU.T @ R_ned_frd @ R_FLU_FRD.T, R_NED_ENU.T @ np.asarray(position_ned_m, dtype=np.float64))
-
-
 class BootClock:
     """Maps the autopilot's ``time_boot_ms`` onto this machine's clock.
 
@@ -301,7 +299,9 @@ class TelemetryPoseRecorder:
             return
         T = map_pose_from_ned((x + vx * dt, y + vy * dt, z + vz * dt - frame.floor_down_m), rpy)
         yaw_rate = float(msg.yawspeed)
-        odo = self._dead_reckon(t_msg, T, (vy, vx), -yaw_rate if math.isfinite(yaw_rate) else 0.0)
+        ve, vn, _ = ned_to_enu(vx, vy, vz)
+        # A yaw rate about down (NED) is the negated rate about up (ENU).
+        odo = self._dead_reckon(t_msg, T, (ve, vn), -yaw_rate if math.isfinite(yaw_rate) else 0.0)
         if self.history.push(t_msg, T, odo):
             self.samples += 1
 
@@ -322,7 +322,7 @@ class TelemetryPoseRecorder:
             cm, sm = math.cos(mid), math.sin(mid)
             self._odo[0] += (cm * v_fwd - sm * v_left) * dt
             self._odo[1] += (sm * v_fwd + cm * v_left) * dt
-            self._odo[2] = math.remainder(float(self._odo[2]) + yaw_rate_enu_rad_s * dt, math.tau)
+            self._odo[2] = wrap_angle_rad(float(self._odo[2]) + yaw_rate_enu_rad_s * dt)
             self._odo_t = t_s
         return float(self._odo[0]), float(self._odo[1]), float(self._odo[2])
 

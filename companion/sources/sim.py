@@ -9,10 +9,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.errors import SimulationError
 from companion.sim.render import RoomRenderer, renderer_from_config
 from companion.sim.world import BUILDERS, Room, generate_room
 from companion.sources.base import FrameSource
-from semmap.errors import SimulationError
 from semmap.types import CameraIntrinsics, Frame
 
 if TYPE_CHECKING:

@@ -74,7 +74,7 @@ def test_demo_with_a_bad_config_exits_2(tmp_path: Path, capsys: pytest.CaptureFi
 
 def test_demo_detector_choice_defaults_to_the_shipped_model_and_names_a_bad_one(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    from companion.cmd_demo import choose_detector
+    from companion.cli.demo import choose_detector
     from semmap.errors import PerceptionError
 
     cfg = load_config(None)

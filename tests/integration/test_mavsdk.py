@@ -24,7 +24,8 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import CommandError, LinkError, MissionError
 from companion.mavsdk_client import MavsdkClient
-from companion.missions import MissionPlan, Waypoint, load_mission
+from companion.mission_files import load_mission
+from companion.missions import MissionPlan, Waypoint
 from companion.px4 import FlightMode
 from companion.sim.autopilot import MockAutopilot
 

@@ -24,7 +24,7 @@ from mosquitto_broker import MosquittoBroker, TlsFiles, make_tls_files
 from companion.config import MqttConfig
 from companion.errors import GroundLinkError
 from companion.ground import CommandValidator, GoalCommand, MissionCommand, MqttBridge
-from companion.ground.schema import (
+from companion.ground.messages import (
     MapMessage,
     ObjectsMessage,
     OnlineMessage,

@@ -29,9 +29,9 @@ from companion.config import CompanionConfig, config_from_dict, load_config
 from companion.mavlink.failsafe import OffboardState
 from companion.service.app import CompanionService
 from companion.service.checkpoint import checkpoint_path
-from companion.service.demo import LocalBroker, free_udp_port, run_e2e
 from companion.service.perception_process import PerceptionProcess
-from companion.service.sim_world import SimWorld
+from companion.sim.demo_e2e import LocalBroker, free_udp_port, run_e2e
+from companion.sim.sim_world import SimWorld
 from semmap.semantic_map import SemanticMap
 
 pytest.importorskip("open3d")

@@ -27,7 +27,8 @@ from companion.config import CompanionConfig, load_config
 from companion.mavlink.failsafe import OffboardState
 from companion.service.app import CompanionService
 from companion.service.checkpoint import checkpoint_path, restore_map
-from companion.service.demo import (
+from companion.service.mission_runner import position_enu
+from companion.sim.demo_e2e import (
     LocalBroker,
     crossing_waypoints_room,
     feasible_seed,
@@ -36,8 +37,7 @@ from companion.service.demo import (
     run_e2e,
     upload_mission_mavsdk,
 )
-from companion.service.mission_runner import position_enu
-from companion.service.sim_world import SimWorld
+from companion.sim.sim_world import SimWorld
 
 #: A closed-loop flight: the full suite runs it, `make check` does not.
 pytestmark = pytest.mark.slow
@@ -187,8 +187,8 @@ async def _ground_station(svc: CompanionService, world: SimWorld, base: str, por
             start = xy()
             await _until(lambda: np.linalg.norm(xy() - start) > 0.4, 30.0, "the vehicle flying")
             await send("pause", "p1")
-            await _until(lambda: svc.mission_paused, 5.0, "paused")
-            got["paused_legs_left"] = len(svc.legs_left)
+            await _until(lambda: svc.missions.paused, 5.0, "paused")
+            got["paused_legs_left"] = len(svc.missions.legs_left)
             await asyncio.sleep(2.0)  # braking to the hold point
             here = xy()
             await asyncio.sleep(1.5)
@@ -196,11 +196,11 @@ async def _ground_station(svc: CompanionService, world: SimWorld, base: str, por
             await send("pause", "p2")
             await _until(lambda: len(replies["p2"]) == 2, 5.0, "the service's answer to p2")
             await send("start", "s2")
-            await _until(lambda: len(svc.legs_left) < got["paused_legs_left"], 60.0, "a leg flown after resuming")
-            got["resumed_legs_left"] = len(svc.legs_left)
+            await _until(lambda: len(svc.missions.legs_left) < got["paused_legs_left"], 60.0, "a leg flown after resuming")
+            got["resumed_legs_left"] = len(svc.missions.legs_left)
             await send("abort", "a1")
             await _until(lambda: svc.mission_done.is_set(), 5.0, "mission ended")
-            got["aborted_legs_left"] = len(svc.legs_left)
+            got["aborted_legs_left"] = len(svc.missions.legs_left)
             await asyncio.sleep(2.0)
             here = xy()
             await asyncio.sleep(1.5)

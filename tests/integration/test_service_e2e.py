@@ -10,7 +10,7 @@ import pytest
 
 from companion.cli import main
 from companion.config import CompanionConfig, load_config
-from companion.service.demo import read_flight_log
+from companion.sim.demo_e2e import read_flight_log
 
 #: A closed-loop flight: the full suite runs it, `make check` does not.
 pytestmark = pytest.mark.slow

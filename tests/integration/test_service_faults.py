@@ -34,8 +34,8 @@ from companion.config import load_config
 from companion.mavlink.failsafe import OffboardState
 from companion.service.app import CompanionService
 from companion.service.checkpoint import checkpoint_path, restore_map
-from companion.service.demo import LocalBroker, free_udp_port, run_e2e
-from companion.service.sim_world import SimWorld
+from companion.sim.demo_e2e import LocalBroker, free_udp_port, run_e2e
+from companion.sim.sim_world import SimWorld
 
 #: A closed-loop flight: the full suite runs it, `make check` does not.
 pytestmark = pytest.mark.slow

@@ -18,8 +18,8 @@ import yaml
 from companion.config import load_config
 from companion.mavlink.failsafe import OffboardState
 from companion.service.app import CompanionService
-from companion.service.demo import run_e2e
-from companion.service.sim_world import SimWorld
+from companion.sim.demo_e2e import run_e2e
+from companion.sim.sim_world import SimWorld
 
 #: Closed-loop flights, as tests/integration/test_service_slam.py: the full suite runs them.
 pytest.importorskip("open3d")

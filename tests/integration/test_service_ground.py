@@ -14,14 +14,14 @@ import yaml
 
 from companion.config import load_config
 from companion.service.app import CompanionService
-from companion.service.demo import (
+from companion.service.mission_runner import position_enu
+from companion.sim.demo_e2e import (
     crossing_waypoints_room,
     feasible_seed,
     free_udp_port,
     local_broker,
 )
-from companion.service.mission_runner import position_enu
-from companion.service.sim_world import SimWorld
+from companion.sim.sim_world import SimWorld
 
 pytest.importorskip("open3d")
 

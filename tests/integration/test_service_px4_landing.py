@@ -13,11 +13,11 @@ import pytest
 from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
-from companion.service.demo import free_udp_port
 from companion.service.mission_runner import SETTLED_SPEED_M_S, Leg, MissionRunner
 from companion.service.perception_worker import flight_band
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.autopilot.behaviour import Px4Behaviour
+from companion.sim.demo_e2e import free_udp_port
 from planner.worker import PlanningService
 from semmap.costmap import Costmap
 from semmap.grid import GridSpec

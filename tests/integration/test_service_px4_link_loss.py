@@ -15,8 +15,8 @@ import yaml
 from companion.config import load_config
 from companion.mavlink.failsafe import OffboardState
 from companion.service.app import CompanionService
-from companion.service.demo import LocalBroker, run_e2e
-from companion.service.sim_world import SimWorld
+from companion.sim.demo_e2e import LocalBroker, run_e2e
+from companion.sim.sim_world import SimWorld
 
 pytest.importorskip("open3d")
 

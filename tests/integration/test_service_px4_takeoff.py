@@ -14,10 +14,10 @@ import pytest
 from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
-from companion.service.demo import free_udp_port
 from companion.service.mission_runner import MissionRunner, min_engage_height_m, took_off
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.autopilot.behaviour import Px4Behaviour
+from companion.sim.demo_e2e import free_udp_port
 from companion.sources.poses import SharedPoseHistory, TelemetryPoseRecorder
 from planner.worker import PlanningService
 from semmap.costmap import Costmap

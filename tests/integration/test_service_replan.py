@@ -12,10 +12,10 @@ import pytest
 
 from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
-from companion.service.demo import free_udp_port
 from companion.service.mission_runner import Leg, MissionRunner, position_enu
 from companion.service.perception_worker import flight_band
 from companion.sim.autopilot import MockAutopilot
+from companion.sim.demo_e2e import free_udp_port
 from planner.worker import PlanningService
 from semmap.costmap import LETHAL_OBSTACLE, Costmap
 from semmap.grid import GridSpec

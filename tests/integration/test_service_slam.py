@@ -16,8 +16,8 @@ import yaml
 
 from companion.config import load_config
 from companion.service.app import CompanionService
-from companion.service.demo import run_e2e
-from companion.service.sim_world import SimWorld
+from companion.sim.demo_e2e import run_e2e
+from companion.sim.sim_world import SimWorld
 from semmap.errors import ConfigError
 
 #: A closed-loop flight: the full suite runs it, `make check` does not.

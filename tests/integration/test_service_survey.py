@@ -12,9 +12,9 @@ import pytest
 
 from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
-from companion.service.demo import free_udp_port
 from companion.service.mission_runner import MissionRunner, position_enu
 from companion.sim.autopilot import MockAutopilot
+from companion.sim.demo_e2e import free_udp_port
 from planner.worker import PlanningService
 from semmap.costmap import Costmap
 

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from companion.config import load_config
-from companion.service.demo import run_e2e
+from companion.sim.demo_e2e import run_e2e
 from companion.sources.sim import room_from_config
 
 #: A closed-loop flight: the full suite runs it, `make check` does not.

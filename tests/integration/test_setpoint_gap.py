@@ -9,8 +9,8 @@ import pytest
 
 from companion.mavlink.link import MavlinkLink
 from companion.px4 import FlightMode
-from companion.service.demo import setpoint_gap_stats_ms
 from companion.sim.autopilot import MockAutopilot
+from companion.sim.demo_e2e import setpoint_gap_stats_ms
 
 
 @pytest.mark.asyncio

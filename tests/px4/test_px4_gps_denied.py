@@ -22,7 +22,6 @@ from companion.errors import CommandError
 from companion.geo import GeoOrigin
 from companion.mavlink.vehicle import Vehicle
 from companion.mavlink.vision import VisionPose, VisionStream
-from companion.service.sim_world import SharedSimState
 from companion.sim.px4_gps_denied import (
     EstimateRecorder,
     GpsDeniedSitl,
@@ -30,6 +29,7 @@ from companion.sim.px4_gps_denied import (
     placement_around_start,
 )
 from companion.sim.px4_sitl import sitl_available
+from companion.sim.sim_world import SharedSimState
 
 pytestmark = [pytest.mark.px4, pytest.mark.slow]
 

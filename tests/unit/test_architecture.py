@@ -1,4 +1,5 @@
-"""The package arrows: companion -> planner -> semmap, never back."""
+"""The package arrows: companion -> planner -> semmap, never back; the onboard service apart
+from the simulation harness."""
 
 from __future__ import annotations
 
@@ -12,15 +13,20 @@ REPO = Path(__file__).resolve().parents[2]
 FORBIDDEN = {"semmap": ("companion", "planner"), "planner": ("companion",)}
 
 
-def _imported_packages(path: Path) -> set[tuple[str, int]]:
+def _imported_modules(path: Path) -> set[tuple[str, int]]:
+    """The absolute modules ``path`` imports, each with the line that imports it."""
     tree = ast.parse(path.read_text(), filename=str(path))
     out: set[tuple[str, int]] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            out.update((alias.name.split(".")[0], node.lineno) for alias in node.names)
+            out.update((alias.name, node.lineno) for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            out.add((node.module.split(".")[0], node.lineno))
+            out.add((node.module, node.lineno))
     return out
+
+
+def _imported_packages(path: Path) -> set[tuple[str, int]]:
+    return {(name.split(".")[0], line) for name, line in _imported_modules(path)}
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))
@@ -29,3 +35,35 @@ def test_a_lower_package_never_imports_a_higher_one(package: str) -> None:
              for path in sorted((REPO / package).rglob("*.py"))
              for name, line in sorted(_imported_packages(path)) if name in FORBIDDEN[package]]
     assert not wrong, "\n".join(wrong)
+
+
+def test_the_onboard_service_never_imports_the_simulation_harness() -> None:
+    wrong = [f"{path.relative_to(REPO)}:{line} imports {name}"
+             for path in sorted((REPO / "companion" / "service").rglob("*.py"))
+             for name, line in sorted(_imported_modules(path))
+             if name == "companion.sim" or name.startswith("companion.sim.")]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_command_line_is_one_package() -> None:
+    flat = sorted(p.name for p in (REPO / "companion").glob("cmd_*.py"))
+    assert not flat, f"subcommand modules outside companion/cli/: {flat}"
+    from companion.cli import COMMAND_MODULES
+
+    assert all(name.startswith("companion.cli.") for name in COMMAND_MODULES)
+
+
+def test_one_exception_tree_with_each_error_where_its_concept_lives() -> None:
+    import companion.errors as companion_errors
+    import semmap.errors as semmap_errors
+
+    for module in (semmap_errors, companion_errors):
+        errors = [v for v in vars(module).values() if isinstance(v, type) and issubclass(v, BaseException)]
+        assert errors and all(issubclass(e, semmap_errors.CompanionError) for e in errors), module.__name__
+    # The link, mission, ground-link and simulator errors are the companion's own.
+    for name in ("LinkError", "CommandError", "MissionError", "GroundLinkError", "SimulationError"):
+        assert getattr(companion_errors, name).__module__ == "companion.errors", name
+        assert not hasattr(semmap_errors, name), f"semmap.errors defines the companion's {name}"
+    # Every error companion code raises is importable from one place.
+    assert set(companion_errors.__all__) >= {n for n, v in vars(semmap_errors).items()
+                                             if isinstance(v, type) and issubclass(v, BaseException)}

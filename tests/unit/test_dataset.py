@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from companion.errors import SimulationError
 from companion.sim.dataset import (
     MAX_ROOMS_PER_SPLIT,
     DatasetSpec,
@@ -22,7 +23,6 @@ from companion.sim.dataset import (
     yolo_label_lines,
 )
 from companion.sim.groundtruth import clearance_m
-from semmap.errors import SimulationError
 from semmap.frames import rpy_from_rotation
 from semmap.types import CameraIntrinsics
 

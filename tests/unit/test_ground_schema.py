@@ -16,23 +16,25 @@ from hypothesis.extra.numpy import arrays
 from pydantic import ValidationError
 
 from companion.config import MqttConfig
-from companion.ground.schema import (
-    COMMAND_MODELS,
+from companion.ground.messages import (
     OUTBOUND_MODELS,
-    GoalCommand,
     MapMessage,
-    MissionCommand,
-    Rejection,
-    Topics,
-    VehicleCommand,
     decode_cost_png,
     encode,
     encode_cost_png,
     objects_message,
-    parse_command,
     path_message,
-    peek_request_id,
     telemetry_message,
+)
+from companion.ground.schema import (
+    COMMAND_MODELS,
+    GoalCommand,
+    MissionCommand,
+    Rejection,
+    Topics,
+    VehicleCommand,
+    parse_command,
+    peek_request_id,
 )
 from companion.ground.validation import CommandValidator, TokenBucket
 from planner.config import PlannerConfig

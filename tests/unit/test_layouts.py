@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from companion.errors import SimulationError
 from companion.sim.groundtruth import (
     free_path_exists,
     interior_mask,
@@ -17,7 +18,6 @@ from companion.sim.groundtruth import (
 from companion.sim.layouts import RANGES
 from companion.sim.world import BUILDERS, FurnitureObject, Room, _footprints_overlap, generate_room
 from semmap.costmap import VerticalBand
-from semmap.errors import SimulationError
 
 TABLES = ("desk", "conference_table", "coffee_table")
 

@@ -12,19 +12,19 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.vision import (
-    R_FLU_FRD,
-    R_NED_ENU,
     VisionPose,
     VisionStream,
-    ned_pose_from_map,
     pose_covariance,
-    quaternion_wxyz,
     vision_odometry_message,
 )
 from semmap.frames import (
+    R_FLU_FRD,
+    R_NED_ENU,
     make_transform,
+    ned_pose_from_map,
     pose_from_xyz_rpy,
     quaternion_to_rotation,
+    quaternion_wxyz_from_rotation,
     rotation_from_rpy,
 )
 
@@ -38,7 +38,7 @@ def test_level_vehicle_facing_north() -> None:
     p, R = ned_pose_from_map(pose_from_xyz_rpy(1.0, 2.0, 3.0, yaw_rad=math.pi / 2))
     assert p == pytest.approx([2.0, 1.0, -3.0])
     assert R == pytest.approx(np.eye(3), abs=1e-12)  # FRD aligned with NED: heading north
-    assert quaternion_wxyz(R) == pytest.approx((1.0, 0.0, 0.0, 0.0))
+    assert quaternion_wxyz_from_rotation(R) == pytest.approx((1.0, 0.0, 0.0, 0.0))
 
 
 @given(roll=small, pitch=small, yaw=angles, n=coords, e=coords, d=coords)
@@ -49,7 +49,7 @@ def test_round_trip_from_a_ned_attitude(roll: float, pitch: float, yaw: float, n
     p, R = ned_pose_from_map(T_map_body)
     assert p == pytest.approx([n, e, d], abs=1e-9)
     assert R == pytest.approx(R_ned_frd, abs=1e-9)
-    w, x, y, z = quaternion_wxyz(R)
+    w, x, y, z = quaternion_wxyz_from_rotation(R)
     assert w >= 0.0
     assert quaternion_to_rotation(x, y, z, w) == pytest.approx(R_ned_frd, abs=1e-9)
 

@@ -11,7 +11,9 @@ import pytest
 
 from companion.cli import main
 from companion.errors import MissionError
-from companion.missions import MissionPlan, Waypoint, check_plan, load_mission, parse_yaml_mission
+from companion.mission_files import load_mission, parse_yaml_mission
+from companion.mission_validation import check_plan
+from companion.missions import MissionPlan, Waypoint
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data" / "missions"

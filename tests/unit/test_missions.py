@@ -1,4 +1,5 @@
-"""Mission files (companion.missions) and the flat-earth home conversion (companion.geo)."""
+"""Mission files and the typed plan (companion.mission_files, companion.missions) and the
+flat-earth home conversion (companion.geo)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from hypothesis import strategies as st
 
 from companion.errors import MissionError
 from companion.geo import GeoOrigin
+from companion.mission_files import load_mission, parse_plan_json, parse_yaml_mission, save_mission
 from companion.missions import (
     CMD_CHANGE_SPEED,
     CMD_LAND,
@@ -21,11 +23,7 @@ from companion.missions import (
     MissionPlan,
     Waypoint,
     items_to_plan,
-    load_mission,
-    parse_plan_json,
-    parse_yaml_mission,
     plan_to_items,
-    save_mission,
 )
 
 REPO = Path(__file__).resolve().parents[2]

@@ -12,10 +12,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from companion.config import CompanionConfig
+from companion.errors import SimulationError
 from companion.sim.d455 import exact_depth
 from companion.sim.render import DepthNoise, RoomRenderer, renderer_from_config
 from companion.sim.world import Box, FurnitureObject, Room, generate_room
-from semmap.errors import SimulationError
 from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform, pose_from_xyz_rpy, transform_points
 from semmap.pointcloud import backproject
 from semmap.types import CameraIntrinsics
@@ -310,7 +310,7 @@ def test_renderer_from_config_uses_camera_and_sim_settings() -> None:
 
 
 def test_bad_pose_is_rejected(wall_renderer: RoomRenderer) -> None:
-    from semmap.errors import SimulationError
+    from companion.errors import SimulationError
 
     with pytest.raises(SimulationError, match="T_map_camera"):
         wall_renderer.render(np.eye(3))

@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bench._judge import judge_flight
+from companion.errors import SimulationError
 from companion.sim.groundtruth import colliding_owners
 from companion.sim.world import Box, FurnitureObject, Room
-from semmap.errors import SimulationError
 
 R, H, MARGIN = 0.25, 0.15, 0.10
 

@@ -12,6 +12,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import CompanionConfig
+from companion.errors import MissionError
 from companion.mavlink.mission_download import MissionItem
 from companion.mavlink.state import HomePosition
 from companion.service.app import frozen_heap
@@ -19,8 +20,8 @@ from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.localization import Localizer
 from companion.service.mission_runner import SURVEY_CARROT_DEG, SurveyTurn, mission_legs
 from companion.service.perception_worker import check_frame, new_semantic_map
-from companion.service.sim_world import SharedSimState
-from semmap.errors import FrameError, MissionError
+from companion.sim.sim_world import SharedSimState
+from semmap.errors import FrameError
 from semmap.frames import pose_from_xyz_rpy
 from semmap.types import CameraIntrinsics, Frame
 

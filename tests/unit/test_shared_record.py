@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from companion.service.localization import SharedLocalization
-from companion.service.sim_world import SharedSimState
 from companion.shared_record import SharedRecord
+from companion.sim.sim_world import SharedSimState
 from companion.sources.poses import SharedPoseHistory
 
 CTX = mp.get_context("spawn")

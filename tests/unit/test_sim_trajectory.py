@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from companion.errors import SimulationError
 from companion.sim.trajectory import (
     Keyframe,
     Trajectory,
@@ -19,7 +20,6 @@ from companion.sim.trajectory import (
     plan_route,
 )
 from companion.sim.world import generate_room
-from semmap.errors import SimulationError
 
 
 def yaw_rates_rad_s(traj: Trajectory, rate_hz: float = 100.0) -> np.ndarray:

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from companion.errors import SimulationError
 from companion.sim.groundtruth import (
     clearance_m,
     free_path_exists,
@@ -18,7 +19,6 @@ from companion.sim.groundtruth import (
 )
 from companion.sim.world import BUILDERS, DOOR_HEIGHT_M, Box, FurnitureObject, Room, generate_room
 from semmap.costmap import LETHAL_OBSTACLE, VerticalBand
-from semmap.errors import SimulationError
 from semmap.grid import GridSpec, rasterize_polygon
 
 

@@ -14,7 +14,6 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.mavlink.state import VehicleStateTracker
 from companion.mavlink.timesync import AutopilotClock
-from companion.mavlink.vision import ned_pose_from_map
 from companion.sources.base import FrameSource
 from companion.sources.poses import (
     BootClock,
@@ -22,9 +21,8 @@ from companion.sources.poses import (
     SharedPoseHistory,
     TelemetryPosedSource,
     TelemetryPoseRecorder,
-    map_pose_from_ned,
 )
-from semmap.frames import pose_from_xyz_rpy, rpy_from_rotation
+from semmap.frames import map_pose_from_ned, ned_pose_from_map, pose_from_xyz_rpy, rpy_from_rotation
 from semmap.types import CameraIntrinsics, Frame
 
 INTR = CameraIntrinsics(5.0, 5.0, 4.0, 3.0, 8, 6)

@@ -1,7 +1,7 @@
 """The end-to-end demo: the whole service flying a MAVSDK-uploaded mission through a simulated room.
 
 In one process: the mock autopilot and the simulated RealSense in the seeded furnished room
-(:class:`~companion.service.sim_world.SimWorld`), a real Mosquitto broker when the binary is
+(:class:`~companion.sim.sim_world.SimWorld`), a real Mosquitto broker when the binary is
 installed, and the full :class:`~companion.service.app.CompanionService` (detector, tracker,
 semantic map, planner process, offboard). A mission that crosses the room - waypoints only,
 knowing nothing of the furniture - is uploaded with MAVSDK; the service downloads it and flies
@@ -33,12 +33,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import CompanionConfig, write_effective_config
+from companion.errors import SimulationError
 from companion.mavsdk_client import MavsdkClient
 from companion.missions import MissionPlan, Waypoint
 from companion.px4 import FlightMode
 from companion.service.app import CompanionService, ServiceReport
 from companion.service.checkpoint import checkpoint_path
-from companion.service.sim_world import START_INSIDE_M, SimPlacement, SimWorld, start_point_room_m
 from companion.sim.groundtruth import (
     clearance_m,
     collides,
@@ -46,11 +46,11 @@ from companion.sim.groundtruth import (
     room_grid_spec,
     semantic_costmap,
 )
+from companion.sim.sim_world import START_INSIDE_M, SimPlacement, SimWorld, start_point_room_m
 from companion.sim.world import Room
 from companion.sources.sim import room_from_config
 from planner.planner import Planner
 from semmap.costmap import VerticalBand
-from semmap.errors import SimulationError
 from semmap.export import export_all, render_picture
 
 log = logging.getLogger(__name__)

@@ -15,8 +15,9 @@ from typing import TYPE_CHECKING
 
 from companion.config import load_config
 from companion.errors import DataError, MissionError
+from companion.mission_files import load_mission, save_mission
 from companion.mission_validation import check_plan
-from companion.missions import MissionPlan, load_mission, save_mission
+from companion.missions import MissionPlan
 
 if TYPE_CHECKING:
     from companion.mavsdk_client import MavsdkClient

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
+from companion.errors import SimulationError
 from companion.geo import GeoOrigin
 from companion.mavlink.signing import read_key_file
 from companion.shared_record import SharedRecord
@@ -33,7 +34,6 @@ from companion.sim.render import renderer_from_config
 from companion.sim.world import Room
 from companion.sources.base import FrameSource
 from companion.sources.sim import SimFrameSource, room_from_config
-from semmap.errors import SimulationError
 from semmap.types import CameraIntrinsics, Frame
 
 log = logging.getLogger(__name__)

@@ -2,7 +2,7 @@
 
 The only place that sets up logging, prints for the user and turns errors into exit codes
 (0 ok, 1 runtime failure, 2 bad input or config, 130 interrupted) so systemd's restart policy
-can act. Each subcommand lives in its own ``companion.cmd_*`` module exposing
+can act. Each subcommand lives in its own ``companion.cli.*`` module exposing
 ``register(subparsers)``; the module sets ``func`` on its parser.
 """
 
@@ -21,15 +21,15 @@ log = logging.getLogger("companion")
 
 #: Subcommand modules, in the order ``--help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
-    "companion.cmd_config",
-    "companion.cmd_demo",
-    "companion.cmd_sim",
-    "companion.cmd_mission",
-    "companion.cmd_dataset",
-    "companion.cmd_map",
-    "companion.cmd_plan",
-    "companion.cmd_run",
-    "companion.cmd_keygen",
+    "companion.cli.config",
+    "companion.cli.demo",
+    "companion.cli.sim",
+    "companion.cli.mission",
+    "companion.cli.dataset",
+    "companion.cli.map",
+    "companion.cli.plan",
+    "companion.cli.run",
+    "companion.cli.keygen",
 )
 
 

@@ -79,7 +79,7 @@ def _run(args: argparse.Namespace) -> int:
         cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": args.seed})})
     if args.scripted:
         return _scripted(cfg, args)
-    from companion.service.demo import run_e2e
+    from companion.sim.demo_e2e import run_e2e
 
     cfg = choose_detector(cfg, args.detector)
     if args.autopilot != "mock":
@@ -103,7 +103,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def _real_autopilot(cfg: CompanionConfig, args: argparse.Namespace) -> int:
     """The demo flown by PX4 SITL started here, or by the autopilot on the URL ``--autopilot``."""
-    from companion.service.demo_px4 import DEFAULT_GCS_URL, fly_px4
+    from companion.sim.demo_px4 import DEFAULT_GCS_URL, fly_px4
     from companion.sim.px4_sitl import Px4Sitl
 
     timeout = max(args.timeout, 240.0)

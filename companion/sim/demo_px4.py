@@ -1,6 +1,6 @@
 """The end-to-end demo flown by a real autopilot: PX4 SITL (started here) or one already running.
 
-The same flight as :func:`companion.service.demo.run_e2e` (a MAVSDK-uploaded mission across
+The same flight as :func:`companion.sim.demo_e2e.run_e2e` (a MAVSDK-uploaded mission across
 the seeded room, flown leg by leg by the whole service: detector, map, planner, offboard),
 but the vehicle is the autopilot's: PX4 flies it, and the simulated world only renders the
 camera from the pose PX4 reports (:class:`~companion.sim.px4_world.Px4World`). The room is
@@ -24,12 +24,13 @@ from typing import Any
 import numpy as np
 
 from companion.config import CompanionConfig, write_effective_config
+from companion.errors import LinkError
 from companion.mavsdk_client import MavsdkClient
 from companion.missions import MissionPlan, Waypoint
 from companion.px4 import FlightMode
 from companion.service.app import CompanionService, ServiceReport
 from companion.service.checkpoint import checkpoint_path
-from companion.service.demo import (
+from companion.sim.demo_e2e import (
     _summary,
     _write_picture,
     crossing_waypoints_room,
@@ -39,7 +40,6 @@ from companion.service.demo import (
 from companion.sim.px4_probes import engage_check
 from companion.sim.px4_sitl import Px4Sitl, Px4SitlError
 from companion.sim.px4_world import FlightTimeline, Px4World, vehicle_start_map_xy
-from semmap.errors import LinkError
 from semmap.export import export_all
 
 log = logging.getLogger(__name__)

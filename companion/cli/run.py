@@ -65,7 +65,7 @@ async def _serve(cfg: Any, fly_mission: bool, out: str | None) -> None:
             source = world_px4.frame_source()
             object_classes = {o.object_id: o.class_name for o in world_px4.room.objects}
         elif cfg.camera.source == "sim":
-            from companion.service.sim_world import SimWorld
+            from companion.sim.sim_world import SimWorld
 
             world = await stack.enter_async_context(SimWorld(cfg))
             source = world.frame_source()
