@@ -3,7 +3,7 @@
 ``python bench/px4_sitl.py [--rooms N] [--quick] [--only NAME,...]``
 
 Each room: a fresh PX4 SITL (SIH quadrotor, no lockstep, :mod:`companion.sim.px4_sitl`) and
-``companion demo --autopilot px4-sitl``'s flight (:func:`companion.service.demo_px4.fly_px4`):
+``companion demo --autopilot px4-sitl``'s flight (:func:`companion.sim.demo_px4.fly_px4`):
 the whole service flies the MAVSDK-uploaded crossing, judged against the room's ground truth;
 PX4's own ``uorb top`` gives the rates at which it receives the companion's setpoints
 (``offboard_control_mode``, one per SET_POSITION_TARGET_LOCAL_NED) and OBSTACLE_DISTANCE,

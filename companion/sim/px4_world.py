@@ -1,11 +1,11 @@
 """The simulated room around a real autopilot (PX4 SITL, or any vehicle on a MAVLink link).
 
-With the mock autopilot the simulator owns the vehicle (:class:`~companion.service.sim_world.SimWorld`);
+With the mock autopilot the simulator owns the vehicle (:class:`~companion.sim.sim_world.SimWorld`);
 here the autopilot does: the world only renders the simulated RealSense from the pose the
 autopilot reports. :class:`Px4World` places the seeded room so the vehicle's start point is
 just inside its first doorway, follows the autopilot's telemetry on a MAVLink link (the
 service's own) and publishes each pose to the camera, which may render in the perception
-process (:class:`~companion.service.sim_world.SharedSimState`).
+process (:class:`~companion.sim.sim_world.SharedSimState`).
 
 Frames: the map frame is PX4's local frame in ENU (x east, y north); the world's z is the
 height above the floor as the downward range finder measures it (SIH simulates one), else
