@@ -8,8 +8,11 @@ KISS-ICP's ``register_frame`` owns its step): the service's perception process, 
 2. **track**: a :class:`~semmap.tracking.camera_steps.StepAwareTracker`, so video is tracked in
    the image and keyframes (camera steps too large for the image tracker) are associated in
    3D by the object map;
-3. **observe**: :func:`~semmap.frame_objects.observe_frame`, every box with the others of the
-   frame (touching furniture), each object's footprint, height and points in the map frame;
+3. **observe**: the view's floor height (:func:`~semmap.floor.view_floor_height_m`; the map's z
+   is up, so only the height is estimated), then :func:`~semmap.frame_objects.observe_frame`,
+   every box with the others of the frame (touching furniture), each object's footprint,
+   height and points in the map frame. A view without a floor measures no object and costs
+   none a miss: its heights would be guesses;
 4. **integrate**: :meth:`SemanticMap.integrate_frame`: the object map, the depth band scan into
    the grid, the layers.
 
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import logging
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -34,12 +38,16 @@ from numpy.typing import NDArray
 from semmap.config import ClassConfig, GeometryConfig, TrackerConfig
 from semmap.detection import Detector
 from semmap.errors import MapError
+from semmap.floor import view_floor_height_m
 from semmap.frame_objects import observe_frame
 from semmap.geometry import ObjectObservation
+from semmap.ransac import Plane
 from semmap.semantic_map import FrameIntegration, SemanticMap
 from semmap.tracking.botsort import BoTSORT
 from semmap.tracking.camera_steps import StepAwareTracker
 from semmap.types import Detection, Frame, Track
+
+log = logging.getLogger(__name__)
 
 __all__ = ["STAGES", "FrameResult", "FrameTracker", "MappingPipeline", "OneTrackPerBox", "step_aware_tracker"]
 
@@ -79,6 +87,8 @@ class FrameResult:
     tracks: list[Track]
     observations: list[ObjectObservation]
     integration: FrameIntegration
+    #: The view's floor height (map z, metres); None: no floor found, no object measured.
+    floor_height_m: float | None
     stages_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -106,6 +116,8 @@ class MappingPipeline:
         self.map_lock = map_lock if map_lock is not None else contextlib.nullcontext()
         self.clock = clock
         self._rng = np.random.default_rng(seed)
+        #: Views in which no floor was found (their objects were not measured).
+        self.views_without_floor = 0
 
     def register_frame(self, frame: Frame, T_map_camera: NDArray[np.float64] | None = None,
                        detections: Sequence[Detection] | None = None) -> FrameResult:
@@ -131,12 +143,20 @@ class MappingPipeline:
         t1 = self.clock()
         tracks = self.tracker.update(dets, frame.rgb, T)
         t2 = self.clock()
-        obs = observe_frame(frame.depth_m, frame.intrinsics, T, tracks, self.classes, self.geometry,
-                            depth_range_m=self.depth_range_m, stamp_s=frame.stamp_s, rng=self._rng)
+        floor_m = view_floor_height_m(frame.depth_m, frame.intrinsics, T, self.depth_range_m)
+        obs: list[ObjectObservation] = []
+        if floor_m is None:
+            self.views_without_floor += 1
+            log.debug("frame %d: no floor in view; its objects are not measured", frame.index)
+        else:
+            obs = observe_frame(frame.depth_m, frame.intrinsics, T, tracks, self.classes, self.geometry,
+                                floor=Plane.horizontal(floor_m), depth_range_m=self.depth_range_m,
+                                stamp_s=frame.stamp_s, rng=self._rng)
         t3 = self.clock()
         with self.map_lock:
-            integration = self.smap.integrate_frame(frame, T_map_camera=T, observations=obs)
+            integration = self.smap.integrate_frame(frame, T_map_camera=T,
+                                                    observations=obs if floor_m is not None else None)
         t4 = self.clock()
         stages = {name: 1e3 * (b - a)
                   for name, a, b in zip(STAGES, (t0, t1, t2, t3), (t1, t2, t3, t4), strict=True)}
-        return FrameResult(dets, tracks, obs, integration, stages)
+        return FrameResult(dets, tracks, obs, integration, floor_m, stages)

@@ -96,3 +96,23 @@ def test_the_step_refuses_what_it_cannot_map() -> None:
     unposed = Frame(0.0, frame.rgb, frame.depth_m, K, index=5)
     with pytest.raises(MapError, match="frame 5: no camera pose"):
         step.register_frame(unposed, detections=[])
+
+
+def test_a_view_without_floor_measures_no_object_and_costs_none_a_miss() -> None:
+    cfg = _config()
+    smap = new_semantic_map(cfg)
+    detector = _Boxes([(TABLE, "desk"), (FAR_CHAIR, "chair")])
+    step = MappingPipeline(smap, cfg.classes, cfg.geometry, OneTrackPerBox(), detector, depth_range_m=(0.3, 8.0))
+    T = camera_pose(0.6, 0.9, 1.4, 0.0, 30.0)
+    seen = step.register_frame(_frame(T, 0))
+    assert seen.floor_height_m is not None and abs(seen.floor_height_m) < 0.01 and len(seen.observations) == 2
+    assert smap.object_map is not None
+    before = {o.object_id: o.existence for o in smap.object_map.objects(confirmed_only=False)}
+    # The same boxes on a frame whose floor is raised out of reach (a bad pose height).
+    lifted = _frame(T, 1)
+    T_up = T.copy()
+    T_up[2, 3] += 0.5
+    blind = step.register_frame(Frame(lifted.stamp_s, lifted.rgb, lifted.depth_m, K, T_map_camera=T_up, index=1))
+    assert blind.floor_height_m is None and blind.observations == [] and step.views_without_floor == 1
+    after = {o.object_id: o.existence for o in smap.object_map.objects(confirmed_only=False)}
+    assert after == before
