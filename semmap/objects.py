@@ -394,24 +394,23 @@ class ObjectMap:
     def _same_object(self, a: _State, b: _State, both_seen_now: bool) -> bool:
         """Duplicate test: heavy overlap of the footprints whatever the classes, one showing the
         other's surface (:meth:`_shows_surface_of`) whatever the classes, or (same class, not two
-        detections of one frame) overlap / proximity as for re-association."""
+        detections of one frame) overlap / proximity as for re-association.
+
+        Footprints here are the evidence footprints (cells several views agree on), not the
+        hulls: one view whose box held a neighbour too grows a hull over that neighbour.
+        """
         cfg = self.config
-        # Any-class overlap is judged on the evidence footprints (what the map reports: cells
-        # several views agree on), not the hulls: a hull is the union of the best views'
-        # outlines, so one can be a corner of the object (two desks at 0.91 footprint IoU over
-        # one real desk stayed apart) or, after one box that held a neighbour's points too,
-        # both objects (a chair's hull grew over the coffee table beside it and swallowed it).
         fa, fb = self._evidence_footprint(a), self._evidence_footprint(b)
         reach = float(max(np.ptp(a.hull_xy_m, axis=0).max(), np.ptp(fa, axis=0).max())
                       + max(np.ptp(b.hull_xy_m, axis=0).max(), np.ptp(fb, axis=0).max()))
         dist = float(np.linalg.norm(a.position_m[:2] - b.position_m[:2]))
         if dist > reach:
             return False
-        if _overlaps(fa, fb)[0] >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
+        iou, contained = _overlaps(fa, fb)
+        if iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
             return True
         if self._shows_surface_of(a, b) or self._shows_surface_of(b, a):
             return True
-        iou, contained = _overlaps(a.hull_xy_m, b.hull_xy_m)
         same_class = int(np.argmax(a.class_probs)) == int(np.argmax(b.class_probs))
         return same_class and not both_seen_now and (
             iou >= cfg.reassociate_iou or contained >= _CONTAINED or dist <= cfg.reassociate_distance_m
@@ -426,18 +425,18 @@ class ObjectMap:
         return abs(_quantile(a.top_hist, 0.5) - _quantile(b.top_hist, 0.5)) <= _SAME_SURFACE_M
 
     def _shows_surface_of(self, inner: _State, outer: _State) -> bool:
-        """``inner`` is ``outer``'s surface mapped a second time (often under another class): both
+        """``inner`` is ``outer``'s top mapped a second time (often under another class): both
         seen near, the same top plane (within ``_SAME_SURFACE_M``), ``inner`` reaching no
-        higher and lying mostly inside ``outer``'s footprint.
+        higher and lying mostly inside ``outer``'s footprint (see :meth:`_share_on_surface`).
 
-        The object-level form of :meth:`_surface_owner`, for the phantom that test cannot stop
-        when it is born: its first views had no top plane, or came before the real object had
-        one (in the demo room a half-seen coffee table was mapped as "coffee_table" and again,
-        about 0.5 IoU over it, as "desk"). A real object inside another's footprint (a chair
-        under a desk) has a top of its own and reaches higher, so it stays apart. The merge
-        pools both objects' footprint evidence and class probabilities, as every merge does.
+        The object-level form of :meth:`_surface_owner`, for a phantom whose first views had no
+        top plane or came before ``outer`` had one, so that test could not stop it at birth.
         """
         if not (inner.seen_near and inner.top_hist and inner.z_max_hist):
+            return False
+        # Only a table's top is a surface a whole object shows again: chairs side by side share
+        # a seat height, and one whose footprint grew over its neighbour is still two chairs.
+        if self.classes[int(np.argmax(outer.class_probs))].shape != "table":
             return False
         return self._share_on_surface(_quantile(inner.top_hist, 0.5), _quantile(inner.z_max_hist, 0.8),
                                       self._evidence_footprint(inner), outer) >= _CONTAINED
@@ -544,7 +543,7 @@ class ObjectMap:
             if cand in used or cand == track_object:
                 continue
             s = self._objects[cand]
-            iou, contained = _overlaps(s.hull_xy_m, fp)
+            iou, contained = _overlaps(self._evidence_footprint(s), fp)
             dist = float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m))
             same_class = int(np.argmax(s.class_probs)) in ks
             ok = (same_class and (iou >= cfg.reassociate_iou or contained >= _CONTAINED
