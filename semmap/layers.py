@@ -17,8 +17,9 @@ Layers:
 * :class:`ClassProbabilityLayer` and :class:`HeightLayer` - per-cell semantic planes (class
   probabilities with a "none" plane, object top height); they add no cost.
 
-The object-derived layers share one :class:`~semmap.object_rasters.ObjectRasters` cache, so each object's polygon is
-rasterised (and its distance field computed) once per change, not once per layer and frame.
+The object-derived layers share one :class:`~semmap.object_rasters.ObjectRasters` cache,
+so each object's polygon is rasterised (and its distance field computed) once per change,
+not once per layer and frame.
 """
 
 from __future__ import annotations
