@@ -1,8 +1,9 @@
 """Build a semantic map offline from a recorded RGB-D folder (``companion map``).
 
-The same per-frame pipeline as the service: detections (from a detector model or a
-detections file), tracks (BoT-SORT, or one track per box for sparse keyframes), per-object
-geometry, the object map, the depth band scan into the grid, the layers. Recorded poses are
+The same per-frame step as the service (:class:`semmap.pipeline.MappingPipeline`) on
+detections from a detector model or a detections file: tracks (BoT-SORT giving way to 3D
+association after large camera steps, or one track per box), per-object geometry, the object
+map, the depth band scan into the grid, the layers. Recorded poses are
 camera-to-world in the recording's own world frame (for the dining room, roughly the first
 camera's optical frame, floor tilted), so the floor is estimated first (RANSAC, the lowest
 large near-horizontal plane) and a gravity-aligned map frame built on it: z up, floor at 0.
@@ -26,7 +27,6 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,16 +38,14 @@ from semmap.detection import Detector, detector_from_config
 from semmap.detection.builtin import detector_vote_groups, vote_groups
 from semmap.errors import ConfigError, DataError, FrameError, MapError
 from semmap.export import export_all
-from semmap.frame_objects import observe_frame
 from semmap.frames import transform_points
-from semmap.geometry import ObjectObservation
 from semmap.objects import ObjectMap
+from semmap.pipeline import MappingPipeline, OneTrackPerBox, step_aware_tracker
 from semmap.pointcloud import backproject
 from semmap.ransac import estimate_floor, gravity_aligned_frame
 from semmap.semantic_map import SemanticMap, SemanticMapSettings
-from semmap.tracking.botsort import BoTSORT
 from semmap.tracking.camera_steps import StepAwareTracker
-from semmap.types import Detection, Frame, Track
+from semmap.types import Detection
 
 log = logging.getLogger(__name__)
 
@@ -179,21 +177,6 @@ def estimate_map_alignment(
     return gravity_aligned_frame(floor.plane, forward_hint=(float(forward[0]), float(forward[1]), float(forward[2])))
 
 
-class _OneTrackPerBox:
-    """Tracks for sparse keyframes: every box is a new track id."""
-
-    def __init__(self) -> None:
-        self._next = 1
-
-    def update(self, detections: Sequence[Detection], image_rgb: NDArray[np.uint8] | None = None,
-               T_map_camera: NDArray[np.float64] | None = None) -> list[Track]:
-        out = []
-        for d in detections:
-            out.append(Track(self._next, d.xyxy_px, d.score, d.class_name))
-            self._next += 1
-        return out
-
-
 def build_offline_map(
     sequence: str | Path, out_dir: str | Path, cfg: CompanionConfig,
     options: OfflineMapOptions | None = None, progress: Progress | None = None,
@@ -203,7 +186,6 @@ def build_offline_map(
     opts = options or OfflineMapOptions()
     out = Path(out_dir)
     class_names = [c.name for c in cfg.classes]
-    by_name = {c.name: c for c in cfg.classes}
     cam = cfg.camera
     depth_range = (cam.depth_min_m, cam.depth_max_m)
     source = RecordedFrameSource(sequence, default_intrinsics=cam.intrinsics(), depth_min_m=cam.depth_min_m,
@@ -235,9 +217,8 @@ def build_offline_map(
     omap = ObjectMap(cfg.classes, cfg.map, vote_groups=groups)
     smap = SemanticMap(settings, omap)
     # Keyframes (camera steps beyond what BoT-SORT follows) are associated in 3D by the object map.
-    tracker: StepAwareTracker | _OneTrackPerBox = (StepAwareTracker(BoTSORT.from_config(cfg.tracker))
-                                                   if opts.use_tracker else _OneTrackPerBox())
-    rng = np.random.default_rng(0)
+    tracker = step_aware_tracker(cfg.tracker) if opts.use_tracker else OneTrackPerBox()
+    pipeline = MappingPipeline(smap, cfg.classes, cfg.geometry, tracker, detector, depth_range_m=depth_range)
     entries = source.entries
     used = skipped = 0
     for i in range(n_total):
@@ -252,14 +233,8 @@ def build_offline_map(
             skipped += 1
             continue
         T = T_map_world @ np.asarray(frame.T_map_camera, np.float64)
-        if detections is not None:
-            dets = detections.get(entries[i].rgb_path.name, [])
-        else:
-            assert detector is not None
-            dets = detector.detect_frame(frame)
-        tracks = tracker.update(dets, frame.rgb, T)
-        obs = _observe(frame, T, tracks, by_name, cfg, depth_range, rng)
-        smap.integrate_frame(frame, T_map_camera=T, observations=obs)
+        dets = detections.get(entries[i].rgb_path.name, []) if detections is not None else None
+        pipeline.register_frame(frame, T, dets)
         used += 1
         if progress is not None:
             progress(i + 1, n_total)
@@ -275,14 +250,6 @@ def build_offline_map(
         log.info("%d of %d frames followed a camera step too large to track in the image: associated in 3D",
                  tracker.steps, used)
     return OfflineMapResult(smap, omap, T_map_world, used, skipped, files)
-
-
-def _observe(
-    frame: Frame, T_map_camera: NDArray[np.float64], tracks: Sequence[Track], by_name: Mapping[str, Any],
-    cfg: CompanionConfig, depth_range: tuple[float, float], rng: np.random.Generator,
-) -> list[ObjectObservation]:
-    return observe_frame(frame.depth_m, frame.intrinsics, T_map_camera, tracks, by_name, cfg.geometry,
-                         depth_range_m=depth_range, stamp_s=frame.stamp_s, rng=rng)
 
 
 def parse_lat_lon(text: str) -> tuple[float, float]:

@@ -29,9 +29,10 @@ from numpy.typing import NDArray
 
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform
-from semmap.geometry import ObjectObservation, observe_object, within_a_voxel
+from semmap.geometry import BoxPoints, ObjectObservation, box_points, object_in_box
 from semmap.ransac import Plane
 from semmap.types import CameraIntrinsics, Track
+from semmap.voxels import within_a_voxel
 
 __all__ = ["observe_frame"]
 
@@ -63,13 +64,21 @@ def observe_frame(
     """The observations of one frame's tracks (see the module doc), in track order; tracks
     whose box holds no object of its own have none. ``classes``: class name -> its config."""
     rng = rng if rng is not None else np.random.default_rng(0)
+    floor = floor if floor is not None else Plane.horizontal()
+    # Each box's points once (back-projection and the wall behind it); every look reuses them.
+    boxes = [box_points(depth_m, intrinsics, T_map_camera, tr.xyxy_px, params, floor, depth_range_m, rng)
+             for tr in tracks]
 
-    def observe(tr: Track, exclude: NDArray[np.float64] | None = None,
+    def observe(i: int, exclude: NDArray[np.float64] | None = None,
                 same: NDArray[np.float64] | None = None) -> ObjectObservation | None:
-        return observe_object(depth_m, intrinsics, T_map_camera, tr, classes[tr.class_name], params, floor,
-                              depth_range_m, stamp_s, rng, exclude_voxels_m=exclude, same_object_as_m=same)
+        box: BoxPoints | None = boxes[i]
+        if box is None:
+            return None
+        tr = tracks[i]
+        return object_in_box(box, intrinsics, T_map_camera, tr, classes[tr.class_name], params, floor, stamp_s,
+                             rng, exclude_voxels_m=exclude, same_object_as_m=same)
 
-    first = [observe(tr) for tr in tracks]
+    first = [observe(i) for i in range(len(tracks))]
     out: list[ObjectObservation] = []
     for i, (tr, o) in enumerate(zip(tracks, first, strict=True)):
         if o is None:
@@ -79,7 +88,7 @@ def observe_frame(
                 continue
             others = [p.voxels_map_m for j, p in enumerate(first)
                       if j != i and p is not None and _boxes_overlap(tr.xyxy_px, tracks[j].xyxy_px)]
-            behind = observe(tr, np.concatenate(others)) if others else None
+            behind = observe(i, np.concatenate(others)) if others else None
             if behind is not None:
                 out.append(behind)
             continue
@@ -110,7 +119,7 @@ def observe_frame(
             same = o.voxels_map_m[~within_a_voxel(o.voxels_map_m, excluded, params.voxel_size_m)]
             if len(same) < params.min_cluster_points:
                 continue  # it was the nearer object's points all along
-        again = observe(tr, excluded, same)
+        again = observe(i, excluded, same)
         if again is not None:
             out.append(again)
     return out

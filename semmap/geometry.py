@@ -1,6 +1,7 @@
 """Geometry of one tracked detection: depth in its box -> an object observation in the map.
 
-The pipeline per track (one I/O-free step, :func:`observe_object`):
+The pipeline per track (one I/O-free step, :func:`observe_object`): the box's points
+(:func:`box_points`, steps 1-3), then the object among them (:func:`object_in_box`, 4-6).
 
 1. The box, shrunk by ``box_shrink_frac`` on each side (box edges leak background), is
    back-projected through the pinhole model; large boxes are sampled with a pixel stride so at
@@ -10,7 +11,7 @@ The pipeline per track (one I/O-free step, :func:`observe_object`):
 3. Points within ``floor_clearance_m`` of the floor plane are dropped: the floor is not part
    of any object, and it would join every leg into one cluster with the room.
    The wall behind the object goes too, with everything beyond it: a vertical plane fitted
-   (:func:`background_walls`) on a ring of pixels just outside the box, accepted only when
+   (:func:`semmap.walls.background_walls`) on a ring of pixels just outside the box, accepted only when
    nothing of the ring or the box stands behind it and it faces the camera. A chair a few
    centimetres in front of a wall would otherwise be one cluster with the wall.
 4. Voxel downsampling, then Euclidean clustering (:mod:`semmap.clustering`: exact single
@@ -34,7 +35,6 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -46,22 +46,11 @@ from semmap.polygons import convex_footprint, simplify_polygon
 from semmap.ransac import Plane, fit_plane
 from semmap.shape_prior import shape_mask
 from semmap.types import CameraIntrinsics, Track
+from semmap.voxels import in_sorted, voxel_keys, within_a_voxel
+from semmap.walls import in_front_of_walls
 
 #: A box this close to the image border may be cut by it (detector boxes jitter by a few px).
 _EDGE_MARGIN_PX = 8
-#: Background walls are fitted on a ring of pixels around the box: this far outside it (box
-#: jitter must not put the object's own edge in the ring), this wide, sampled at this stride.
-_RING_GAP_PX = 4
-_RING_WIDTH_PX = 12
-_RING_STRIDE_PX = 4
-#: A wall is a vertical plane holding at least this share of the ring's above-floor points
-#: (and ``_WALL_MIN_POINTS``), with at most ``_WALL_MAX_BEHIND`` of them beyond it.
-_WALL_MIN_SHARE = 0.15
-_WALL_MIN_POINTS = 30
-_WALL_MAX_BEHIND = 0.1
-_WALL_HYPOTHESES = 64
-#: A wall faces the camera: cosine between its normal and the line of sight at least this.
-_WALL_MIN_FACING = 0.35
 #: Rows of the per-point table in :func:`observe_object` after map x, y, z: height above
 #: the floor, camera z-depth, floor clearance at that depth, pixel u, v.
 _H, _RANGE, _CLEAR, _U = 3, 4, 5, 6
@@ -158,67 +147,6 @@ class CameraView:
         return out
 
 
-def voxel_keys(points_m: NDArray[np.floating], voxel_m: float, shift_m: float = 0.0) -> NDArray[np.int64]:
-    """(N,) one integer per voxel ``floor((p + shift_m) / voxel_m)`` of points (N, 3) (21 bits
-    per axis: +-31 km at 3 cm)."""
-    ijk = _voxel_ijk(points_m, voxel_m, shift_m) + (1 << 20)
-    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
-
-
-def _voxel_ijk(points_m: NDArray[np.floating], voxel_m: float, shift_m: float = 0.0) -> NDArray[np.int64]:
-    """(N, 3) voxel indices ``floor((p + shift_m) / voxel_m)`` of points (N, 3)."""
-    p = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
-    return np.floor((p + shift_m) / voxel_m).astype(np.int64)
-
-
-#: Key differences of the 27 voxels around and including one (see :func:`voxel_keys`).
-_NEIGHBOUR_KEY_STEPS = np.array([(i << 42) + (j << 21) + k for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
-                                dtype=np.int64)
-
-
-#: Largest grid (cells) over the other points' bounds for :func:`within_a_voxel`'s lookup;
-#: beyond it (points spread over a room) a binary search over keys costs less.
-_DENSE_NEIGHBOUR_CELLS = 400_000
-
-
-def within_a_voxel(a_m: NDArray[np.floating], b_m: NDArray[np.floating], voxel_m: float) -> NDArray[np.bool_]:
-    """(N,) True where a point of ``a_m`` (N, 3) lies in a voxel of a point of ``b_m`` (M, 3) or
-    in one of the 26 around it: exact, for taking other objects' points out of a box."""
-    b_ijk = _voxel_ijk(b_m, voxel_m)
-    a_ijk = _voxel_ijk(a_m, voxel_m)
-    if len(b_ijk) == 0:
-        return np.zeros(len(a_ijk), dtype=bool)
-    lo, hi = b_ijk.min(axis=0) - 1, b_ijk.max(axis=0) + 1
-    shape = hi - lo + 1
-    if float(np.prod(shape.astype(np.float64))) > _DENSE_NEIGHBOUR_CELLS:
-        # A binary search of each neighbour key among b's sorted keys (np.isin would hash all
-        # 27 x M grown keys on every call, ten times slower at a frame's sizes).
-        wanted = voxel_keys(a_m, voxel_m)[:, None] - _NEIGHBOUR_KEY_STEPS[None, :]  # (N, 27)
-        return np.asarray(_in_sorted(wanted, np.sort(voxel_keys(b_m, voxel_m))).any(axis=1), dtype=bool)
-    # b's voxels and their 26 neighbours on a small grid over b's bounds, looked up per point.
-    grid = np.zeros(tuple(shape.tolist()), dtype=bool)
-    rel = b_ijk - lo
-    grid[rel[:, 0], rel[:, 1], rel[:, 2]] = True
-    for axis in range(3):
-        src = grid.copy()
-        lower = [slice(None)] * 3
-        upper = [slice(None)] * 3
-        lower[axis], upper[axis] = slice(None, -1), slice(1, None)
-        grid[tuple(upper)] |= src[tuple(lower)]
-        grid[tuple(lower)] |= src[tuple(upper)]
-    out = np.zeros(len(a_ijk), dtype=bool)
-    inside = np.flatnonzero(np.all((a_ijk >= lo) & (a_ijk <= hi), axis=1))
-    rel = a_ijk[inside] - lo
-    out[inside] = grid[rel[:, 0], rel[:, 1], rel[:, 2]]
-    return out
-
-
-def _in_sorted(keys: NDArray[np.int64], sorted_keys: NDArray[np.int64]) -> NDArray[np.bool_]:
-    """True where an element of ``keys`` (any shape) is in ``sorted_keys`` (K,), ascending."""
-    if len(sorted_keys) == 0:
-        return np.zeros(keys.shape, dtype=bool)
-    at = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
-    return np.asarray(sorted_keys[at] == keys, dtype=bool)
 
 
 def shrink_box(
@@ -294,138 +222,52 @@ def _quantile_lower(values: NDArray[np.float64], q: float) -> float:
     return float(np.partition(values, k)[k])
 
 
-def _ring_windows(
-    xyxy_px: tuple[float, float, float, float], width_px: int, height_px: int,
-) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]]:
-    """The ring of pixels just outside a box, for finding the wall behind the object: its
-    outer window (u0, v0, u1, v1), clipped to the image, and the hole in it (the box grown by
-    the gap), both half-open, the hole on the ring's sample grid (``_RING_STRIDE_PX``)."""
-    u0, v0, u1, v1 = xyxy_px
-    g, w, s = _RING_GAP_PX, _RING_GAP_PX + _RING_WIDTH_PX, _RING_STRIDE_PX
-    ou0, ov0 = max(0, int(u0) - w), max(0, int(v0) - w)
-    ou1, ov1 = min(width_px, int(math.ceil(u1)) + w), min(height_px, int(math.ceil(v1)) + w)
-    # First and last-but-one sample index inside the grown box, per axis.
-    r0, r1 = -(-(int(v0) - g - ov0) // s), -(-(int(math.ceil(v1)) + g - ov0) // s)
-    c0, c1 = -(-(int(u0) - g - ou0) // s), -(-(int(math.ceil(u1)) + g - ou0) // s)
-    hole = (ou0 + s * max(0, c0), ov0 + s * max(0, r0), ou0 + s * max(0, c1), ov0 + s * max(0, r1))
-    return (ou0, ov0, ou1, ov1), hole
 
+@dataclass(frozen=True, eq=False)
+class BoxPoints:
+    """A box's depth as points: the first step of :func:`observe_object`, shared by every
+    look at the box (see :mod:`semmap.frame_objects`).
 
-def _noise_tolerance_m(range_m: NDArray[np.float64], params: GeometryConfig) -> NDArray[np.float64]:
-    """(N,) distance within which a point at ``range_m`` (N,) counts as on a surface: the RANSAC
-    distance plus half the floor cut's range-squared term (depth noise grows with range^2)."""
-    return params.ransac_distance_m + 0.5 * params.floor_clearance_per_m2 * range_m**2
-
-
-@numba.njit(cache=True)
-def _fit_wall(
-    xy: NDArray[np.float64], tol: NDArray[np.float64], remaining: NDArray[np.bool_], pairs: NDArray[np.int64],
-    min_support: float, cam_x: float, cam_y: float, max_behind: float, min_facing: float,
-    out_inliers: NDArray[np.bool_],
-) -> tuple[bool, float, float, float]:
-    """One wall search of :func:`background_walls`, compiled (numba, cached as in
-    :mod:`semmap.clustering`): ``(found, normal x, normal y, offset)``, the wall's points
-    written to ``out_inliers`` (N,).
-
-    ``xy`` (N, 2) above-floor ring points with tolerances ``tol`` (N,); ``pairs`` (Hy, 2) the
-    drawn point pairs, each a line hypothesis (pairs closer than 5 cm are none). The line with
-    most ``remaining`` points within their tolerance wins (first of equals) and is refitted by
-    least squares (the major axis of its points' 2x2 scatter), its normal turned towards the
-    camera. It is a wall with at least ``min_support`` remaining points on it, at most
-    ``max_behind`` of all points beyond it, and seen at least ``min_facing`` (cosine) face-on.
+    ``table`` (8, N): map x, y, z, height above the floor, camera z-depth, floor clearance,
+    pixel u, v of the box's sampled pixels above the floor cut and in front of any wall behind
+    the box (one row each, so each later filter is one gather). ``window_px``: the shrunk box
+    sampled at ``stride_px``. ``image_size_px``: (width, height).
     """
-    n_all = xy.shape[0]
-    best, best_support = -1, -1
-    best_nx, best_ny, best_off = 0.0, 0.0, 0.0
-    for hyp in range(pairs.shape[0]):
-        i, j = pairs[hyp, 0], pairs[hyp, 1]
-        dx, dy = xy[j, 0] - xy[i, 0], xy[j, 1] - xy[i, 1]
-        length = math.hypot(dx, dy)
-        if length <= 0.05:
-            continue
-        nx, ny = -dy / length, dx / length
-        off = -(nx * xy[i, 0] + ny * xy[i, 1])
-        support = 0
-        for k in range(n_all):
-            if remaining[k] and abs(xy[k, 0] * nx + xy[k, 1] * ny + off) <= tol[k]:
-                support += 1
-        if support > best_support:
-            best, best_support = hyp, support
-            best_nx, best_ny, best_off = nx, ny, off
-    if best < 0 or best_support < min_support:
-        return False, 0.0, 0.0, 0.0
-    # Least squares on the winner's points: centroid, then the scatter's major axis.
-    sx, sy, m = 0.0, 0.0, 0
-    for k in range(n_all):
-        if remaining[k] and abs(xy[k, 0] * best_nx + xy[k, 1] * best_ny + best_off) <= tol[k]:
-            sx += xy[k, 0]
-            sy += xy[k, 1]
-            m += 1
-    cx, cy = sx / m, sy / m
-    sxx, sxy, syy = 0.0, 0.0, 0.0
-    for k in range(n_all):
-        if remaining[k] and abs(xy[k, 0] * best_nx + xy[k, 1] * best_ny + best_off) <= tol[k]:
-            ex, ey = xy[k, 0] - cx, xy[k, 1] - cy
-            sxx += ex * ex
-            sxy += ex * ey
-            syy += ey * ey
-    theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
-    nx, ny = -math.sin(theta), math.cos(theta)
-    off = -(nx * cx + ny * cy)
-    if nx * cam_x + ny * cam_y + off < 0:
-        nx, ny, off = -nx, -ny, -off
-    n_in, n_behind = 0, 0
-    for k in range(n_all):
-        dist = xy[k, 0] * nx + xy[k, 1] * ny + off
-        out_inliers[k] = remaining[k] and abs(dist) <= tol[k]
-        if out_inliers[k]:
-            n_in += 1
-        if dist < -tol[k]:
-            n_behind += 1
-    if n_in < min_support:
-        return False, 0.0, 0.0, 0.0
-    if n_behind / n_all > max_behind:
-        return False, 0.0, 0.0, 0.0  # things stand behind it: a piece of furniture, not the room's boundary
-    vx, vy = cx - cam_x, cy - cam_y
-    if abs(nx * vx + ny * vy) < min_facing * math.hypot(vx, vy):
-        return False, 0.0, 0.0, 0.0  # seen edge-on: a strip of something along the line of sight
-    return True, nx, ny, off
+
+    table: NDArray[np.float64]
+    window_px: tuple[int, int, int, int]
+    stride_px: int
+    image_size_px: tuple[int, int]
 
 
-def background_walls(
-    ring_xy_m: NDArray[np.float64], ring_range_m: NDArray[np.float64], camera_xy_m: NDArray[np.float64],
-    params: GeometryConfig, rng: np.random.Generator,
-) -> list[tuple[NDArray[np.float64], float]]:
-    """Vertical planes (walls) behind an object, from the points around its box.
-
-    ``ring_xy_m``: (N, 2) map-plane positions of the pixels around the box that lie above
-    the floor cut, ``ring_range_m`` (N,) their camera z-depths, ``camera_xy_m`` (2,). A wall
-    is a vertical plane (a line in the map plane) holding a large share of those points with
-    almost none beyond it: the room's boundary, which nothing stands behind. Returns up to
-    two walls (a corner) as ``(normal_xy (2,), offset_m)`` with the normal towards the
-    camera, so ``normal . xy + offset`` is the distance in front of the wall.
-    """
-    xy = np.ascontiguousarray(ring_xy_m, dtype=np.float64).reshape(-1, 2)
-    n_all = len(xy)
-    if n_all < _WALL_MIN_POINTS:
-        return []
-    tol = _noise_tolerance_m(np.asarray(ring_range_m, dtype=np.float64), params)  # (N,)
-    remaining = np.ones(n_all, dtype=bool)
-    walls: list[tuple[NDArray[np.float64], float]] = []
-    cam_x, cam_y = float(camera_xy_m[0]), float(camera_xy_m[1])
-    for share in (_WALL_MIN_SHARE, _WALL_MIN_SHARE / 2):
-        idx = np.nonzero(remaining)[0]
-        if len(idx) < _WALL_MIN_POINTS:
-            break
-        pairs = idx[rng.integers(0, len(idx), size=(_WALL_HYPOTHESES, 2))]
-        inl = np.empty(n_all, dtype=bool)
-        found, nx, ny, off = _fit_wall(xy, tol, remaining, pairs, float(max(_WALL_MIN_POINTS, share * n_all)),
-                                       cam_x, cam_y, _WALL_MAX_BEHIND, _WALL_MIN_FACING, inl)
-        if not found:
-            break
-        walls.append((np.array([nx, ny]), off))
-        remaining &= ~inl
-    return walls
+def box_points(
+    depth_m: NDArray[np.floating], intrinsics: CameraIntrinsics, T_map_camera: Transform,
+    xyxy_px: tuple[float, float, float, float], params: GeometryConfig, floor: Plane,
+    depth_range_m: tuple[float, float], rng: np.random.Generator, remove_walls: bool = True,
+) -> BoxPoints | None:
+    """The points of a box above the floor cut, less the wall behind it and all beyond
+    (:func:`semmap.walls.in_front_of_walls`); None when too few remain for an object."""
+    H, W = np.asarray(depth_m).shape
+    window = shrink_box(xyxy_px, params.box_shrink_frac, W, H)
+    u0, v0, u1, v1 = window
+    area = max(0, u1 - u0) * max(0, v1 - v0)
+    if area == 0:
+        return None
+    stride = max(1, int(math.ceil(math.sqrt(area / params.max_box_points))))
+    tab, n_all = window_points_map(
+        depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride, T_map_camera,
+        floor.normal_array, floor.offset_m, params.floor_clearance_m, params.floor_clearance_per_m2,
+    )
+    if n_all < params.min_cluster_points or tab.shape[1] < params.min_cluster_points:
+        return None
+    if remove_walls:
+        front = in_front_of_walls(tab, depth_m, intrinsics, T_map_camera, xyxy_px, params, floor,
+                                  depth_range_m, rng)
+        if front is not None and not front.all():
+            if np.count_nonzero(front) < params.min_cluster_points:
+                return None  # the box shows the wall only
+            tab = tab[:, front]
+    return BoxPoints(tab, window, stride, (W, H))
 
 
 def observe_object(
@@ -450,64 +292,51 @@ def observe_object(
 
     ``depth_m``: (H, W) metres, 0/NaN invalid; pixels outside ``depth_range_m`` are invalid
     too. ``T_map_camera``: (4, 4) optical camera -> map. ``floor``: the floor plane in the map
-    frame with its normal up (default: z = 0, the map plane). ``class_cfg.hollow`` decides
-    whether a top plane is searched. Returns None when fewer than ``min_cluster_points``
-    voxels survive (an empty, distant or all-floor box). ``cluster_by``: "box" picks the
-    nearest large cluster spanning the box (see :func:`_pick_cluster`); "voxels" the cluster
-    with most voxels (Open3D's usual choice after ``cluster_dbscan``, for comparisons).
-    ``remove_walls``: drop the wall behind the object first (:func:`background_walls`, fitted
-    on the pixels around the box) with everything beyond it. ``exclude_voxels_m`` (K, 3):
-    points of other objects (voxel centres, map frame); the box's points in their voxels
-    are not this object's. ``same_object_as_m`` (K, 3): the object is the cluster holding most
-    of these points (a second look at the same object, see :mod:`semmap.frame_objects`).
-    ``shape_prior``: apply the class's shape prior (:mod:`semmap.shape_prior`).
+    frame with its normal up (default: z = 0, the map plane). ``remove_walls``: drop the wall
+    behind the object first (:func:`semmap.walls.background_walls`, fitted on the pixels around
+    the box) with everything beyond it. The rest is :func:`object_in_box`'s.
     """
     floor = floor if floor is not None else Plane.horizontal()
-    H, W = np.asarray(depth_m).shape
-    window = shrink_box(track.xyxy_px, params.box_shrink_frac, W, H)
-    u0, v0, u1, v1 = window
-    area = max(0, u1 - u0) * max(0, v1 - v0)
-    if area == 0:
-        return None
-    stride = max(1, int(math.ceil(math.sqrt(area / params.max_box_points))))
-    # One (8, N) table - map x, y, z, height above the floor, z-depth, floor clearance,
-    # pixel u, v; one row each - of the box's points above the floor cut, so each filter
-    # below is a single gather instead of one per quantity.
-    t = T_map_camera[:3, 3]
-    tab, n_all = window_points_map(
-        depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride, T_map_camera,
-        floor.normal_array, floor.offset_m, params.floor_clearance_m, params.floor_clearance_per_m2,
-    )
-    if n_all < params.min_cluster_points or tab.shape[1] < params.min_cluster_points:
-        return None
-    # A wall behind the object (found around the box) goes, with everything beyond it: an
-    # object a few cm in front of a wall would otherwise cluster together with it.
     rng = rng if rng is not None else np.random.default_rng(0)
-    n_ring = 0
-    if remove_walls:
-        # The ring's valid pixels (n_ring) and, as a table like the box's, those above the
-        # floor cut: what the wall is fitted on.
-        outer, hole = _ring_windows(track.xyxy_px, W, H)
-        ring_tab, n_ring = window_points_map(
-            depth_m, intrinsics, depth_range_m[0], depth_range_m[1], outer, _RING_STRIDE_PX, T_map_camera,
-            floor.normal_array, floor.offset_m, params.floor_clearance_m, params.floor_clearance_per_m2,
-            hole_px=hole,
-        )
-    if n_ring >= _WALL_MIN_POINTS:
-        walls = background_walls(ring_tab[:2].T, ring_tab[_RANGE], t[:2], params, rng)
-        if walls:
-            tol = _noise_tolerance_m(tab[_RANGE], params)
-            front = np.ones(tab.shape[1], dtype=bool)
-            for n_xy, off in walls:
-                dist = n_xy @ tab[:2] + off  # (N,) in front of the wall
-                # Nothing of the box stands behind a wall; a "wall" with the box's points
-                # behind it is an occluder in front of the object.
-                if np.count_nonzero(dist < -tol) <= _WALL_MAX_BEHIND * len(dist):
-                    front &= dist > tol
-            if not front.all():
-                if np.count_nonzero(front) < params.min_cluster_points:
-                    return None  # the box shows the wall only
-                tab = tab[:, front]
+    box = box_points(depth_m, intrinsics, T_map_camera, track.xyxy_px, params, floor, depth_range_m, rng,
+                     remove_walls)
+    if box is None:
+        return None
+    return object_in_box(box, intrinsics, T_map_camera, track, class_cfg, params, floor, stamp_s, rng,
+                         cluster_by=cluster_by, exclude_voxels_m=exclude_voxels_m,
+                         same_object_as_m=same_object_as_m, shape_prior=shape_prior)
+
+
+def object_in_box(
+    box: BoxPoints,
+    intrinsics: CameraIntrinsics,
+    T_map_camera: Transform,
+    track: Track,
+    class_cfg: ClassConfig,
+    params: GeometryConfig,
+    floor: Plane,
+    stamp_s: float,
+    rng: np.random.Generator,
+    *,
+    cluster_by: Literal["box", "voxels"] = "box",
+    exclude_voxels_m: NDArray[np.float64] | None = None,
+    same_object_as_m: NDArray[np.float64] | None = None,
+    shape_prior: bool = True,
+) -> ObjectObservation | None:
+    """The object among a box's points (:func:`box_points`), or None when fewer than
+    ``min_cluster_points`` voxels of it remain (an empty, distant or all-floor box).
+
+    ``class_cfg.hollow`` decides whether a top plane is searched. ``cluster_by``: "box" picks
+    the nearest large cluster spanning the box (see :func:`_pick_cluster`); "voxels" the
+    cluster with most voxels (Open3D's usual choice after ``cluster_dbscan``, for comparisons).
+    ``exclude_voxels_m`` (K, 3): points of other objects (voxel centres, map frame); the box's
+    points in their voxels are not this object's. ``same_object_as_m`` (K, 3): the object is
+    the cluster holding most of these points (a second look at the same object, see
+    :mod:`semmap.frame_objects`). ``shape_prior``: apply the class's shape prior
+    (:mod:`semmap.shape_prior`).
+    """
+    tab, window, stride = box.table, box.window_px, box.stride_px
+    W, H = box.image_size_px
     if exclude_voxels_m is not None and len(exclude_voxels_m):
         mine = ~within_a_voxel(tab[:3].T, exclude_voxels_m, params.voxel_size_m)
         if np.count_nonzero(mine) < params.min_cluster_points:
@@ -526,8 +355,8 @@ def observe_object(
     elif same_object_as_m is not None and len(same_object_as_m):
         # The object seen before (this box's first look, less other objects' points): the
         # cluster holding most of it, not whatever now spans the box best.
-        ours = _in_sorted(voxel_keys(vox, params.voxel_size_m),
-                          np.sort(voxel_keys(same_object_as_m, params.voxel_size_m)))
+        ours = in_sorted(voxel_keys(vox, params.voxel_size_m),
+                         np.sort(voxel_keys(same_object_as_m, params.voxel_size_m)))
         best = int(np.argmax(np.bincount(vox_label[ours], minlength=int(vox_label.max()) + 1))) if ours.any() else 0
     else:
         best = _pick_cluster(point_label, rng_cam, tab[_U:].T.astype(np.int64), window,

@@ -1,7 +1,7 @@
 """Compile the numba kernels of the per-frame map update before the first frame needs them.
 
 Object geometry (:mod:`semmap.pointcloud`, :mod:`semmap.clustering`, :mod:`semmap.ransac`,
-the wall search in :mod:`semmap.geometry`, the surface search in :mod:`semmap.shape_prior`),
+the wall search in :mod:`semmap.walls`, the surface search in :mod:`semmap.shape_prior`),
 the object map's footprint overlaps (:mod:`semmap.polygons`) and the band scan
 (:mod:`semmap.scan`) run numba-compiled kernels. numba compiles each on its first call, about 8 s for all of them on
 this 2-core machine, and caches the machine code (``cache=True``: ``__pycache__`` beside

@@ -21,16 +21,14 @@ Every object fuses:
 * height range: robust quantiles over recent observations (partial views cut the top).
 
 Objects below ``existence_remove_below`` are removed, and unconfirmed ones not seen again
-within ``tentative_timeout_s``, so false positives fade away.
+within ``tentative_timeout_s``, so false positives fade away. Each object's state and its
+reported snapshot are in :mod:`semmap.object_state`; this module associates and merges.
 """
 
 from __future__ import annotations
 
 import logging
-import math
-from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -41,12 +39,20 @@ from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
 from semmap.errors import MapError
 from semmap.geometry import CameraView, ObjectObservation
-from semmap.object_evidence import FootprintEvidence, view_quality
+from semmap.object_evidence import view_quality
+from semmap.object_state import (
+    MIN_CLASS_PROB,
+    MappedObject,
+    ObjectState,
+    consistent,
+    logit,
+    overlaps,
+    quantile,
+    sigmoid,
+)
 from semmap.polygons import (
     convex_footprint,
     convex_intersection,
-    grow_to_least_size,
-    min_perimeter_rectangle,
     polygon_area_m2,
     simplify_polygon,
 )
@@ -55,10 +61,6 @@ log = logging.getLogger(__name__)
 
 __all__ = ["CameraView", "MappedObject", "ObjectMap"]
 
-#: Observations kept per object for the robust height estimate.
-_HISTORY = 30
-#: Class probabilities never drop below this, so a later majority can still win.
-_MIN_CLASS_PROB = 1e-4
 #: Any-class merge: a new track over an object of another class merges at this IoU.
 _CROSS_CLASS_IOU = 0.6
 #: Views beyond ``footprint_max_range_m`` alone keep an object this far (log-odds) below
@@ -66,39 +68,6 @@ _CROSS_CLASS_IOU = 0.6
 _UNCONFIRMED_MARGIN = 0.01
 #: Weight of a view farther than ``footprint_max_range_m`` (noisier depth).
 _FAR_WEIGHT = 0.3
-
-
-def _quantile(values: Iterable[float], q: float) -> float:
-    """Linear-interpolated quantile of a short sequence (plain Python: a few dozen values)."""
-    v = sorted(values)
-    pos = q * (len(v) - 1)
-    i = int(pos)
-    j = min(i + 1, len(v) - 1)
-    return float(v[i] + (pos - i) * (v[j] - v[i]))
-
-
-def _logit(p: float) -> float:
-    return math.log(p / (1.0 - p))
-
-
-def _sigmoid(x: float) -> float:
-    return 1.0 / (1.0 + math.exp(-x))
-
-
-def _overlaps(a_xy_m: NDArray[np.float64], b_xy_m: NDArray[np.float64]) -> tuple[float, float]:
-    """(IoU, containment) of two convex footprints; containment is the intersection over the
-    smaller area, high when one is a partial view of the other."""
-    inter = polygon_area_m2(convex_intersection(a_xy_m, b_xy_m))
-    if inter <= 0.0:
-        return 0.0, 0.0
-    aa, ab = polygon_area_m2(a_xy_m), polygon_area_m2(b_xy_m)
-    return inter / (aa + ab - inter), inter / min(aa, ab)
-
-
-def _consistent(a_xy_m: NDArray[np.float64], b_xy_m: NDArray[np.float64]) -> bool:
-    """Two footprints of one object overlap: the intersection covers at least a fifth of the
-    smaller one. A view of something else (an occluder's points) is kept out of the hull."""
-    return _overlaps(a_xy_m, b_xy_m)[1] >= 0.2
 
 
 #: Position variance factor of views cut by the image border.
@@ -111,124 +80,6 @@ _SAME_SURFACE_M = 0.04
 #: A table's top seen again from elsewhere joins it when the footprints overlap at least this
 #: much (intersection over the smaller).
 _SAME_TOP_OVERLAP = 0.05
-
-
-@dataclass(frozen=True, eq=False)
-class MappedObject:
-    """One persistent object of the map (map frame, metres, seconds).
-
-    ``class_probs`` maps every configured class to its probability; ``class_name`` is the most
-    likely. ``position_map_m``: fused centroid of the object's points, with isotropic standard
-    deviation ``position_std_m``. ``footprint_xy_m``: (M, 2) counter-clockwise polygon.
-    ``z_min_m``/``z_max_m``: height range above the floor; ``top_height_m``: the seat/top
-    plane's height where one was found. ``view_dir_xy``: the mean unit vector from the cameras
-    that saw the object to it (length 1: all views from one side, 0: from all round or unknown).
-    """
-
-    object_id: int
-    class_name: str
-    class_probs: Mapping[str, float]
-    existence: float
-    position_map_m: tuple[float, float, float]
-    position_std_m: float
-    footprint_xy_m: NDArray[np.float64]
-    z_min_m: float
-    z_max_m: float
-    top_height_m: float | None
-    first_seen_s: float
-    last_seen_s: float
-    n_observations: int
-    confirmed: bool
-    view_dir_xy: tuple[float, float] = (0.0, 0.0)
-
-    @property
-    def height_m(self) -> float:
-        return self.z_max_m
-
-    @property
-    def footprint_center_xy_m(self) -> NDArray[np.float64]:
-        """Centre of the footprint's bounding box in its own orientation (a rectangle's centre)."""
-        return min_perimeter_rectangle(self.footprint_xy_m).mean(axis=0)
-
-    def to_footprint(self, margin_m: float = 0.0,
-                     min_footprint_m: tuple[float, float] | None = None) -> ObjectFootprint:
-        """The costmap's view of this object: its footprint, grown to ``min_footprint_m``
-        (the class's least size) on the side its views did not see, when smaller."""
-        polygon = self.footprint_xy_m
-        if min_footprint_m is not None:
-            polygon = grow_to_least_size(polygon, min_footprint_m, self.view_dir_xy)
-        return ObjectFootprint(
-            object_id=self.object_id, class_name=self.class_name,
-            polygon_xy_m=polygon, z_min_m=self.z_min_m, z_max_m=self.z_max_m,
-            existence=self.existence, margin_m=margin_m,
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-able dict (plain floats and lists)."""
-        return {
-            "object_id": self.object_id,
-            "class_name": self.class_name,
-            "class_probs": {k: round(float(v), 6) for k, v in self.class_probs.items()},
-            "existence": round(self.existence, 6),
-            "position_map_m": [round(float(c), 4) for c in self.position_map_m],
-            "position_std_m": round(self.position_std_m, 4),
-            "footprint_xy_m": [[round(float(x), 4), round(float(y), 4)] for x, y in self.footprint_xy_m],
-            "z_min_m": round(self.z_min_m, 4),
-            "z_max_m": round(self.z_max_m, 4),
-            "top_height_m": None if self.top_height_m is None else round(self.top_height_m, 4),
-            "first_seen_s": self.first_seen_s,
-            "last_seen_s": self.last_seen_s,
-            "n_observations": self.n_observations,
-            "confirmed": self.confirmed,
-            "view_dir_xy": [round(float(c), 4) for c in self.view_dir_xy],
-        }
-
-
-@dataclass
-class _State:
-    """Mutable per-object state inside the map."""
-
-    object_id: int
-    class_probs: NDArray[np.float64]  # (K,) in class order
-    logodds: float
-    position_m: NDArray[np.float64]  # (3,)
-    position_var_m2: float
-    hull_xy_m: NDArray[np.float64]  # (M, 2)
-    first_seen_s: float
-    last_seen_s: float
-    n_observations: int = 0
-    #: Sum of the views' qualities (:func:`semmap.object_evidence.view_quality`): how well
-    #: supported the object is, for choosing which of two duplicates to keep.
-    support: float = 0.0
-    #: Quality of the views the shape comes from: 2 x (within footprint_max_range_m) +
-    #: (not cut by the image border); -1 before the first.
-    shape_tier: int = -1
-    #: Seen at least once within ``footprint_max_range_m``: far views alone do not confirm.
-    seen_near: bool = False
-    z_max_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
-    z_min_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
-    top_hist: deque[float] = field(default_factory=lambda: deque(maxlen=_HISTORY))
-    #: Footprint evidence: weighted map-plane cells the views saw the object in.
-    evidence: FootprintEvidence = field(default_factory=FootprintEvidence)
-    #: Sum of the unit map-plane vectors camera -> object over the views, and their count.
-    view_sum_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros(2))
-    n_views: int = 0
-    footprint_cache: NDArray[np.float64] | None = None
-    #: Last snapshot; dropped whenever the state changes (most objects do not, each frame).
-    snapshot_cache: MappedObject | None = None
-
-    #: (hull array it was computed from, its bounding box): the hull changes rarely.
-    bbox_cache: tuple[NDArray[np.float64], tuple[float, float, float, float]] | None = None
-
-    @property
-    def bbox_xy_m(self) -> tuple[float, float, float, float]:
-        """(x_min, y_min, x_max, y_max) of the hull."""
-        if self.bbox_cache is not None and self.bbox_cache[0] is self.hull_xy_m:
-            return self.bbox_cache[1]
-        lo, hi = self.hull_xy_m.min(axis=0), self.hull_xy_m.max(axis=0)
-        box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
-        self.bbox_cache = (self.hull_xy_m, box)
-        return box
 
 
 class ObjectMap:
@@ -254,7 +105,7 @@ class ObjectMap:
         #: stands for several of ours, see semmap.detection.builtin.vote_groups).
         self._votes_for = {k: [self._class_index[c] for c in v if c in self._class_index]
                            for k, v in (vote_groups or {}).items()}
-        self._objects: dict[int, _State] = {}
+        self._objects: dict[int, ObjectState] = {}
         self._track_to_object: dict[int, int] = {}
         self._next_id = 1
 
@@ -265,7 +116,7 @@ class ObjectMap:
 
     def objects(self, confirmed_only: bool = False) -> list[MappedObject]:
         """Snapshot of the objects, by id."""
-        out = [self._snapshot(s) for _, s in sorted(self._objects.items())]
+        out = [s.snapshot(self.class_names, self._prior, self.config) for _, s in sorted(self._objects.items())]
         return [o for o in out if o.confirmed] if confirmed_only else out
 
     def footprints(self, confirmed_only: bool = True) -> list[ObjectFootprint]:
@@ -277,7 +128,7 @@ class ObjectMap:
 
     def class_probabilities(self) -> dict[int, NDArray[np.float32]]:
         """Object id -> (K,) class probabilities in ``class_names`` order (for the class layer)."""
-        return {oid: np.fromiter(self._snapshot(s).class_probs.values(), np.float32, len(self.class_names))
+        return {oid: np.fromiter(s.snapshot(self.class_names, self._prior, self.config).class_probs.values(), np.float32, len(self.class_names))
                 for oid, s in self._objects.items()}
 
     def to_dict(self) -> dict[str, Any]:
@@ -294,36 +145,10 @@ class ObjectMap:
         """
         if list(data.get("classes", [])) != self.class_names:
             raise MapError(f"saved object map has classes {data.get('classes')}, this map {self.class_names}")
-        objects: dict[int, _State] = {}
+        objects: dict[int, ObjectState] = {}
         for i, d in enumerate(data.get("objects", [])):
-            try:
-                oid = int(d["object_id"])
-                probs = np.array([float(d["class_probs"][n]) for n in self.class_names])
-                fp = np.asarray(d["footprint_xy_m"], dtype=np.float64).reshape(-1, 2)
-                existence = min(max(float(d["existence"]), 1e-6), 1.0 - 1e-6)
-                s = _State(
-                    object_id=oid, class_probs=probs / probs.sum(), logodds=_logit(existence),
-                    position_m=np.asarray(d["position_map_m"], dtype=np.float64).reshape(3),
-                    position_var_m2=float(d["position_std_m"]) ** 2, hull_xy_m=fp,
-                    first_seen_s=float(d["first_seen_s"]), last_seen_s=float(d["last_seen_s"]),
-                    n_observations=int(d["n_observations"]), shape_tier=0, seen_near=True,
-                    support=float(d["n_observations"]),
-                )
-                z0, z1 = float(d["z_min_m"]), float(d["z_max_m"])
-                top = d.get("top_height_m")
-                view = np.asarray(d.get("view_dir_xy", (0.0, 0.0)), dtype=np.float64).reshape(2)
-            except (KeyError, TypeError, ValueError) as exc:
-                raise MapError(f"saved object #{i}: missing or bad value ({exc!r})") from exc
-            if len(fp) < 3 or probs.sum() <= 0:
-                raise MapError(f"saved object {oid}: footprint needs 3+ vertices and some class probability")
-            s.z_max_hist.append(z1)
-            s.z_min_hist.append(z0)
-            s.view_sum_xy, s.n_views = view, 1
-            if top is not None:
-                s.top_hist.append(float(top))
-            # The footprint becomes evidence: its cells, at full weight.
-            s.evidence = FootprintEvidence.from_polygon(fp)
-            objects[oid] = s
+            s = ObjectState.from_dict(d, self.class_names, i)
+            objects[s.object_id] = s
         self._objects = objects
         self._track_to_object = {}
         self._next_id = max(objects, default=0) + 1
@@ -391,72 +216,71 @@ class ObjectMap:
         close = np.linalg.norm(pos - xy, axis=1) <= self.config.reassociate_distance_m
         return [ids[i] for i in np.nonzero(overlap | close)[0]]
 
-    def _same_object(self, a: _State, b: _State, both_seen_now: bool) -> bool:
+    def _same_object(self, a: ObjectState, b: ObjectState, both_seen_now: bool) -> bool:
         """Duplicate test: heavy overlap of the footprints whatever the classes, one showing the
         other's surface (:meth:`_shows_surface_of`) whatever the classes, or (same class, not two
-        detections of one frame) overlap / proximity as for re-association."""
+        detections of one frame) overlap / proximity as for re-association.
+
+        Footprints here are the evidence footprints (cells several views agree on), not the
+        hulls: one view whose box held a neighbour too grows a hull over that neighbour.
+        """
         cfg = self.config
-        # Any-class overlap is judged on the evidence footprints (what the map reports: cells
-        # several views agree on), not the hulls: a hull is the union of the best views'
-        # outlines, so one can be a corner of the object (two desks at 0.91 footprint IoU over
-        # one real desk stayed apart) or, after one box that held a neighbour's points too,
-        # both objects (a chair's hull grew over the coffee table beside it and swallowed it).
-        fa, fb = self._evidence_footprint(a), self._evidence_footprint(b)
+        fa, fb = a.footprint(self.config), b.footprint(self.config)
         reach = float(max(np.ptp(a.hull_xy_m, axis=0).max(), np.ptp(fa, axis=0).max())
                       + max(np.ptp(b.hull_xy_m, axis=0).max(), np.ptp(fb, axis=0).max()))
         dist = float(np.linalg.norm(a.position_m[:2] - b.position_m[:2]))
         if dist > reach:
             return False
-        if _overlaps(fa, fb)[0] >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
+        iou, contained = overlaps(fa, fb)
+        if iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
             return True
         if self._shows_surface_of(a, b) or self._shows_surface_of(b, a):
             return True
-        iou, contained = _overlaps(a.hull_xy_m, b.hull_xy_m)
         same_class = int(np.argmax(a.class_probs)) == int(np.argmax(b.class_probs))
         return same_class and not both_seen_now and (
             iou >= cfg.reassociate_iou or contained >= _CONTAINED or dist <= cfg.reassociate_distance_m
             or (contained > _SAME_TOP_OVERLAP and self._same_table_top(a, b))
         )
 
-    def _same_table_top(self, a: _State, b: _State) -> bool:
+    def _same_table_top(self, a: ObjectState, b: ObjectState) -> bool:
         """Two parts of one table's top: both table-shaped, seen near, the same top plane."""
         k = int(np.argmax(a.class_probs))
         if self.classes[k].shape != "table" or not (a.top_hist and b.top_hist and a.seen_near and b.seen_near):
             return False
-        return abs(_quantile(a.top_hist, 0.5) - _quantile(b.top_hist, 0.5)) <= _SAME_SURFACE_M
+        return abs(quantile(a.top_hist, 0.5) - quantile(b.top_hist, 0.5)) <= _SAME_SURFACE_M
 
-    def _shows_surface_of(self, inner: _State, outer: _State) -> bool:
-        """``inner`` is ``outer``'s surface mapped a second time (often under another class): both
+    def _shows_surface_of(self, inner: ObjectState, outer: ObjectState) -> bool:
+        """``inner`` is ``outer``'s top mapped a second time (often under another class): both
         seen near, the same top plane (within ``_SAME_SURFACE_M``), ``inner`` reaching no
-        higher and lying mostly inside ``outer``'s footprint.
+        higher and lying mostly inside ``outer``'s footprint (see :meth:`_share_on_surface`).
 
-        The object-level form of :meth:`_surface_owner`, for the phantom that test cannot stop
-        when it is born: its first views had no top plane, or came before the real object had
-        one (in the demo room a half-seen coffee table was mapped as "coffee_table" and again,
-        about 0.5 IoU over it, as "desk"). A real object inside another's footprint (a chair
-        under a desk) has a top of its own and reaches higher, so it stays apart. The merge
-        pools both objects' footprint evidence and class probabilities, as every merge does.
+        The object-level form of :meth:`_surface_owner`, for a phantom whose first views had no
+        top plane or came before ``outer`` had one, so that test could not stop it at birth.
         """
         if not (inner.seen_near and inner.top_hist and inner.z_max_hist):
             return False
-        return self._share_on_surface(_quantile(inner.top_hist, 0.5), _quantile(inner.z_max_hist, 0.8),
-                                      self._evidence_footprint(inner), outer) >= _CONTAINED
+        # Only a table's top is a surface a whole object shows again: chairs side by side share
+        # a seat height, and one whose footprint grew over its neighbour is still two chairs.
+        if self.classes[int(np.argmax(outer.class_probs))].shape != "table":
+            return False
+        return self._share_on_surface(quantile(inner.top_hist, 0.5), quantile(inner.z_max_hist, 0.8),
+                                      inner.footprint(self.config), outer) >= _CONTAINED
 
-    def _share_on_surface(self, top_m: float, z_max_m: float, fp_xy_m: NDArray[np.float64], outer: _State) -> float:
+    def _share_on_surface(self, top_m: float, z_max_m: float, fp_xy_m: NDArray[np.float64], outer: ObjectState) -> float:
         """The share of ``fp_xy_m`` inside ``outer``'s footprint when something with this top
         plane and reach shows ``outer``'s surface (``outer`` seen near, the same top within
         ``_SAME_SURFACE_M``, reaching no higher), else 0: the test of :meth:`_surface_owner`
         (one observation) and :meth:`_shows_surface_of` (a mapped object)."""
         if not outer.seen_near or not outer.top_hist or not outer.z_max_hist:
             return 0.0
-        if abs(top_m - _quantile(outer.top_hist, 0.5)) > _SAME_SURFACE_M:
+        if abs(top_m - quantile(outer.top_hist, 0.5)) > _SAME_SURFACE_M:
             return 0.0
-        if z_max_m > _quantile(outer.z_max_hist, 0.8) + _SAME_SURFACE_M:
+        if z_max_m > quantile(outer.z_max_hist, 0.8) + _SAME_SURFACE_M:
             return 0.0
         area = polygon_area_m2(fp_xy_m)
         if area <= 0.0:
             return 0.0
-        return polygon_area_m2(convex_intersection(self._evidence_footprint(outer), fp_xy_m)) / area
+        return polygon_area_m2(convex_intersection(outer.footprint(self.config), fp_xy_m)) / area
 
     def _merge_duplicates(self, touched: set[int], seen_now: set[int]) -> dict[int, int]:
         """Merge objects updated this frame into older duplicates (the same thing detected
@@ -484,38 +308,9 @@ class ObjectMap:
                 merged[k] = merged[merged[k]]
         return merged
 
-    def _absorb(self, keep: _State, drop: _State) -> None:
+    def _absorb(self, keep: ObjectState, drop: ObjectState) -> None:
         """Fold ``drop`` into ``keep`` and remove it."""
-        # Class evidence fused by weight: multiplying the two posteriors counted the shared
-        # views twice and let a few confident boxes of the wrong object outvote many.
-        wk, wd = max(keep.support, 1e-6), max(drop.support, 1e-6)
-        p = (wk * keep.class_probs + wd * drop.class_probs) / (wk + wd)
-        p = np.maximum(p, _MIN_CLASS_PROB)
-        keep.class_probs = p / p.sum()
-        keep.support += drop.support
-        keep.logodds = max(keep.logodds, drop.logodds)
-        keep.seen_near = keep.seen_near or drop.seen_near
-        va, vb = keep.position_var_m2, drop.position_var_m2
-        keep.position_m = (keep.position_m * vb + drop.position_m * va) / (va + vb)
-        keep.position_var_m2 = max(va * vb / (va + vb), 1e-4)
-        if drop.shape_tier > keep.shape_tier:
-            keep.shape_tier = drop.shape_tier
-            keep.hull_xy_m = drop.hull_xy_m
-            keep.z_max_hist, keep.z_min_hist = drop.z_max_hist, drop.z_min_hist
-            keep.top_hist = drop.top_hist
-        elif drop.shape_tier == keep.shape_tier:
-            keep.hull_xy_m = convex_footprint(np.concatenate([keep.hull_xy_m, drop.hull_xy_m]))
-            keep.z_max_hist.extend(drop.z_max_hist)
-            keep.z_min_hist.extend(drop.z_min_hist)
-            keep.top_hist.extend(drop.top_hist)
-        keep.evidence.merge(drop.evidence)
-        keep.view_sum_xy = keep.view_sum_xy + drop.view_sum_xy
-        keep.n_views += drop.n_views
-        keep.footprint_cache = None
-        keep.snapshot_cache = None
-        keep.n_observations += drop.n_observations
-        keep.first_seen_s = min(keep.first_seen_s, drop.first_seen_s)
-        keep.last_seen_s = max(keep.last_seen_s, drop.last_seen_s)
+        keep.absorb(drop)
         for tid, o in self._track_to_object.items():
             if o == drop.object_id:
                 self._track_to_object[tid] = keep.object_id
@@ -530,7 +325,7 @@ class ObjectMap:
         if oid is not None and oid in self._objects and oid not in used:
             s = self._objects[oid]
             if np.linalg.norm(s.position_m[:2] - o.centroid_xy_m) <= cfg.track_gate_m:
-                if _consistent(s.hull_xy_m, fp):
+                if consistent(s.hull_xy_m, fp):
                     return oid
                 # The track's box moved off its object (a camera passing along a long desk
                 # whose first view was a corner): an object this view overlaps takes it.
@@ -544,7 +339,7 @@ class ObjectMap:
             if cand in used or cand == track_object:
                 continue
             s = self._objects[cand]
-            iou, contained = _overlaps(s.hull_xy_m, fp)
+            iou, contained = overlaps(s.footprint(self.config), fp)
             dist = float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m))
             same_class = int(np.argmax(s.class_probs)) in ks
             ok = (same_class and (iou >= cfg.reassociate_iou or contained >= _CONTAINED
@@ -559,14 +354,14 @@ class ObjectMap:
             return track_object
         return best[2]
 
-    def _same_top(self, s: _State, o: ObjectObservation) -> bool:
+    def _same_top(self, s: ObjectState, o: ObjectObservation) -> bool:
         """The observation shows more of a table-shaped object's top: its top plane is the
         object's (within ``_SAME_SURFACE_M``) and it reaches no higher. Another part of a long
         table seen from its other end overlaps the part seen before only at the seam."""
         k = int(np.argmax(s.class_probs))
         if self.classes[k].shape != "table" or o.top_height_m is None or not s.top_hist:
             return False
-        top = _quantile(s.top_hist, 0.5)
+        top = quantile(s.top_hist, 0.5)
         return abs(o.top_height_m - top) <= _SAME_SURFACE_M and o.z_max_m <= top + _SAME_SURFACE_M
 
     def _surface_owner(self, o: ObjectObservation) -> int | None:
@@ -614,29 +409,29 @@ class ObjectMap:
         oid = self._next_id
         self._next_id += 1
         prior = np.full(len(self.class_names), 1.0 / len(self.class_names))
-        s = _State(
-            object_id=oid, class_probs=prior, logodds=_logit(self.config.existence_initial),
+        s = ObjectState(
+            object_id=oid, class_probs=prior, logodds=logit(self.config.existence_initial),
             position_m=np.asarray(o.centroid_map_m, dtype=np.float64),
             position_var_m2=self._sigma2(o), hull_xy_m=np.asarray(o.footprint_xy_m, np.float64),
             first_seen_s=o.stamp_s, last_seen_s=o.stamp_s,
         )
-        self._objects[oid] = s
+        self._objects[s.object_id] = s
         self._fuse(s, o, first=True)
         log.debug("new object %d (%s) at %s", oid, o.class_name, np.round(o.centroid_map_m, 2))
         return oid
 
-    def _fuse(self, s: _State, o: ObjectObservation, first: bool = False) -> None:
+    def _fuse(self, s: ObjectState, o: ObjectObservation, first: bool = False) -> None:
         cfg = self.config
         s.snapshot_cache = None
         p = s.class_probs * self._class_likelihood(o.class_name, o.score)
-        p = np.maximum(p / p.sum(), _MIN_CLASS_PROB)
+        p = np.maximum(p / p.sum(), MIN_CLASS_PROB)
         s.class_probs = p / p.sum()
         self._raise_existence(s, o)
         s.n_observations += 1
         s.last_seen_s = max(s.last_seen_s, o.stamp_s)
         s.first_seen_s = min(s.first_seen_s, o.stamp_s)
         fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
-        if not first and not _consistent(s.hull_xy_m, fp):
+        if not first and not consistent(s.hull_xy_m, fp):
             # The track's box showed something else this time (an occluder in front): it
             # still says the object is there, but not where or how big.
             log.debug("object %d: observation of track %d off its footprint, geometry ignored",
@@ -687,7 +482,7 @@ class ObjectMap:
     def _vote_indices(self, class_name: str) -> list[int]:
         return self._votes_for.get(class_name) or [self._class_index[class_name]]
 
-    def _raise_existence(self, s: _State, o: ObjectObservation) -> None:
+    def _raise_existence(self, s: ObjectState, o: ObjectObservation) -> None:
         """Existence rises with the quality of the view: one close, clean view can confirm."""
         cfg = self.config
         s.snapshot_cache = None
@@ -695,24 +490,12 @@ class ObjectMap:
         # (a half-hidden whiteboard's box then shows the wall): such views raise existence,
         # but only a nearer one confirms the object (else it stays tentative and times out).
         s.seen_near = s.seen_near or o.range_m <= cfg.footprint_max_range_m
-        cap = _logit(cfg.existence_max) if s.seen_near else _logit(cfg.existence_confirm) - _UNCONFIRMED_MARGIN
+        cap = logit(cfg.existence_max) if s.seen_near else logit(cfg.existence_confirm) - _UNCONFIRMED_MARGIN
         hollow = self.classes[self._class_index[o.class_name]].hollow != "none"
         q = view_quality(o.score, o.range_m, o.at_image_edge, o.n_voxels,
                          (o.top_height_m is not None) if hollow else None, cfg.footprint_max_range_m)
         s.support += q
         s.logodds = min(s.logodds + cfg.existence_hit_logodds * q, max(s.logodds, cap))
-
-    def _evidence_footprint(self, s: _State) -> NDArray[np.float64]:
-        """The footprint from the evidence (:meth:`FootprintEvidence.footprint`), or from the
-        observed hull before there is any."""
-        if s.footprint_cache is not None:
-            return s.footprint_cache
-        cfg = self.config
-        fp = s.evidence.footprint(cfg.footprint_evidence_frac, cfg.footprint_shape)
-        if fp is None:
-            fp = min_perimeter_rectangle(s.hull_xy_m) if cfg.footprint_shape == "rectangle" else s.hull_xy_m
-        s.footprint_cache = fp
-        return fp
 
     def _negative_evidence(self, matched: set[int], view: CameraView | None) -> None:
         if view is None:
@@ -737,42 +520,10 @@ class ObjectMap:
         cfg = self.config
         for oid in list(self._objects):
             s = self._objects[oid]
-            p = _sigmoid(s.logodds)
+            p = sigmoid(s.logodds)
             stale = p < cfg.existence_confirm and stamp_s - s.last_seen_s > cfg.tentative_timeout_s
             if p < cfg.existence_remove_below or stale:
                 log.debug("object %d removed (existence %.2f)", oid, p)
                 del self._objects[oid]
         for tid in [t for t, oid in self._track_to_object.items() if oid not in self._objects]:
             del self._track_to_object[tid]
-
-    def _snapshot(self, s: _State) -> MappedObject:
-        if s.snapshot_cache is not None:
-            return s.snapshot_cache
-        cfg = self.config
-        p = _sigmoid(s.logodds)
-        footprint = self._evidence_footprint(s)
-        z_max = _quantile(s.z_max_hist, 0.8)
-        z_min = _quantile(s.z_min_hist, 0.2)
-        top = _quantile(s.top_hist, 0.5) if s.top_hist else None
-        # The votes weighed by the measured geometry (semmap.class_prior); not fused per frame.
-        # The top plane, where found, is the height: things stand on tables.
-        probs = self._prior.posterior(s.class_probs, top if top is not None else max(z_max, z_min), footprint)
-        k = int(np.argmax(probs))
-        s.snapshot_cache = MappedObject(
-            object_id=s.object_id,
-            class_name=self.class_names[k],
-            class_probs={n: float(v) for n, v in zip(self.class_names, probs, strict=True)},
-            existence=p,
-            position_map_m=(float(s.position_m[0]), float(s.position_m[1]), float(s.position_m[2])),
-            position_std_m=math.sqrt(s.position_var_m2),
-            footprint_xy_m=footprint,
-            z_min_m=z_min,
-            z_max_m=max(z_max, z_min),
-            top_height_m=top,
-            first_seen_s=s.first_seen_s,
-            last_seen_s=s.last_seen_s,
-            n_observations=s.n_observations,
-            confirmed=p >= cfg.existence_confirm,
-            view_dir_xy=(float(s.view_sum_xy[0]) / max(s.n_views, 1), float(s.view_sum_xy[1]) / max(s.n_views, 1)),
-        )
-        return s.snapshot_cache

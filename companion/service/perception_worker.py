@@ -1,7 +1,7 @@
 """Perception off the event loop: detect -> track -> geometry -> map update on the newest frame.
 
-:class:`PerceptionPipeline` is the synchronous per-frame step (the same stages as the offline
-``companion map``) and measures each stage. :class:`PerceptionWorker` feeds it from a
+:class:`PerceptionPipeline` drives the per-frame step (:class:`semmap.pipeline.MappingPipeline`,
+the same step as the offline ``companion map``) and measures each stage. :class:`PerceptionWorker` feeds it from a
 :class:`~companion.sources.stream.FrameStream` (bounded, drop-oldest) and runs each step in a
 worker thread, so the event loop (setpoints, MAVLink, MQTT) never waits for perception and
 perception always works on the newest frame. The semantic map is guarded by a lock: the
@@ -26,17 +26,12 @@ from semmap.costmap import Costmap, VerticalBand
 from semmap.detection import Detector, detector_from_config
 from semmap.detection.builtin import detector_vote_groups
 from semmap.errors import FrameError
-from semmap.geometry import observe_object
 from semmap.objects import ObjectMap
+from semmap.pipeline import MappingPipeline, step_aware_tracker
 from semmap.semantic_map import SemanticMap, SemanticMapSettings
-from semmap.tracking.botsort import BoTSORT
 from semmap.types import Frame
 
 log = logging.getLogger(__name__)
-
-#: The stages timed every frame, in order.
-STAGES = ("detect", "track", "geometry", "grid")
-
 
 def flight_band(cfg: CompanionConfig) -> VerticalBand:
     """The vertical band the vehicle occupies at the planner's flight altitude."""
@@ -105,32 +100,34 @@ def check_frame(frame: Frame, depth_min_m: float, depth_max_m: float) -> None:
 
 
 class PerceptionPipeline:
-    """The synchronous per-frame step on a :class:`SemanticMap` (thread-safe via ``lock``).
-
-    ``object_classes``: the simulator's object id -> class (only the oracle detector uses it).
+    """The service's driver of the per-frame step (:class:`semmap.pipeline.MappingPipeline`) on
+    a :class:`SemanticMap`: checks each frame, counts and times them; thread-safe via ``lock``.
     """
 
     def __init__(self, cfg: CompanionConfig, smap: SemanticMap, detector: Detector,
                  timings: StageTimings | None = None) -> None:
         self.cfg = cfg
         self.smap = smap
-        self.detector = detector
-        self.tracker = BoTSORT.from_config(cfg.tracker)
-        self.by_name = {c.name: c for c in cfg.classes}
-        self.depth_range = (cfg.camera.depth_min_m, cfg.camera.depth_max_m)
-        self.timings = timings or StageTimings()
         self.lock = threading.Lock()
+        self.step = MappingPipeline(smap, cfg.classes, cfg.geometry, step_aware_tracker(cfg.tracker), detector,
+                                    depth_range_m=(cfg.camera.depth_min_m, cfg.camera.depth_max_m),
+                                    map_lock=self.lock)
+        self.timings = timings or StageTimings()
         self.frames_done = 0
         self.frames_failed = 0
         #: Frames skipped because they came without a pose (no telemetry at their time).
         self.frames_unposed = 0
         self.last_frame_s: float | None = None  # monotonic time of the last integrated frame
-        self._rng = np.random.default_rng(0)
+
+    @property
+    def detector(self) -> Detector | None:
+        return self.step.detector
 
     @classmethod
     def from_config(cls, cfg: CompanionConfig, smap: SemanticMap,
                     object_classes: Mapping[int, str] | None = None) -> PerceptionPipeline:
-        """The configured detector (``builtin:`` models from the package) and tracker."""
+        """The configured detector (``builtin:`` models from the package) and tracker.
+        ``object_classes``: the simulator's object id -> class (only the oracle detector uses it)."""
         detector = detector_from_config(cfg.detector, [c.name for c in cfg.classes],
                                         object_classes=object_classes, seed=cfg.sim.seed,
                                         real_camera=cfg.camera.is_real)
@@ -142,31 +139,13 @@ class PerceptionPipeline:
         if frame.T_map_camera is None:
             self.frames_unposed += 1
             return {}
-        check_frame(frame, *self.depth_range)
-        T = np.asarray(frame.T_map_camera, dtype=np.float64)
-        out: dict[str, float] = {}
-        t0 = time.perf_counter()
-        dets = self.detector.detect_frame(frame)
-        t1 = time.perf_counter()
-        tracks = self.tracker.update(dets, frame.rgb)
-        t2 = time.perf_counter()
-        obs = []
-        for tr in tracks:
-            o = observe_object(frame.depth_m, frame.intrinsics, T, tr, self.by_name[tr.class_name],
-                               self.cfg.geometry, depth_range_m=self.depth_range, stamp_s=frame.stamp_s,
-                               rng=self._rng)
-            if o is not None:
-                obs.append(o)
-        t3 = time.perf_counter()
-        with self.lock:
-            self.smap.integrate_frame(frame, T_map_camera=T, observations=obs)
-        t4 = time.perf_counter()
-        for name, a, b in (("detect", t0, t1), ("track", t1, t2), ("geometry", t2, t3), ("grid", t3, t4)):
-            out[name] = 1e3 * (b - a)
-            self.timings.add(name, out[name])
+        check_frame(frame, *self.step.depth_range_m)
+        result = self.step.register_frame(frame)
+        for name, ms in result.stages_ms.items():
+            self.timings.add(name, ms)
         self.frames_done += 1
         self.last_frame_s = time.monotonic()
-        return out
+        return result.stages_ms
 
     def costmap(self, band: VerticalBand | None = None) -> Costmap:
         """The map's costmap at ``band`` (a consistent snapshot)."""

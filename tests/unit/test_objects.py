@@ -311,3 +311,23 @@ def test_planning_footprint_of_a_partly_seen_table_grows_away_from_the_camera() 
                                      2.0, camera_xy_m=(3.0, 2.0))], float(t))
     (p2,) = m2.footprints()
     assert np.ptp(p2.polygon_xy_m[:, 1]) < 0.2
+
+
+def test_chairs_side_by_side_stay_two_after_one_box_held_both() -> None:
+    # Chairs pushed in along a table: one chair's box once held its neighbour too, so its hull
+    # grew over the neighbour; the neighbour's next track, and the shared seat height, must
+    # not fold the two into one chair (bench/mapping.py --world realistic, room 1015).
+    m = ObjectMap(default_classes())
+    for t in range(4):
+        m.update([_rect_obs(1, "chair", 3.0, 0.0, 3.5, 0.5, (0.0, 0.9), 0.45, float(t)),
+                  _rect_obs(2, "chair", 3.6, 0.0, 4.1, 0.5, (0.0, 0.9), 0.45, float(t))], float(t))
+    before = sorted(o.object_id for o in m.objects())
+    assert len(before) == 2
+    m.update([_rect_obs(1, "chair", 3.0, 0.0, 4.1, 0.5, (0.0, 0.9), 0.45, 4.0)], 4.0)
+    for t in range(5, 9):
+        # The neighbour's track was lost: a new track id, associated by its footprint.
+        m.update([_rect_obs(1, "chair", 3.0, 0.0, 3.5, 0.5, (0.0, 0.9), 0.45, float(t)),
+                  _rect_obs(10 + t, "chair", 3.6, 0.0, 4.1, 0.5, (0.0, 0.9), 0.45, float(t))], float(t))
+    assert sorted(o.object_id for o in m.objects()) == before
+    widths = sorted(float(np.ptp(o.footprint_xy_m[:, 0])) for o in m.objects())
+    assert widths[-1] < 0.7  # neither footprint spans both chairs
