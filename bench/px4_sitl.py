@@ -14,7 +14,8 @@ each get a fresh SITL:
   square near home (never towards 0/0), lands there, and downloads back the same steps;
 * ``engage``: in every room flight PX4 first reports OFFBOARD in the air at the take-off height;
 * ``offboard_loss``: ``companion run`` killed in OFFBOARD in the air: PX4's failsafe
-  (``COM_OF_LOSS_T``, ``COM_OBL_RC_ACT``) leaves OFFBOARD, holds within 1 m and lands;
+  (``COM_OF_LOSS_T`` 0.5 s, ``COM_OBL_RC_ACT`` 4 Land, as the README's PX4 table requires)
+  leaves OFFBOARD, holds within 1 m and lands;
 * ``landing_rearm``: after a landing in OFFBOARD (PX4 disarms, keeps the mode) the service
   takes off again;
 * ``obstacle_distance``: PX4's uORB sees ``obstacle_distance`` at >= 8 Hz in flight.
