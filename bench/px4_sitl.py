@@ -27,7 +27,7 @@ room's row shows its own p95 and the detector's mean time per frame, which track
 machine's load average is printed with the figures. ``--quick`` flies 1 room and checks the
 scenarios that flight shows (engage, obstacle_distance); it takes 2-3 minutes, not 1 (PX4's
 start, the perception process's warm-up and a flight across the room and back; 150 s measured
-at load average 2-5). The full run took 630 s at load average 9-13. The last line is one JSON
+at load average 2-5). The full run took 630-643 s at load average 4-9. The last line is one JSON
 object.
 """
 
