@@ -14,7 +14,8 @@ each get a fresh SITL:
   square near home (never towards 0/0), lands there, and downloads back the same steps;
 * ``engage``: in every room flight PX4 first reports OFFBOARD in the air at the take-off height;
 * ``offboard_loss``: ``companion run`` killed in OFFBOARD in the air: PX4's failsafe
-  (``COM_OF_LOSS_T``, ``COM_OBL_RC_ACT``) leaves OFFBOARD, holds within 1 m and lands;
+  (``COM_OF_LOSS_T`` 0.5 s, ``COM_OBL_RC_ACT`` 4 Land, as the README's PX4 table requires)
+  leaves OFFBOARD, holds within 1 m and lands;
 * ``landing_rearm``: after a landing in OFFBOARD (PX4 disarms, keeps the mode) the service
   takes off again;
 * ``obstacle_distance``: PX4's uORB sees ``obstacle_distance`` at >= 8 Hz in flight.
@@ -26,7 +27,7 @@ room's row shows its own p95 and the detector's mean time per frame, which track
 machine's load average is printed with the figures. ``--quick`` flies 1 room and checks the
 scenarios that flight shows (engage, obstacle_distance); it takes 2-3 minutes, not 1 (PX4's
 start, the perception process's warm-up and a flight across the room and back; 150 s measured
-at load average 2-5). The full run took 630 s at load average 9-13. The last line is one JSON
+at load average 2-5). The full run took 630-643 s at load average 4-9. The last line is one JSON
 object.
 """
 

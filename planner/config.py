@@ -52,6 +52,12 @@ class PlannerConfig(StageConfig):
     corner_speed_jump_m_s: float = Field(default=0.3, gt=0.0, le=20.0)
     max_speed_m_s: float = Field(default=1.0, gt=0.0, le=20.0)
     max_accel_m_s2: float = Field(default=1.0, gt=0.0, le=20.0)
+    #: The last ``final_approach_m`` of each path are flown at no more than
+    #: ``final_approach_speed_m_s``: PX4 trails its setpoints and overshoots the end of a path
+    #: braked at ``max_accel_m_s2`` by up to half a metre; at a crawl it catches up and stops
+    #: on the goal (0 = brake at ``max_accel_m_s2`` all the way).
+    final_approach_m: float = Field(default=0.5, ge=0.0, le=5.0)
+    final_approach_speed_m_s: float = Field(default=0.3, gt=0.0, le=20.0)
     max_yaw_rate_deg_s: float = Field(default=60.0, gt=0.0, le=720.0)
     #: Starting a path from rest, the vehicle turns on the spot until it heads within this of
     #: the path, so the camera (D455: 87 deg wide) sees where it goes; 180 = set off at once.

@@ -45,22 +45,32 @@ class TrajectoryLimits:
     max_heading_error_rad: float = math.pi
     #: Each yaw turn is centred this far (metres of path) before its corner (0: on it).
     yaw_lead_m: float = 0.0
+    #: The last ``final_approach_m`` of a path are flown at no more than
+    #: ``final_approach_speed_m_s``: an autopilot that trails its setpoints (PX4 by about half
+    #: a second) brakes late and overshoots the end of a path braked at ``max_accel``; crawling
+    #: the last stretch lets it catch up first, so it stops on the goal (0: no final approach).
+    final_approach_m: float = 0.0
+    final_approach_speed_m_s: float = 0.3
 
     @classmethod
     def from_config(cls, config: PlannerConfig) -> "TrajectoryLimits":
         """The limits in a planner config (whose angles are in degrees)."""
         return cls(config.max_speed_m_s, config.max_accel_m_s2, math.radians(config.max_yaw_rate_deg_s),
-                   config.corner_speed_jump_m_s, math.radians(config.max_heading_error_deg), config.yaw_lead_m)
+                   config.corner_speed_jump_m_s, math.radians(config.max_heading_error_deg), config.yaw_lead_m,
+                   config.final_approach_m, config.final_approach_speed_m_s)
 
     def __post_init__(self) -> None:
-        for name in ("max_speed_m_s", "max_accel_m_s2", "max_yaw_rate_rad_s", "corner_speed_jump_m_s"):
+        for name in ("max_speed_m_s", "max_accel_m_s2", "max_yaw_rate_rad_s", "corner_speed_jump_m_s",
+                     "final_approach_speed_m_s"):
             v = getattr(self, name)
             if not (v > 0.0 and math.isfinite(v)):
                 raise PlanningError(f"trajectory limit {name} must be a positive number (got {v})")
         if not 0.0 <= self.max_heading_error_rad <= math.pi:
             raise PlanningError(f"max_heading_error_rad must be in [0, pi] (got {self.max_heading_error_rad})")
-        if not (self.yaw_lead_m >= 0.0 and math.isfinite(self.yaw_lead_m)):
-            raise PlanningError(f"yaw_lead_m must be a finite number >= 0 (got {self.yaw_lead_m})")
+        for name in ("yaw_lead_m", "final_approach_m"):
+            v = getattr(self, name)
+            if not (v >= 0.0 and math.isfinite(v)):
+                raise PlanningError(f"trajectory limit {name} must be a finite number >= 0 (got {v})")
 
 
 @dataclass(frozen=True)
@@ -186,6 +196,25 @@ def _segment_profile(L: float, v0: float, v1: float, vmax: float, a: float) -> t
     return vp, ta, tc, tb
 
 
+def _split_for_approach(p: NDArray[np.float64], approach_m: float) -> tuple[NDArray[np.float64], int]:
+    """``p`` with a vertex ``approach_m`` of path before its end (unless one lies within a
+    millimetre of there), and the index of the first segment of the final approach."""
+    n = len(p) - 1
+    if approach_m <= 0.0 or n < 1:
+        return p, n
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    at = float(arc[-1]) - approach_m
+    if at <= 1e-3:
+        return p, 0
+    k = int(np.searchsorted(arc, at, side="right")) - 1  # the segment the approach starts in
+    if at - float(arc[k]) <= 1e-3:
+        return p, k
+    if float(arc[k + 1]) - at <= 1e-3:
+        return p, k + 1
+    split = p[k] + (p[k + 1] - p[k]) * ((at - float(arc[k])) / (float(arc[k + 1]) - float(arc[k])))
+    return np.vstack([p[:k + 1], split[None, :], p[k + 1:]]), k + 1
+
+
 def time_parametrize(
     path_xy_m: NDArray[np.floating],
     altitude_m: float,
@@ -198,29 +227,35 @@ def time_parametrize(
     ``initial_yaw_rad``: the vehicle's yaw at the start (default: the first segment's
     heading); the first turn starts at t = 0. ``initial_speed_m_s``: start already moving
     along the first segment at this speed (a re-plan spliced into a flight), capped by the
-    speed limit and by what the vehicle can still brake from within the path.
+    speed limit and by what the vehicle can still brake from within the path. The last
+    ``limits.final_approach_m`` of the path are flown at ``limits.final_approach_speed_m_s``
+    at most (a vertex is added where that stretch begins).
     """
     p = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
     if len(p) == 0 or not np.all(np.isfinite(p)):
         raise PlanningError(f"path must be a non-empty (K, 2) array of finite metres, got shape {p.shape}")
     keep = np.ones(len(p), dtype=bool)
     keep[1:] = np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-6
-    p = p[keep]
+    p, approach_from = _split_for_approach(p[keep], limits.final_approach_m)
     seg = np.diff(p, axis=0)
     L = np.linalg.norm(seg, axis=1)
     n = len(L)
     u = seg / L[:, None] if n else np.zeros((0, 2))
     heading = np.arctan2(u[:, 1], u[:, 0]) if n else np.zeros(0)
     vmax, a = limits.max_speed_m_s, limits.max_accel_m_s2
+    # Per segment: the speed limit, lowered on the final approach.
+    seg_vmax = np.full(n, vmax)
+    seg_vmax[approach_from:] = min(vmax, limits.final_approach_speed_m_s)
 
     v = np.full(n + 1, vmax)
+    v[approach_from:] = np.minimum(v[approach_from:], min(vmax, limits.final_approach_speed_m_s))
     v[0] = min(vmax, max(0.0, float(initial_speed_m_s))) if n else 0.0
     v[-1] = 0.0
     for k in range(1, n):
         cos_t = float(np.clip(np.dot(u[k - 1], u[k]), -1.0, 1.0))
         half = 0.5 * math.acos(cos_t)
         if half > 1e-9:
-            v[k] = min(vmax, limits.corner_speed_jump_m_s / (2.0 * math.sin(half)))
+            v[k] = min(v[k], limits.corner_speed_jump_m_s / (2.0 * math.sin(half)))
     for k in range(n):
         v[k + 1] = min(v[k + 1], math.sqrt(v[k] ** 2 + 2.0 * a * L[k]))
     for k in range(n - 1, -1, -1):
@@ -237,7 +272,7 @@ def time_parametrize(
     phase = np.zeros((n, 3))
     t0 = np.zeros(n)
     for k in range(n):
-        vp, ta, tc, tb = _segment_profile(float(L[k]), float(v[k]), float(v[k + 1]), vmax, a)
+        vp, ta, tc, tb = _segment_profile(float(L[k]), float(v[k]), float(v[k + 1]), float(seg_vmax[k]), a)
         peak[k] = vp
         phase[k] = (ta, tc, tb)
         t0[k] = t

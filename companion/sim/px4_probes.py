@@ -10,7 +10,8 @@ them:
 * :func:`engage_check`: in a recorded flight the vehicle is first reported in OFFBOARD only in
   the air at the take-off height above home;
 * :func:`probe_offboard_loss`: ``companion run`` killed in the air in OFFBOARD: PX4's
-  offboard-loss failsafe (``COM_OF_LOSS_T``, ``COM_OBL_RC_ACT``) takes over and lands in place;
+  offboard-loss failsafe (``COM_OF_LOSS_T``, ``COM_OBL_RC_ACT``, set as the README's PX4 table
+  says) takes over and lands in place;
 * :func:`probe_landing_rearm`: after a landing in OFFBOARD (PX4 disarms and keeps the mode) the
   service takes off again.
 
@@ -29,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -52,6 +54,11 @@ SQUARE_MISSION = REPO / "config" / "missions" / "square.yaml"
 ARM_ATTEMPTS = 15
 #: PX4 reports mode changes in its 1 Hz heartbeat: a change is seen up to this late.
 HEARTBEAT_LAG_S = 1.2
+#: PX4's offboard-loss parameters as the README's PX4 table requires them: 0.5 s for a 30 Hz
+#: stream, and Land (4). PX4's default, 0 (Position mode), cannot run without RC: PX4 falls
+#: back to its emergency flight task ("Matching flight task was not able to run") and drifted
+#: up to 1.06 m while descending in SITL.
+OFFBOARD_LOSS_PX4_PARAMS: dict[str, float | int] = {"COM_OF_LOSS_T": 0.5, "COM_OBL_RC_ACT": 4}
 
 
 @dataclass
@@ -157,8 +164,10 @@ def _count_steps(mission: Path) -> int:
 
 
 async def probe_offboard_loss(sitl: Px4Sitl, cfg: CompanionConfig, workdir: Path,
-                              in_offboard_s: float = 3.0, timeout_s: float = 150.0) -> ProbeResult:
-    """From HOLD on the ground, ``companion run --fly-mission`` (simulated camera, PX4's link) flies the demo crossing;
+                              in_offboard_s: float = 3.0, timeout_s: float = 150.0,
+                              px4_params: Mapping[str, float | int] | None = None) -> ProbeResult:
+    """With PX4's ``px4_params`` set (default :data:`OFFBOARD_LOSS_PX4_PARAMS`), from HOLD on
+    the ground, ``companion run --fly-mission`` (simulated camera, PX4's link) flies the demo crossing;
     once PX4 reports OFFBOARD in the air for ``in_offboard_s`` the companion (its whole process
     group) is killed. PX4 must leave OFFBOARD within ``COM_OF_LOSS_T`` (plus the heartbeat's
     lag), stay within 1 m of where the setpoints stopped, land and disarm."""
@@ -167,6 +176,8 @@ async def probe_offboard_loss(sitl: Px4Sitl, cfg: CompanionConfig, workdir: Path
     from companion.sim.px4_world import Px4World, vehicle_start_map_xy
 
     name = "offboard_loss"
+    for param, value in (OFFBOARD_LOSS_PX4_PARAMS if px4_params is None else px4_params).items():
+        await asyncio.to_thread(sitl.param_set, param, value)
     loss_t = sitl.param_get("COM_OF_LOSS_T")
     action = sitl.param_get("COM_OBL_RC_ACT")
     cfg = await asyncio.to_thread(feasible_seed, cfg)

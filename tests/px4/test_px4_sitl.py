@@ -86,7 +86,7 @@ def test_obstacle_distance_reaches_px4(sitl: Px4Sitl) -> None:
 def test_offboard_loss_hands_over_to_px4_failsafe(sitl: Px4Sitl, tmp_path: Path) -> None:
     result = asyncio.run(probe_offboard_loss(sitl, _service_cfg(), tmp_path))
     assert result.passed, f"{result.detail} {result.figures}\n" + "\n".join(result.px4_log)
-    assert result.figures["failsafe_mode"] in (FlightMode.POSCTL.name, FlightMode.LAND.name, FlightMode.HOLD.name)
+    assert result.figures["failsafe_mode"] == FlightMode.LAND.name  # COM_OBL_RC_ACT 4, as the README says
 
 
 @pytest.fixture(scope="module")

@@ -189,3 +189,38 @@ def test_yaw_lead_comes_from_the_planner_config_and_is_checked() -> None:
     assert TrajectoryLimits.from_config(PlannerConfig(yaw_lead_m=0.4)).yaw_lead_m == pytest.approx(0.4)
     with pytest.raises(PlanningError, match="yaw_lead_m"):
         TrajectoryLimits(1.0, 1.0, 1.0, yaw_lead_m=-0.1)
+
+
+APPROACH = TrajectoryLimits(max_speed_m_s=1.0, max_accel_m_s2=1.0, max_yaw_rate_rad_s=math.radians(60),
+                            final_approach_m=0.5, final_approach_speed_m_s=0.3)
+
+
+@pytest.mark.parametrize("path", [[(0.0, 0.0), (3.0, 0.0)], [(0.0, 0.0), (2.0, 1.0), (2.2, 1.3)],
+                                  [(0.0, 0.0), (0.3, 0.1)]])
+def test_final_approach_is_flown_at_a_crawl_and_the_path_is_unchanged(path: list[tuple[float, float]]) -> None:
+    p = np.array(path)
+    traj = time_parametrize(p, 0.6, APPROACH, initial_yaw_rad=0.0)
+    goal = p[-1]
+    remaining = np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1)[::-1])[::-1]  # path left from each vertex
+    assert traj.length_m == pytest.approx(float(remaining[0]))
+    _ts, samples = _samples(traj)
+    for s in samples:
+        xy = s.position_m[:2]
+        assert _dist_to_polyline(xy[None, :], p) < 1e-6
+        # The path left to fly, measured along it: from the vertex after xy, or straight on the last segment.
+        k = next((i for i in range(len(p) - 1) if _dist_to_polyline(xy[None, :], p[i:i + 2]) < 1e-6), len(p) - 2)
+        left = float(np.linalg.norm(p[k + 1] - xy)) + (float(remaining[k + 1]) if k + 1 < len(remaining) else 0.0)
+        if left < 0.5 - 1e-6:
+            assert float(np.linalg.norm(s.velocity_m_s[:2])) <= 0.3 + 1e-6, (left, s.velocity_m_s)
+    assert np.allclose(samples[-1].position_m[:2], goal)
+    plain = time_parametrize(p, 0.6, TrajectoryLimits(1.0, 1.0, math.radians(60)), initial_yaw_rad=0.0)
+    assert traj.duration_s > plain.duration_s  # the crawl costs time, a second or less
+
+
+def test_final_approach_comes_from_the_planner_config_and_is_checked() -> None:
+    lim = TrajectoryLimits.from_config(PlannerConfig(final_approach_m=0.4, final_approach_speed_m_s=0.25))
+    assert (lim.final_approach_m, lim.final_approach_speed_m_s) == (0.4, 0.25)
+    with pytest.raises(PlanningError, match="final_approach_m"):
+        TrajectoryLimits(1.0, 1.0, 1.0, final_approach_m=-0.1)
+    with pytest.raises(PlanningError, match="final_approach_speed_m_s"):
+        TrajectoryLimits(1.0, 1.0, 1.0, final_approach_speed_m_s=0.0)
