@@ -34,14 +34,17 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.background import BackgroundTasks
 from companion.config import CompanionConfig
+from companion.mavlink.commands import CommandSender
 from companion.mavlink.link import MavlinkLink
+from companion.mavlink.timesync import TimesyncConvergence
 from companion.mavlink.vision import VisionPose, VisionStream
 from companion.service.perception_worker import semantic_map_settings
 from companion.service.vision_loss import VisionLossGuard, VisionLossMonitor
@@ -417,19 +420,38 @@ class ServiceLocalization:
         self.stream: VisionStream | None = None
         self.vision_source: VisionPoseSource | None = None
         self.loss_guard_: VisionLossGuard | None = None
+        self.timesync: TimesyncConvergence | None = None
 
     def source(self, frame_source: FrameSource) -> FrameSource:
         """The camera as perception should read it (wrapped in the SLAM when enabled)."""
         return localized_source(self.cfg, frame_source, self.shared)
 
     def vision_stream(self, link: MavlinkLink) -> contextlib.AbstractAsyncContextManager[object]:
-        """The 30 Hz external-vision stream on ``link`` (a no-op when disabled)."""
+        """The 30 Hz external-vision stream on ``link`` (a no-op when disabled), with PX4's
+        TIMESYNC brought to convergence first (:class:`TimesyncConvergence`): until then PX4
+        stamps each pose on arrival, a SLAM latency late."""
         shared = self.shared
         if shared is None or not self.cfg.link.external_vision:
             return contextlib.nullcontext()
         self.vision_source = VisionPoseSource.from_config(shared, self.cfg)
         self.stream = VisionStream(link, self.vision_source, VISION_RATE_HZ)
-        return self.stream
+        c = self.cfg.link
+        self.timesync = TimesyncConvergence(link, CommandSender(link, c.target_system, c.target_component),
+                                            c.target_system)
+        return self._vision_stream(self.stream, self.timesync)
+
+    @contextlib.asynccontextmanager
+    async def _vision_stream(self, stream: VisionStream, timesync: TimesyncConvergence) -> AsyncIterator[VisionStream]:
+        detach = timesync.attach()
+        tasks = BackgroundTasks()
+        await tasks.open()
+        try:
+            tasks.start(timesync.run(), name="timesync-convergence")
+            async with stream:
+                yield stream
+        finally:
+            await tasks.close()
+            detach()
 
     def latest(self) -> LocalizationState | None:
         """The latest SLAM result (None when disabled or before the first frame)."""
