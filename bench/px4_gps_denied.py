@@ -173,7 +173,7 @@ def report(rooms: dict[str, dict[str, Any]], out: Path, elapsed_s: float,
         cases[seed] = {k: s.get(k) for k in (
             "waypoints_reached", "waypoints_total", "collisions", "min_clearance_m", "ekf_vs_truth_error_m_p95",
             "ekf_vs_truth_height_error_m_p95", "slam_vs_truth_error_m_p95", "ev_rate_hz_at_px4",
-            "ev_new_pose_rate_hz", "vision_loss_actions", "frame_alignment", "mission_error")}
+            "ev_new_pose_rate_hz", "vision_loss_actions", "frame_alignment", "scan_gaps", "mission_error")}
         if "slam_loss" in s:
             cases[seed]["slam_loss"] = s["slam_loss"]
     slam_loss: dict[str, Any] | None = None

@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import sys
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, replace
@@ -143,6 +144,8 @@ class SharedLocalization:
             time.monotonic() - g(_IX["published_monotonic_s"]), int(g(_IX["resets"])))
 
 
+#: The GIL switch interval of the process the SLAM runs in (seconds).
+SLAM_SWITCH_INTERVAL_S = 0.0005
 #: A SLAM pose older than this is not sent to the autopilot (the camera stalled).
 VISION_MAX_AGE_S = 1.0
 #: External-vision message rate (PX4 expects 30 Hz or more from a VIO).
@@ -365,6 +368,9 @@ class LocalizedFrameSource(WrappedSource):
     def open(self) -> None:
         self.inner.open()
         _ = self.localizer
+        # The SLAM's many short numpy calls each give the GIL up; detection's Python in the
+        # same process would keep it the default 5 ms every time, so hand it over sooner.
+        sys.setswitchinterval(SLAM_SWITCH_INTERVAL_S)
 
     def close(self) -> None:
         try:

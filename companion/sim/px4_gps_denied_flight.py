@@ -58,6 +58,33 @@ MAX_LOCAL_M = 1000.0
 ORIGIN_AFTER_POSES = 20
 #: Above this height (m) the vehicle counts as airborne for the error figures.
 AIRBORNE_M = 0.3
+#: The SLAM statuses as the tracks record them (tracks.npz ``scans``).
+SCAN_STATUS_CODES = {"ok": 0, "partial_odometry": 1, "degenerate_fallback_odometry": 2, "odometry": 3}
+#: A run of scans without a matched pose at least this long counts as a gap (s): the
+#: service holds after ``link.vision_lost_hold_s`` of them.
+GAP_S = 0.5
+
+
+def scan_gaps(scans: list[tuple[float, float, int, float]]) -> dict[str, Any]:
+    """Where the matched SLAM poses stopped for :data:`GAP_S` or more: ``no_scan`` (no scan
+    was published at all: the camera or the perception process stalled) or ``unmatched``
+    (scans came, none matched in full), with the capture-to-publish latency of the scans."""
+    if len(scans) < 2:
+        return {}
+    arr = np.array(scans, dtype=np.float64)
+    ok_t = arr[arr[:, 2] == 0, 0]
+    gaps = {"no_scan": 0, "unmatched": 0, "longest_s": 0.0}
+    for a, b in zip(ok_t[:-1], ok_t[1:], strict=True):
+        if b - a < GAP_S:
+            continue
+        inside = arr[(arr[:, 0] > a) & (arr[:, 0] < b)]
+        gaps["unmatched" if len(inside) and np.max(np.diff(np.r_[a, inside[:, 0], b])) < GAP_S else "no_scan"] += 1
+        gaps["longest_s"] = round(max(gaps["longest_s"], float(b - a)), 2)
+    latency_ms = 1e3 * (arr[:, 1] - arr[:, 0])
+    return {**gaps, "scan_rate_hz": round(float(len(arr) / max(arr[-1, 0] - arr[0, 0], 1e-9)), 1),
+            "capture_to_publish_ms_p50": round(float(np.percentile(latency_ms, 50)), 1),
+            "capture_to_publish_ms_p95": round(float(np.percentile(latency_ms, 95)), 1),
+            "localize_ms_p95": round(float(np.percentile(arr[:, 3], 95)), 1)}
 
 
 def gps_denied_config(cfg: CompanionConfig, out: Path, link_url: str) -> CompanionConfig:
@@ -119,6 +146,7 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     wps_map = [placement.room_to_map_xy(w) for w in await asyncio.to_thread(crossing_waypoints_room, placement, cfg)]
     est = EstimateRecorder(cfg.link.target_system)
     slam: list[tuple[float, float, float]] = []  # our s, x, y
+    scans: list[tuple[float, float, int, float]] = []  # capture s, published s, status code, localize ms
     uorb_hz: list[float] = []
     new_pose_rate: list[float] = []
     loss: dict[str, Any] = {}
@@ -138,8 +166,11 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
         async def sample_slam() -> None:
             while True:
                 st = service.localization.latest()
-                if st is not None and st.status == "ok" and (not slam or slam[-1][0] != st.stamp_s):
-                    slam.append((st.stamp_s, float(st.T_map_body[0, 3]), float(st.T_map_body[1, 3])))
+                if st is not None and (not scans or scans[-1][0] != st.stamp_s):
+                    scans.append((st.stamp_s, time.monotonic() - st.age_s, SCAN_STATUS_CODES.get(st.status, -1),
+                                  st.localize_ms))
+                    if st.status == "ok":
+                        slam.append((st.stamp_s, float(st.T_map_body[0, 3]), float(st.T_map_body[1, 3])))
                 await asyncio.sleep(SLAM_PERIOD_S)
 
         async def sample_uorb() -> None:
@@ -214,6 +245,7 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     summary["ev_rate_hz_at_px4"] = round(float(np.median(uorb_hz)), 1) if uorb_hz else None
     summary["ev_new_pose_rate_hz"] = round(float(np.median(new_pose_rate)), 1) if new_pose_rate else None
     summary["localization"] = report.localization
+    summary["scan_gaps"] = scan_gaps(scans)
     summary["vision_loss_actions"] = report.localization.get("vision_loss_actions", "")
     if slam_loss_s > 0.0:
         summary["slam_loss"] = {"seconds": slam_loss_s, **loss}
@@ -223,7 +255,8 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     # The tracks the figures come from, for a look afterwards (our clock, map frames unaligned).
     np.savez_compressed(out / "tracks.npz", truth=np.array([(t.local_s, t.x_m, t.y_m, t.z_m, t.yaw_rad)
                                                             for t in truth.samples]).reshape(-1, 5),
-                        px4_estimate=np.array(est.rows).reshape(-1, 5), slam=np.array(slam).reshape(-1, 3))
+                        px4_estimate=np.array(est.rows).reshape(-1, 5), slam=np.array(slam).reshape(-1, 3),
+                        scans=np.array(scans).reshape(-1, 4))
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
     return summary
 

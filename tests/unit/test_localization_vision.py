@@ -75,3 +75,31 @@ def test_jumps_of_the_matched_pose_are_counted() -> None:
     # Fallback poses are neither compared nor remembered.
     assert jumps.update(np.array([50.0, 50.0, 0.0]), fwd, False) == 2
     assert jumps.update(pred + [0.27, 0.0, math.radians(5.0)], fwd, True) == 2
+
+
+def test_the_slam_process_hands_the_gil_over_often() -> None:
+    # The SLAM shares its process with detection: at the default 5 ms switch interval its short
+    # numpy calls queued behind detection's Python and the pose rate PX4 needs fell apart.
+    import sys
+
+    from companion.config import CompanionConfig
+    from companion.service.localization import SLAM_SWITCH_INTERVAL_S, LocalizedFrameSource
+    from companion.sources.base import FrameSource
+
+    class _Camera(FrameSource):
+        intrinsics = CompanionConfig().camera.intrinsics()
+
+        def open(self) -> None:
+            pass
+
+        def read(self) -> None:
+            return None
+
+    before = sys.getswitchinterval()
+    src = LocalizedFrameSource(_Camera(), CompanionConfig())
+    try:
+        src.open()
+        assert sys.getswitchinterval() == pytest.approx(SLAM_SWITCH_INTERVAL_S)
+    finally:
+        src.close()
+        sys.setswitchinterval(before)
