@@ -181,7 +181,8 @@ class SihTruth:
         T[2, 3] += STANDING_HEIGHT_M
         px4_s = msg.time_usec * 1e-6
         local_s = time.monotonic()
-        mapped = self.to_local(px4_s) if self.to_local is not None else None
+        # PX4 v1.16's HIL_STATE_QUATERNION stream leaves time_usec 0: then it is stamped on arrival.
+        mapped = self.to_local(px4_s) if self.to_local is not None and msg.time_usec > 0 else None
         if mapped is not None and abs(mapped - local_s) <= MAX_MAPPING_ERROR_S:
             local_s = mapped  # when it was true, not when this loop got to it
         elif mapped is not None and not self._mapping_warned:
