@@ -33,7 +33,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import sys
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, replace
@@ -353,6 +355,7 @@ class LocalizedFrameSource(WrappedSource):
         self.cfg = cfg
         self.shared = shared
         self._localizer: Localizer | None = None
+        self._priority_set = False
 
     def __getstate__(self) -> dict[str, object]:
         return {**self.__dict__, "_localizer": None}
@@ -384,10 +387,29 @@ class LocalizedFrameSource(WrappedSource):
                 self._localizer = None
 
     def read(self) -> Frame | None:
+        if not self._priority_set:
+            self._priority_set = True
+            reader_thread_at_parent_priority()
         frame = self.inner.read()
         if frame is None:
             return None
         return self.localizer.localize(frame)
+
+
+def reader_thread_at_parent_priority() -> None:
+    """Give the calling thread (the camera's reader, which runs the SLAM) the scheduling
+    priority of the process that started this one: the perception process is niced so that
+    detection yields to the service, but the SLAM pose is PX4's only position without GPS
+    and must not yield with it. Needs CAP_SYS_NICE (or RLIMIT_NICE) to undo a nice; without
+    it the thread keeps the process's priority and a warning says so."""
+    try:
+        parent = os.getpriority(os.PRIO_PROCESS, os.getppid())
+        tid = threading.get_native_id()
+        if os.getpriority(os.PRIO_PROCESS, tid) > parent:
+            os.setpriority(os.PRIO_PROCESS, tid, parent)
+    except OSError as exc:
+        log.warning("localization: the SLAM thread keeps the perception process's lower priority (%s); "
+                    "grant CAP_SYS_NICE or LimitNICE so it runs at the service's", exc)
 
 
 def localized_source(cfg: CompanionConfig, source: FrameSource,
