@@ -12,12 +12,20 @@ The other way, :class:`AutopilotClock` asks PX4 for its time (``tc1 = 0``, ``ts1
 fits our clock against its answers, offset and rate, so telemetry stamped with PX4's
 ``time_boot_ms`` lands at the right local time even when PX4's clock runs at another rate
 (a lockstep simulation runs about 1 % slow; crystals differ by tens of ppm).
+
+PX4 uses our stamps only once its filter has taken ``PX4_TIMESYNC_CONVERGENCE_SAMPLES`` answers;
+until then it stamps every pose on arrival, so EKF2 fuses a pose captured a SLAM latency ago
+as if it were current and its estimate trails the vehicle by that latency. At PX4's default
+TIMESYNC rate on an onboard link (10 Hz) that takes 50 s from the companion's start, longer
+than a take-off waits; :class:`TimesyncConvergence` asks PX4 for TIMESYNC at a high rate
+until it has answered enough requests, then restores the default rate.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -25,7 +33,8 @@ from collections.abc import Callable
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.errors import LinkError
+from companion.errors import CommandError, LinkError
+from companion.mavlink.commands import CommandSender
 from companion.mavlink.link import MavlinkLink
 
 log = logging.getLogger(__name__)
@@ -134,3 +143,67 @@ class AutopilotClock:
             return None
         ref, local_at_ref, rate = self._fit
         return local_at_ref + rate * (remote_s - ref)
+
+
+#: Answers PX4's MavlinkTimesync takes before it maps our stamps (its CONVERGENCE_WINDOW).
+PX4_TIMESYNC_CONVERGENCE_SAMPLES = 500
+
+
+class TimesyncConvergence:
+    """Brings PX4's TIMESYNC filter to convergence in seconds: asks for TIMESYNC at
+    ``fast_rate_hz`` (``MAV_CMD_SET_MESSAGE_INTERVAL``) until ``margin`` times
+    :data:`PX4_TIMESYNC_CONVERGENCE_SAMPLES` requests from the autopilot arrived (each answered
+    by the :class:`TimesyncResponder`; the margin covers answers PX4 drops for a slow round
+    trip), then asks for its default rate again. :attr:`converged` is our estimate that PX4 now
+    maps our stamps; an autopilot that refuses the rate change converges at its own pace."""
+
+    def __init__(self, link: MavlinkLink, commands: CommandSender, target_system: int = 1, *,
+                 fast_rate_hz: float = 100.0, samples: int = PX4_TIMESYNC_CONVERGENCE_SAMPLES,
+                 margin: float = 1.3) -> None:
+        if fast_rate_hz <= 0.0:
+            raise ValueError(f"TIMESYNC rate must be > 0 Hz (got {fast_rate_hz})")
+        self.link = link
+        self.commands = commands
+        self.target_system = target_system
+        self.fast_rate_hz = fast_rate_hz
+        self.needed = int(math.ceil(samples * margin))
+        #: Requests from the autopilot seen since :meth:`attach`.
+        self.requests = 0
+        self._enough = asyncio.Event()
+
+    @property
+    def converged(self) -> bool:
+        return self.requests >= self.needed
+
+    def attach(self) -> Callable[[], None]:
+        """Count the autopilot's requests on the link; returns the function that stops it."""
+        return self.link.add_listener(self.handle, ("TIMESYNC",))
+
+    def handle(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.get_srcSystem() != self.target_system or msg.tc1 != 0:
+            return
+        self.requests += 1
+        if self.requests >= self.needed:
+            self._enough.set()
+
+    async def run(self) -> None:
+        """Raise the rate, wait for enough requests, restore the default (one task)."""
+        if self.converged:
+            return
+        t0 = time.monotonic()
+        try:
+            await self.commands.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                             float(mavlink.MAVLINK_MSG_ID_TIMESYNC), 1e6 / self.fast_rate_hz)
+        except (CommandError, LinkError) as exc:
+            log.info("TIMESYNC at %.0f Hz refused (%s): the autopilot maps our stamps once it has %d answers "
+                     "at its own rate", self.fast_rate_hz, exc, self.needed)
+            await self._enough.wait()
+            return
+        await self._enough.wait()
+        log.info("TIMESYNC: %d requests answered in %.1f s: the autopilot maps our stamps; back to its default rate",
+                 self.requests, time.monotonic() - t0)
+        try:
+            await self.commands.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                             float(mavlink.MAVLINK_MSG_ID_TIMESYNC), 0.0)
+        except (CommandError, LinkError) as exc:
+            log.warning("TIMESYNC default rate not restored (%s): it stays at %.0f Hz", exc, self.fast_rate_hz)

@@ -33,15 +33,21 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
+import sys
+import threading
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.background import BackgroundTasks
 from companion.config import CompanionConfig
+from companion.mavlink.commands import CommandSender
 from companion.mavlink.link import MavlinkLink
+from companion.mavlink.timesync import TimesyncConvergence
 from companion.mavlink.vision import VisionPose, VisionStream
 from companion.service.perception_worker import semantic_map_settings
 from companion.service.vision_loss import VisionLossGuard, VisionLossMonitor
@@ -140,6 +146,8 @@ class SharedLocalization:
             time.monotonic() - g(_IX["published_monotonic_s"]), int(g(_IX["resets"])))
 
 
+#: The GIL switch interval of the process the SLAM runs in (seconds).
+SLAM_SWITCH_INTERVAL_S = 0.0005
 #: A SLAM pose older than this is not sent to the autopilot (the camera stalled).
 VISION_MAX_AGE_S = 1.0
 #: External-vision message rate (PX4 expects 30 Hz or more from a VIO).
@@ -347,6 +355,7 @@ class LocalizedFrameSource(WrappedSource):
         self.cfg = cfg
         self.shared = shared
         self._localizer: Localizer | None = None
+        self._priority_set = False
 
     def __getstate__(self) -> dict[str, object]:
         return {**self.__dict__, "_localizer": None}
@@ -362,6 +371,9 @@ class LocalizedFrameSource(WrappedSource):
     def open(self) -> None:
         self.inner.open()
         _ = self.localizer
+        # The SLAM's many short numpy calls each give the GIL up; detection's Python in the
+        # same process would keep it the default 5 ms every time, so hand it over sooner.
+        sys.setswitchinterval(SLAM_SWITCH_INTERVAL_S)
 
     def close(self) -> None:
         try:
@@ -375,10 +387,29 @@ class LocalizedFrameSource(WrappedSource):
                 self._localizer = None
 
     def read(self) -> Frame | None:
+        if not self._priority_set:
+            self._priority_set = True
+            reader_thread_at_parent_priority()
         frame = self.inner.read()
         if frame is None:
             return None
         return self.localizer.localize(frame)
+
+
+def reader_thread_at_parent_priority() -> None:
+    """Give the calling thread (the camera's reader, which runs the SLAM) the scheduling
+    priority of the process that started this one: the perception process is niced so that
+    detection yields to the service, but the SLAM pose is PX4's only position without GPS
+    and must not yield with it. Needs CAP_SYS_NICE (or RLIMIT_NICE) to undo a nice; without
+    it the thread keeps the process's priority and a warning says so."""
+    try:
+        parent = os.getpriority(os.PRIO_PROCESS, os.getppid())
+        tid = threading.get_native_id()
+        if os.getpriority(os.PRIO_PROCESS, tid) > parent:
+            os.setpriority(os.PRIO_PROCESS, tid, parent)
+    except OSError as exc:
+        log.warning("localization: the SLAM thread keeps the perception process's lower priority (%s); "
+                    "grant CAP_SYS_NICE or LimitNICE so it runs at the service's", exc)
 
 
 def localized_source(cfg: CompanionConfig, source: FrameSource,
@@ -417,19 +448,38 @@ class ServiceLocalization:
         self.stream: VisionStream | None = None
         self.vision_source: VisionPoseSource | None = None
         self.loss_guard_: VisionLossGuard | None = None
+        self.timesync: TimesyncConvergence | None = None
 
     def source(self, frame_source: FrameSource) -> FrameSource:
         """The camera as perception should read it (wrapped in the SLAM when enabled)."""
         return localized_source(self.cfg, frame_source, self.shared)
 
     def vision_stream(self, link: MavlinkLink) -> contextlib.AbstractAsyncContextManager[object]:
-        """The 30 Hz external-vision stream on ``link`` (a no-op when disabled)."""
+        """The 30 Hz external-vision stream on ``link`` (a no-op when disabled), with PX4's
+        TIMESYNC brought to convergence first (:class:`TimesyncConvergence`): until then PX4
+        stamps each pose on arrival, a SLAM latency late."""
         shared = self.shared
         if shared is None or not self.cfg.link.external_vision:
             return contextlib.nullcontext()
         self.vision_source = VisionPoseSource.from_config(shared, self.cfg)
         self.stream = VisionStream(link, self.vision_source, VISION_RATE_HZ)
-        return self.stream
+        c = self.cfg.link
+        self.timesync = TimesyncConvergence(link, CommandSender(link, c.target_system, c.target_component),
+                                            c.target_system)
+        return self._vision_stream(self.stream, self.timesync)
+
+    @contextlib.asynccontextmanager
+    async def _vision_stream(self, stream: VisionStream, timesync: TimesyncConvergence) -> AsyncIterator[VisionStream]:
+        detach = timesync.attach()
+        tasks = BackgroundTasks()
+        await tasks.open()
+        try:
+            tasks.start(timesync.run(), name="timesync-convergence")
+            async with stream:
+                yield stream
+        finally:
+            await tasks.close()
+            detach()
 
     def latest(self) -> LocalizationState | None:
         """The latest SLAM result (None when disabled or before the first frame)."""

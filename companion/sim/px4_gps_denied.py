@@ -65,7 +65,8 @@ GPS_DENIED_PX4_PARAMS: dict[str, float | int] = {
     "EKF2_GND_EFF_DZ": 0.0,    # baro fused through take-off (SIH's baro has no ground effect): see docs/mavlink.md
     "EKF2_BARO_NOISE": 0.5,    # SIH's baro (0.08 m s.d. at rest) holds the height while it is the only aid
     "EKF2_EV_DELAY": 0.0,      # our stamps are capture times, mapped onto PX4's clock by TIMESYNC
-    "EKF2_EVP_NOISE": 0.02,    # floors under the variances we send (ODOMETRY covariance)
+    "EKF2_DELAY_MAX": 200.0,   # fusion horizon (ms, PX4's default): see docs/mavlink.md before raising it
+    "EKF2_EVP_NOISE": 0.02,    # the noise EKF2 fuses our poses with (our NaN height makes it ignore our variances)
     "EKF2_EVA_NOISE": 0.02,
 }
 #: PX4's start-up script has run: its links and shell answer.
@@ -180,7 +181,8 @@ class SihTruth:
         T[2, 3] += STANDING_HEIGHT_M
         px4_s = msg.time_usec * 1e-6
         local_s = time.monotonic()
-        mapped = self.to_local(px4_s) if self.to_local is not None else None
+        # PX4 v1.16's HIL_STATE_QUATERNION stream leaves time_usec 0: then it is stamped on arrival.
+        mapped = self.to_local(px4_s) if self.to_local is not None and msg.time_usec > 0 else None
         if mapped is not None and abs(mapped - local_s) <= MAX_MAPPING_ERROR_S:
             local_s = mapped  # when it was true, not when this loop got to it
         elif mapped is not None and not self._mapping_warned:

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from companion.config import CompanionConfig, write_effective_config
 from companion.errors import LinkError
@@ -58,6 +59,36 @@ MAX_LOCAL_M = 1000.0
 ORIGIN_AFTER_POSES = 20
 #: Above this height (m) the vehicle counts as airborne for the error figures.
 AIRBORNE_M = 0.3
+#: The SLAM statuses as the tracks record them (tracks.npz ``scans``).
+SCAN_STATUS_CODES = {"ok": 0, "partial_odometry": 1, "degenerate_fallback_odometry": 2, "odometry": 3}
+#: After the injected SLAM loss ends, PX4's estimate is given this long (s) to take the
+#: pose back (EKF2 restarts vision fusion, resets to it) before it is judged again.
+LOSS_RECOVERY_S = 3.0
+#: A run of scans without a matched pose at least this long counts as a gap (s): the
+#: service holds after ``link.vision_lost_hold_s`` of them.
+GAP_S = 0.5
+
+
+def scan_gaps(scans: list[tuple[float, float, int, float]]) -> dict[str, Any]:
+    """Where the matched SLAM poses stopped for :data:`GAP_S` or more: ``no_scan`` (no scan
+    was published at all: the camera or the perception process stalled) or ``unmatched``
+    (scans came, none matched in full), with the capture-to-publish latency of the scans."""
+    if len(scans) < 2:
+        return {}
+    arr = np.array(scans, dtype=np.float64)
+    ok_t = arr[arr[:, 2] == 0, 0]
+    gaps = {"no_scan": 0, "unmatched": 0, "longest_s": 0.0}
+    for a, b in zip(ok_t[:-1], ok_t[1:], strict=True):
+        if b - a < GAP_S:
+            continue
+        inside = arr[(arr[:, 0] > a) & (arr[:, 0] < b)]
+        gaps["unmatched" if len(inside) and np.max(np.diff(np.r_[a, inside[:, 0], b])) < GAP_S else "no_scan"] += 1
+        gaps["longest_s"] = round(max(gaps["longest_s"], float(b - a)), 2)
+    latency_ms = 1e3 * (arr[:, 1] - arr[:, 0])
+    return {**gaps, "scan_rate_hz": round(float(len(arr) / max(arr[-1, 0] - arr[0, 0], 1e-9)), 1),
+            "capture_to_publish_ms_p50": round(float(np.percentile(latency_ms, 50)), 1),
+            "capture_to_publish_ms_p95": round(float(np.percentile(latency_ms, 95)), 1),
+            "localize_ms_p95": round(float(np.percentile(arr[:, 3], 95)), 1)}
 
 
 def gps_denied_config(cfg: CompanionConfig, out: Path, link_url: str) -> CompanionConfig:
@@ -119,9 +150,11 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     wps_map = [placement.room_to_map_xy(w) for w in await asyncio.to_thread(crossing_waypoints_room, placement, cfg)]
     est = EstimateRecorder(cfg.link.target_system)
     slam: list[tuple[float, float, float]] = []  # our s, x, y
+    scans: list[tuple[float, float, int, float]] = []  # capture s, published s, status code, localize ms
     uorb_hz: list[float] = []
     new_pose_rate: list[float] = []
     loss: dict[str, Any] = {}
+    loss_window: list[float] = []  # our s: the camera stopped, and the recovery after it ended
     if odometry is not None:
         cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"camera_pose": "autopilot"})})
     async with SihTruth(sitl.display_url, placement, SharedSimState(), odometry) as truth:
@@ -138,8 +171,11 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
         async def sample_slam() -> None:
             while True:
                 st = service.localization.latest()
-                if st is not None and st.status == "ok" and (not slam or slam[-1][0] != st.stamp_s):
-                    slam.append((st.stamp_s, float(st.T_map_body[0, 3]), float(st.T_map_body[1, 3])))
+                if st is not None and (not scans or scans[-1][0] != st.stamp_s):
+                    scans.append((st.stamp_s, time.monotonic() - st.age_s, SCAN_STATUS_CODES.get(st.status, -1),
+                                  st.localize_ms))
+                    if st.status == "ok":
+                        slam.append((st.stamp_s, float(st.T_map_body[0, 3]), float(st.T_map_body[1, 3])))
                 await asyncio.sleep(SLAM_PERIOD_S)
 
         async def sample_uorb() -> None:
@@ -172,6 +208,7 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
             truth.shared.camera_missing = True
             loss["injected"] = True
             t0, held_xy = time.monotonic(), None
+            loss_window.append(t0)
             log.warning("GPS-denied flight: the camera stops for %.1f s (SLAM lost)", slam_loss_s)
             while time.monotonic() - t0 < slam_loss_s:
                 await asyncio.sleep(0.05)
@@ -182,6 +219,7 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
                     drift = float(np.linalg.norm(truth.path_map_m()[-1, :2] - held_xy[1]))
                     loss["hold_drift_m"] = max(loss.get("hold_drift_m", 0.0), drift)
             truth.shared.camera_missing = False
+            loss_window.append(time.monotonic() + LOSS_RECOVERY_S)
             loss["held"] = held_xy is not None
 
         async def on_active(svc: CompanionService) -> None:
@@ -210,10 +248,16 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     summary = _summary(cfg, placement, report, truth.path_map_m(), wps_map, [], service, time.monotonic() - t_start)
     for k in ("setpoint_gaps", "setpoints_received", "stage_timings_ms", "objects_found", "checkpoints"):
         summary.pop(k, None)
-    summary.update(judge(truth, est, slam))
+    window = (loss_window[0], loss_window[1]) if len(loss_window) == 2 else None
+    summary.update(judge(truth, est, slam, window))
+    if window is not None:
+        with_loss = judge(truth, est, slam)
+        summary["ekf_vs_truth_error_m_p95_with_slam_loss"] = with_loss["ekf_vs_truth_error_m_p95"]
+        summary["slam_vs_truth_error_m_p95_with_slam_loss"] = with_loss["slam_vs_truth_error_m_p95"]
     summary["ev_rate_hz_at_px4"] = round(float(np.median(uorb_hz)), 1) if uorb_hz else None
     summary["ev_new_pose_rate_hz"] = round(float(np.median(new_pose_rate)), 1) if new_pose_rate else None
     summary["localization"] = report.localization
+    summary["scan_gaps"] = scan_gaps(scans)
     summary["vision_loss_actions"] = report.localization.get("vision_loss_actions", "")
     if slam_loss_s > 0.0:
         summary["slam_loss"] = {"seconds": slam_loss_s, **loss}
@@ -223,14 +267,17 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     # The tracks the figures come from, for a look afterwards (our clock, map frames unaligned).
     np.savez_compressed(out / "tracks.npz", truth=np.array([(t.local_s, t.x_m, t.y_m, t.z_m, t.yaw_rad)
                                                             for t in truth.samples]).reshape(-1, 5),
-                        px4_estimate=np.array(est.rows).reshape(-1, 5), slam=np.array(slam).reshape(-1, 3))
+                        px4_estimate=np.array(est.rows).reshape(-1, 5), slam=np.array(slam).reshape(-1, 3),
+                        scans=np.array(scans).reshape(-1, 4))
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
     return summary
 
 
-def judge(truth: SihTruth, est: EstimateRecorder, slam: list[tuple[float, float, float]]) -> dict[str, Any]:
+def judge(truth: SihTruth, est: EstimateRecorder, slam: list[tuple[float, float, float]],
+          exclude_s: tuple[float, float] | None = None) -> dict[str, Any]:
     """PX4's estimate (at its arrival) and the SLAM pose (at its capture) against SIH's truth
-    interpolated to those instants, airborne samples, after aligning
+    interpolated to those instants, airborne samples outside ``exclude_s`` (our clock: the
+    injected SLAM loss and its recovery, judged by the hold instead), after aligning
     the frames on the ground before take-off (:func:`frame_alignment`)."""
     if len(truth.samples) < 2 or len(est.rows) < 10:
         return {"ekf_vs_truth_error_m_p95": None, "slam_vs_truth_error_m_p95": None}
@@ -239,15 +286,16 @@ def judge(truth: SihTruth, est: EstimateRecorder, slam: list[tuple[float, float,
     e = e[(e[:, 0] >= truth.samples[0].local_s) & (e[:, 0] <= truth.samples[-1].local_s) & np.isfinite(e[:, 4])]
     t_at_e = truth.at(e[:, 0], "local")
     airborne = t_at_e[:, 2] > AIRBORNE_M
+    judged = airborne & ~_inside(e[:, 0], exclude_s)
     first_air = int(np.argmax(airborne)) if airborne.any() else len(e)
     ground = np.arange(max(0, first_air - 60), max(0, first_air - 10))  # at rest, vision fused, not yet climbing
     if len(ground) < 5:
         return {"ekf_vs_truth_error_m_p95": None, "slam_vs_truth_error_m_p95": None}
     align = frame_alignment(np.column_stack([e[ground, 1:3], e[ground, 3], e[ground, 4]]), t_at_e[ground])
-    ekf_xy = np.linalg.norm(align.apply(e[airborne, 1:3]) - t_at_e[airborne, :2], axis=1)
+    ekf_xy = np.linalg.norm(align.apply(e[judged, 1:3]) - t_at_e[judged, :2], axis=1)
     # Height: PX4's z above where it stood against the truth's height above the floor.
     z0 = float(np.mean(e[ground, 3] - t_at_e[ground, 2]))
-    ekf_z = np.abs(e[airborne, 3] - z0 - t_at_e[airborne, 2])
+    ekf_z = np.abs(e[judged, 3] - z0 - t_at_e[judged, 2])
     out: dict[str, Any] = {"ekf_vs_truth_error_m_p95": p95(ekf_xy), "ekf_vs_truth_error_m_max":
                            round(float(ekf_xy.max()), 3) if ekf_xy.size else None,
                            "ekf_vs_truth_height_error_m_p95": p95(ekf_z),
@@ -257,9 +305,15 @@ def judge(truth: SihTruth, est: EstimateRecorder, slam: list[tuple[float, float,
         sl = np.array(slam, dtype=np.float64)
         sl = sl[(sl[:, 0] >= truth.samples[0].local_s) & (sl[:, 0] <= truth.samples[-1].local_s)]
         t_at_s = truth.at(sl[:, 0], "local")
-        air = t_at_s[:, 2] > AIRBORNE_M
+        air = (t_at_s[:, 2] > AIRBORNE_M) & ~_inside(sl[:, 0], exclude_s)
         err = np.linalg.norm(align.apply(sl[air, 1:3]) - t_at_s[air, :2], axis=1)
         out["slam_vs_truth_error_m_p95"] = p95(err)
     else:
         out["slam_vs_truth_error_m_p95"] = None
     return out
+
+
+def _inside(t_s: NDArray[np.float64], window_s: tuple[float, float] | None) -> NDArray[np.bool_]:
+    if window_s is None:
+        return np.zeros(len(t_s), dtype=bool)
+    return (t_s >= window_s[0]) & (t_s <= window_s[1])

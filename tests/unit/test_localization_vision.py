@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import threading
 
 import numpy as np
 import pytest
@@ -75,3 +77,52 @@ def test_jumps_of_the_matched_pose_are_counted() -> None:
     # Fallback poses are neither compared nor remembered.
     assert jumps.update(np.array([50.0, 50.0, 0.0]), fwd, False) == 2
     assert jumps.update(pred + [0.27, 0.0, math.radians(5.0)], fwd, True) == 2
+
+
+def test_the_slam_process_hands_the_gil_over_often() -> None:
+    # The SLAM shares its process with detection: at the default 5 ms switch interval its short
+    # numpy calls queued behind detection's Python and the pose rate PX4 needs fell apart.
+    import sys
+
+    from companion.config import CompanionConfig
+    from companion.service.localization import SLAM_SWITCH_INTERVAL_S, LocalizedFrameSource
+    from companion.sources.base import FrameSource
+
+    class _Camera(FrameSource):
+        intrinsics = CompanionConfig().camera.intrinsics()
+
+        def open(self) -> None:
+            pass
+
+        def read(self) -> None:
+            return None
+
+    before = sys.getswitchinterval()
+    src = LocalizedFrameSource(_Camera(), CompanionConfig())
+    try:
+        src.open()
+        assert sys.getswitchinterval() == pytest.approx(SLAM_SWITCH_INTERVAL_S)
+    finally:
+        src.close()
+        sys.setswitchinterval(before)
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="undoing a nice needs CAP_SYS_NICE")
+def test_the_slam_thread_does_not_yield_with_the_niced_perception_process() -> None:
+    # Under load (average 13-16 on 2 cores) the niced perception process published 1-5 SLAM
+    # poses/s; EKF2 stopped fusing vision and PX4 fell back to Altitude mode.
+    from companion.service.localization import reader_thread_at_parent_priority
+
+    parent = os.getpriority(os.PRIO_PROCESS, os.getppid())
+    seen: list[int] = []
+
+    def reader() -> None:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(parent + 5, 19))  # as the perception process is niced
+        reader_thread_at_parent_priority()
+        seen.append(os.getpriority(os.PRIO_PROCESS, tid))
+
+    t = threading.Thread(target=reader)
+    t.start()
+    t.join()
+    assert seen == [parent]
