@@ -7,8 +7,8 @@ a flight runs faster than real time and the same way on a loaded and an idle mac
 * perception: the service's :class:`~companion.service.perception_worker.PerceptionPipeline`
   (detector, BoT-SORT tracker, object geometry, semantic map) on the newest frame;
 * planning: the service's planner (:class:`planner.planner.Planner`, in process: in lock-step
-  nothing else waits for it), its trajectory time-parametrisation and the mission runner's
-  path checker;
+  nothing else waits for it), its trajectory time-parametrisation, and its path checks
+  (as the service's planning process answers them);
 * setpoints: the service's SET_POSITION_TARGET_LOCAL_NED encoder, as MAVLink bytes into
 * the mock PX4 (:class:`~companion.sim.autopilot.MockAutopilot`): its command handler (arm,
   take-off, offboard), offboard setpoint handling and kinematic vehicle, ticked at 100 Hz.
@@ -48,7 +48,6 @@ from companion.px4 import FlightMode
 from companion.service.mission_runner import (
     DEFAULT_ACCEPTANCE_M,
     RETRY_HOLD_S,
-    PathChecker,
     SurveyTurn,
     _remaining,
 )
@@ -206,7 +205,6 @@ class LockstepFlight:
         self.T_body_camera = self.cfg.camera.extrinsics.T_body_camera()
         self.T_room_map = np.linalg.inv(self.placement.T_map_room)
         self.planner = Planner(self.cfg.planner)
-        self.checker = PathChecker(self.cfg.planner)
         self.limits = TrajectoryLimits.from_config(self.cfg.planner)
         self.log = FlightLog(map_mode, detector_name)
         # Perception state: the released costmap and the one in flight.
@@ -350,8 +348,7 @@ class LockstepFlight:
                 self._step()
         assert self.costmap is not None
         t0 = time.perf_counter()
-        if self.planner.map_version != self.map_version:
-            self.planner.set_map(self.costmap, self.map_version)
+        self._adopt_map()
         t1 = time.perf_counter()
         cfg = self.planner.config
         # As the service's planning worker: the budget covers the map preparation too.
@@ -373,6 +370,13 @@ class LockstepFlight:
         self._wait(wall)
         return result
 
+    def _adopt_map(self) -> None:
+        """Give the planner the released costmap, as the service sends it to its planning
+        process before a plan or a path check (once per map version)."""
+        assert self.costmap is not None
+        if self.planner.map_version != self.map_version:
+            self.planner.set_map(self.costmap, self.map_version)
+
     def _fly_leg(self) -> None:
         lg = self.log
         end = lg.leg_start_s + self.time_limit_s
@@ -391,8 +395,8 @@ class LockstepFlight:
             replanning = False
             goal_blocked = result.status is PlanStatus.GOAL_BLOCKED
             if result.status is PlanStatus.START_BLOCKED and self.costmap is not None:
-                self.checker.update(self.costmap)
-                esc = self.checker.escape_point(start)
+                self._adopt_map()
+                esc = self.planner.escape_point(start)
                 if esc is not None and np.linalg.norm(esc - start) < 1.0:
                     traj = time_parametrize(np.vstack([start, esc]), self.alt, self.limits,
                                             initial_yaw_rad=yaw_ned_to_enu(self.ap.vehicle.yaw_rad))
@@ -456,8 +460,8 @@ class LockstepFlight:
             if check and due and t_traj < traj.duration_s and self.costmap is not None:
                 next_check = self.ap.now_s() + self.check_period_s
                 t0 = time.perf_counter()
-                self.checker.update(self.costmap)
-                free = self.checker.path_free(_remaining(traj, t_traj))
+                self._adopt_map()
+                free = self.planner.path_still_valid(_remaining(traj, t_traj))
                 check_ms = 1e3 * (time.perf_counter() - t0)
                 self.log.check_ms.append(check_ms)
                 lat = self._unchecked

@@ -212,6 +212,9 @@ class ServiceConfig(StageConfig):
     map_dir: str = "out/map"
     checkpoint_interval_s: float = Field(default=10.0, gt=0.0)
     on_sigterm: Literal["hold", "land"] = "hold"
+    #: Where the map's poses come from: ``odometry``, the autopilot's estimate as it is;
+    #: ``slam``, the 2D SLAM on the camera's scans (:mod:`companion.service.localization`).
+    #: The one switch for that choice (``slam`` holds the SLAM's own parameters).
     localization: Literal["odometry", "slam"] = "odometry"
     #: Frames waiting for perception; the oldest is dropped when full.
     frame_queue_size: int = Field(default=1, ge=1, le=16)
@@ -308,6 +311,15 @@ class CompanionConfig(StageConfig):
     service: ServiceConfig = ServiceConfig()
     sim: SimConfig = SimConfig()
 
+    @field_validator("slam", mode="before")
+    @classmethod
+    def _one_localization_switch(cls, v: Any) -> Any:
+        given = v.model_fields_set if isinstance(v, SlamConfig) else v if isinstance(v, dict) else ()
+        if "mode" in given:
+            raise ValueError(f"mode is not a key here (got {_slam_mode_of(v)!r}): whether SLAM poses the map "
+                             "is chosen by service.localization (odometry | slam)")
+        return v
+
     @model_validator(mode="after")
     def _cross_checks(self) -> "CompanionConfig":
         names = [c.name for c in self.classes]
@@ -336,6 +348,10 @@ class CompanionConfig(StageConfig):
             if c.name == name:
                 return c
         raise KeyError(name)
+
+
+def _slam_mode_of(v: Any) -> Any:
+    return v.mode if isinstance(v, SlamConfig) else v.get("mode")
 
 
 # --- loading and dumping --------------------------------------------------------------
@@ -469,7 +485,7 @@ def load_config(path: str | Path | None, *, allow_empty: bool = False) -> Compan
 
 def dump_config(cfg: CompanionConfig) -> str:
     """The effective config as YAML (round-trips through :func:`load_config`)."""
-    data = cfg.model_dump(mode="json")
+    data = cfg.model_dump(mode="json", exclude={"slam": {"mode"}})  # service.localization chooses
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
 
 

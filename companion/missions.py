@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 from pymavlink.dialects.v20 import common as mavlink
 
@@ -33,6 +33,15 @@ FRAME_GLOBAL_REL = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT
 FRAME_GLOBAL_REL_INT = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
 FRAME_GLOBAL_INT = mavlink.MAV_FRAME_GLOBAL_INT
 FRAME_MISSION = mavlink.MAV_FRAME_MISSION
+FRAME_LOCAL_NED = mavlink.MAV_FRAME_LOCAL_NED
+#: Frames whose x/y are latitude/longitude (degE7 in an INT item).
+GLOBAL_FRAMES = frozenset({
+    FRAME_GLOBAL, FRAME_GLOBAL_INT, FRAME_GLOBAL_REL, FRAME_GLOBAL_REL_INT,
+    mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT, mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
+})
+#: An INT item's x/y in a global frame are degrees times this, in other frames metres times ``LOCAL_SCALE``.
+DEG_E7 = 1e7
+LOCAL_SCALE = 1e4
 
 _ACTION_CMD = {"waypoint": CMD_WAYPOINT, "takeoff": CMD_TAKEOFF, "land": CMD_LAND,
                "rtl": CMD_RTL}
@@ -101,7 +110,9 @@ class MissionPlan:
 
 @dataclass(frozen=True)
 class MissionItemInt:
-    """A MAVLink ``MISSION_ITEM_INT``, field for field (x/y degE7 for global frames)."""
+    """A MAVLink mission item as ``MISSION_ITEM_INT`` carries it, field for field: x/y are
+    degE7 in a global frame, metres times ``LOCAL_SCALE`` in ``MAV_FRAME_LOCAL_NED``. The one
+    type for an item, uploaded from a plan, downloaded from an autopilot, or stored by one."""
 
     seq: int
     frame: int
@@ -119,11 +130,39 @@ class MissionItemInt:
 
     @property
     def lat_deg(self) -> float:
-        return self.x * 1e-7
+        return self.x / DEG_E7
 
     @property
     def lon_deg(self) -> float:
-        return self.y * 1e-7
+        return self.y / DEG_E7
+
+    @property
+    def command_name(self) -> str:
+        """``MAV_CMD_NAV_WAYPOINT`` etc. (the number for a command MAVLink does not name)."""
+        entry = mavlink.enums["MAV_CMD"].get(self.command)
+        return entry.name if entry is not None else str(self.command)
+
+    @property
+    def is_navigation(self) -> bool:
+        """True for items that move the vehicle to a position (waypoint, takeoff, land...)."""
+        return self.command in (CMD_WAYPOINT, CMD_TAKEOFF, CMD_LAND, CMD_LOITER_TIME,
+                                mavlink.MAV_CMD_NAV_LOITER_UNLIM)
+
+    @classmethod
+    def from_message(cls, msg: Any) -> MissionItemInt:
+        """From ``MISSION_ITEM_INT``, or the deprecated float ``MISSION_ITEM`` (its x/y scaled
+        to the INT encoding)."""
+        frame = int(msg.frame)
+        x, y = msg.x, msg.y
+        if msg.get_type() == "MISSION_ITEM":
+            scale = DEG_E7 if frame in GLOBAL_FRAMES else LOCAL_SCALE
+            x, y = round(float(x) * scale), round(float(y) * scale)
+        return cls(
+            seq=int(msg.seq), frame=frame, command=int(msg.command), current=int(msg.current),
+            autocontinue=int(msg.autocontinue), param1=float(msg.param1), param2=float(msg.param2),
+            param3=float(msg.param3), param4=float(msg.param4), x=int(x), y=int(y), z=float(msg.z),
+            mission_type=int(getattr(msg, "mission_type", mavlink.MAV_MISSION_TYPE_MISSION)),
+        )
 
 
 def command_name(command: int) -> str:

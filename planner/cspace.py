@@ -222,6 +222,18 @@ class CSpace:
         """True if every segment of the (K, 2) polyline is free."""
         return bool(np.all(self.is_free(self.densify(path_xy_m))))
 
+    def escape_point(self, xy_m: NDArray[np.floating], extra_m: float = 0.05) -> NDArray[np.float64] | None:
+        """The nearest cell centre to ``xy_m`` where the vehicle fits with ``extra_m`` to
+        spare (where to back off to when the start is too close to an obstacle); None if none."""
+        rows, cols = np.nonzero(self.free & (self.clearance_m >= self.free_threshold_m + extra_m))
+        if len(rows) == 0:
+            return None
+        spec = self.spec
+        cx = spec.origin_xy_m[0] + (cols + 0.5) * spec.resolution_m
+        cy = spec.origin_xy_m[1] + (rows + 0.5) * spec.resolution_m
+        k = int(np.argmin((cx - xy_m[0]) ** 2 + (cy - xy_m[1]) ** 2))
+        return np.array([cx[k], cy[k]])
+
     def first_blocked_index(self, path_xy_m: NDArray[np.floating]) -> int:
         """Index of the first segment of the (K, 2) polyline that is not free; -1 if none."""
         p = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)

@@ -125,6 +125,11 @@ class Planner:
         """True if the (K, 2) polyline is still free on the current map."""
         return self.cspace.path_free(path_xy_m)
 
+    def escape_point(self, xy_m: NDArray[np.floating], extra_m: float = 0.05) -> NDArray[np.float64] | None:
+        """The nearest point to ``xy_m`` where the vehicle fits with ``extra_m`` to spare on
+        the current map (see :meth:`CSpace.escape_point`)."""
+        return self.cspace.escape_point(xy_m, extra_m)
+
     def _inside(self, xy: NDArray[np.float64]) -> bool:
         if not bool(self.cspace.spec.contains_xy(xy.reshape(1, 2))[0]):
             return False

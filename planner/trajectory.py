@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from planner.config import PlannerConfig
 from semmap.errors import PlanningError
+from semmap.frames import wrap_angle_rad
 
 
 @dataclass(frozen=True)
@@ -82,10 +83,6 @@ class TrajectorySample:
     velocity_m_s: NDArray[np.float64]  # (3,)
     yaw_rad: float
     yaw_rate_rad_s: float
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,9 +146,9 @@ class Trajectory:
             if t_s > t0:
                 frac = (t_s - t0) / max(t1 - t0, 1e-12)
                 rate = (y1 - y0) / max(t1 - t0, 1e-12)
-                return _wrap(y0 + frac * (y1 - y0)), rate
+                return wrap_angle_rad(y0 + frac * (y1 - y0)), rate
             break
-        return _wrap(yaw), 0.0
+        return wrap_angle_rad(yaw), 0.0
 
     def sample(self, t_s: float) -> TrajectorySample:
         """The setpoint at ``t_s`` seconds after the start (clamped to [0, duration])."""
@@ -266,7 +263,7 @@ def time_parametrize(
     yaw0 = float(heading[0]) if initial_yaw_rad is None and n else float(initial_yaw_rad or 0.0)
     t = 0.0
     if n and v[0] <= 1e-6:
-        error0 = abs(_wrap(float(heading[0]) - yaw0))
+        error0 = abs(wrap_angle_rad(float(heading[0]) - yaw0))
         t = max(0.0, error0 - limits.max_heading_error_rad) / omega
     peak = np.zeros(n)
     phase = np.zeros((n, 3))
@@ -290,14 +287,14 @@ def time_parametrize(
     current = yaw0
     free_at = 0.0
     if n:
-        delta = _wrap(float(heading[0]) - current)
+        delta = wrap_angle_rad(float(heading[0]) - current)
         if abs(delta) > 1e-9:
             d = abs(delta) / omega
             turns.append((0.0, d, current, current + delta))
             current += delta
             free_at = d
     for k in range(1, n):
-        delta = _wrap(float(heading[k]) - _wrap(current))
+        delta = wrap_angle_rad(float(heading[k]) - wrap_angle_rad(current))
         if abs(delta) <= 1e-9:
             continue
         d = abs(delta) / omega

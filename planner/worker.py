@@ -7,7 +7,8 @@ process (``spawn`` context: no inherited threads or sockets) that owns a
 received: the client sends a costmap only when its version changed, and the worker applies it
 as a windowed update, so replanning after a small change is cheap.
 
-Requests are synchronous (one at a time); an asyncio caller runs :meth:`PlanningService.plan`
+Requests and replies are the message dataclasses below, over a
+:class:`~planner.process.WorkerProcess` pipe. Requests are synchronous (one at a time); an asyncio caller runs :meth:`PlanningService.plan`
 in a thread (``asyncio.to_thread``), which waits on a pipe without holding the GIL. A request
 that exceeds its deadline kills the worker (the only way to stop a running ``solve``) and
 returns a ``TIMEOUT`` result; the next request starts a fresh worker. :meth:`cancel` does the
@@ -17,54 +18,115 @@ same from another thread.
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from planner.config import PlannerConfig
+from planner.process import Ready, Stop, WorkerProcess
 from planner.types import PlanResult, PlanStatus
 from semmap.costmap import Costmap
 from semmap.errors import PlanningError
 
+if TYPE_CHECKING:
+    from planner.planner import Planner
+
 log = logging.getLogger(__name__)
 
 
+XY = tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class SetMap:
+    """Adopt this costmap as map ``version`` (a windowed update when the grid is unchanged)."""
+
+    version: int
+    costmap: Costmap
+
+
+@dataclass(frozen=True)
+class MapApplied:
+    version: int
+    prepare_s: float
+
+
+@dataclass(frozen=True)
+class PlanRequest:
+    req_id: int
+    start_xy_m: XY
+    goal_xy_m: XY
+    time_limit_s: float
+    snap_goal: bool | None
+
+
+@dataclass(frozen=True)
+class CheckPath:
+    """Is the (K, 2) map-frame polyline free on the current map."""
+
+    req_id: int
+    path_xy_m: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class EscapeRequest:
+    """The nearest point to ``xy_m`` where the vehicle fits with ``extra_m`` to spare."""
+
+    req_id: int
+    xy_m: XY
+    extra_m: float
+
+
+@dataclass(frozen=True)
+class Reply:
+    req_id: int
+    value: object
+
+
+@dataclass(frozen=True)
+class Failed:
+    """A request the worker could not answer (it keeps serving); ``req_id`` None for a map."""
+
+    req_id: int | None
+    message: str
+
+
+def _answer(planner: Planner, msg: object) -> MapApplied | Reply:
+    if isinstance(msg, SetMap):
+        planner.set_map(msg.costmap, msg.version)
+        return MapApplied(msg.version, planner.last_prepare_s)
+    if isinstance(msg, PlanRequest):
+        return Reply(msg.req_id, planner.plan(msg.start_xy_m, msg.goal_xy_m, msg.time_limit_s, msg.snap_goal))
+    if isinstance(msg, CheckPath):
+        return Reply(msg.req_id, bool(planner.path_still_valid(msg.path_xy_m)))
+    if isinstance(msg, EscapeRequest):
+        return Reply(msg.req_id, planner.escape_point(np.asarray(msg.xy_m, dtype=np.float64), msg.extra_m))
+    raise PlanningError(f"unknown request {type(msg).__name__}")
+
+
 def _worker_main(conn: Connection, config: PlannerConfig) -> None:
-    """Worker loop: ``("map", version, costmap)``, ``("plan", id, start, goal, limit, snap)`` and
-    ``("check", id, path)`` (is the (K, 2) path free on the current map)."""
+    """Worker loop: answer each request on the pipe until :class:`Stop` or the pipe closes."""
     from planner.planner import Planner  # imported in the child: OMPL loads here
 
     planner = Planner(config)
-    conn.send(("ready",))
+    conn.send(Ready())
     while True:
         try:
             msg = conn.recv()
         except (EOFError, OSError):
             return
-        kind = msg[0]
-        if kind == "stop":
+        if isinstance(msg, Stop):
             return
         try:
-            if kind == "map":
-                _, version, costmap = msg
-                planner.set_map(costmap, version)
-                conn.send(("map_ok", version, planner.last_prepare_s))
-            elif kind == "plan":
-                _, req_id, start, goal, limit, snap = msg
-                conn.send(("result", req_id, planner.plan(start, goal, limit, snap)))
-            elif kind == "check":
-                _, req_id, path = msg
-                conn.send(("result", req_id, bool(planner.path_still_valid(np.asarray(path, dtype=np.float64)))))
-            else:
-                conn.send(("error", None, f"unknown request {kind!r}"))
+            conn.send(_answer(planner, msg))
         except Exception as exc:  # noqa: BLE001 - report every failure to the client, keep serving
-            conn.send(("error", msg[1] if kind in ("plan", "check") else None, f"{type(exc).__name__}: {exc}"))
+            conn.send(Failed(getattr(msg, "req_id", None), f"{type(exc).__name__}: {exc}"))
 
 
 class PlanningService:
@@ -79,9 +141,7 @@ class PlanningService:
         self.config = config
         self.timeout_slack_s = timeout_slack_s
         self.start_timeout_s = start_timeout_s
-        self._ctx = mp.get_context("spawn")
-        self._proc: Any = None
-        self._conn: Connection | None = None
+        self._proc: WorkerProcess | None = None
         self._worker_version: int | None = None
         self._next_id = 0
         self._lock = threading.Lock()
@@ -105,8 +165,8 @@ class PlanningService:
         if self._proc is not None:
             if self._proc.is_alive():
                 return
-            log.warning("planning worker pid %d died (exit code %s); starting a new one",
-                        self._proc.pid, self._proc.exitcode)
+            log.warning("planning worker pid %s died (%s); starting a new one",
+                        self._proc.pid, self._proc.exit_reason())
             self._abandon()
         try:
             self._start_once()
@@ -117,52 +177,39 @@ class PlanningService:
             self._start_once()
 
     def _start_once(self) -> None:
-        parent, child = self._ctx.Pipe(duplex=True)
-        proc = self._ctx.Process(target=_worker_main, args=(child, self.config),
-                                 name="planner-worker", daemon=True)
-        proc.start()
-        child.close()
-        if not parent.poll(self.start_timeout_s):
-            proc.kill()
-            proc.join(1.0)
-            raise PlanningError(f"planning worker did not start within {self.start_timeout_s} s")
+        worker = WorkerProcess(_worker_main, (self.config,), "planner-worker")
+        worker.start()
         try:
-            ready = parent.recv()
+            ready = worker.recv(time.monotonic() + self.start_timeout_s)
+        except TimeoutError:
+            worker.kill()
+            worker.join(1.0)
+            worker.close()
+            raise PlanningError(f"planning worker did not start within {self.start_timeout_s} s") from None
         except EOFError as exc:
-            proc.join(1.0)
-            code = proc.exitcode
-            what = f"killed by signal {-code}" if code is not None and code < 0 else f"exited with code {code}"
-            raise PlanningError(f"planning worker {what} while starting") from exc
-        if ready != ("ready",):
-            raise PlanningError(f"planning worker sent {ready!r} instead of ready")
-        self._proc, self._conn, self._worker_version = proc, parent, None
+            worker.join(1.0)
+            worker.close()
+            raise PlanningError(f"planning worker {worker.exit_reason()} while starting") from exc
+        if not isinstance(ready, Ready):
+            worker.stop(1.0)
+            raise PlanningError(f"planning worker sent {ready!r} instead of Ready")
+        self._proc, self._worker_version = worker, None
         self.starts += 1
-        log.info("planning worker started (pid %d)", proc.pid)
+        log.info("planning worker started (pid %s)", worker.pid)
 
     def close(self) -> None:
         """Stop the worker process."""
-        proc, conn = self._proc, self._conn
-        self._proc = self._conn = None
+        worker, self._proc = self._proc, None
         self._worker_version = None
-        if conn is not None:
-            try:
-                conn.send(("stop",))
-            except (OSError, ValueError):
-                pass
-        if proc is not None:
-            proc.join(2.0)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(1.0)
-        if conn is not None:
-            conn.close()
+        if worker is not None:
+            worker.stop(2.0)
 
     def cancel(self) -> None:
         """Abort the running request (it returns ``TIMEOUT``); safe from another thread."""
-        proc = self._proc
-        if proc is not None and proc.is_alive():
-            log.warning("cancelling planning request: killing worker pid %d", proc.pid)
-            proc.kill()
+        worker = self._proc
+        if worker is not None and worker.is_alive():
+            log.warning("cancelling planning request: killing worker pid %s", worker.pid)
+            worker.kill()
 
     @property
     def running(self) -> bool:
@@ -170,32 +217,52 @@ class PlanningService:
 
     # --- requests -------------------------------------------------------------------
 
-    def _recv(self, deadline: float) -> Any:
-        conn = self._conn
-        assert conn is not None
-        remaining = deadline - time.monotonic()
-        if remaining <= 0.0 or not conn.poll(remaining):
-            raise TimeoutError
-        return conn.recv()
-
-    def _warn_dead(self, exc: BaseException) -> None:
-        proc = self._proc
-        if proc is not None:
-            proc.join(1.0)
-        log.warning("planning worker pid %s died (%s, exit code %s); a new one starts with the next request",
-                    proc.pid if proc is not None else "?", type(exc).__name__,
-                    proc.exitcode if proc is not None else "?")
-
     def _abandon(self) -> None:
-        proc = self._proc
-        self._proc = None
-        if proc is not None:
-            proc.kill()
-            proc.join(1.0)
-        if self._conn is not None:
-            self._conn.close()
-        self._conn = None
+        worker, self._proc = self._proc, None
         self._worker_version = None
+        if worker is not None:
+            worker.kill()
+            worker.join(1.0)
+            worker.close()
+
+    def _call(self, costmap: Costmap, map_version: int, deadline_mono_s: float,
+              request: Callable[[int], object]) -> object:
+        """Send ``costmap`` unless the worker holds ``map_version``, then ``request(req_id)``;
+        returns the value of its :class:`Reply`. Raises :class:`TimeoutError` past the deadline
+        and :class:`EOFError`/:class:`OSError` when the worker died (either way the worker is
+        dropped, the next request starts a new one), :class:`PlanningError` when it failed."""
+        with self._lock:
+            self.start()
+            worker = self._proc
+            assert worker is not None
+            try:
+                if self._worker_version != map_version:
+                    worker.send(SetMap(int(map_version), costmap))
+                    self.maps_sent += 1
+                    applied = worker.recv(deadline_mono_s)
+                    if not isinstance(applied, MapApplied):
+                        self._worker_version = None
+                        why = applied.message if isinstance(applied, Failed) else repr(applied)
+                        raise PlanningError(f"planning worker rejected map version {map_version}: {why}")
+                    self._worker_version = int(map_version)
+                self._next_id += 1
+                req_id = self._next_id
+                worker.send(request(req_id))
+                while True:
+                    reply = worker.recv(deadline_mono_s)
+                    if isinstance(reply, Failed):
+                        raise PlanningError(f"planning request rejected: {reply.message}")
+                    if isinstance(reply, Reply) and reply.req_id == req_id:
+                        return reply.value
+            except TimeoutError:
+                self._abandon()
+                raise
+            except (EOFError, OSError) as exc:
+                worker.join(1.0)
+                log.warning("planning worker pid %s died (%s, %s); a new one starts with the next request",
+                            worker.pid, type(exc).__name__, worker.exit_reason())
+                self._abandon()
+                raise
 
     def plan(
         self,
@@ -221,48 +288,27 @@ class PlanningService:
         limit = self.config.time_limit_s if time_limit_s is None else float(time_limit_s)
         wait = limit + self.timeout_slack_s if timeout_s is None else float(timeout_s)
         t0 = time.monotonic()
-        deadline = t0 + wait
-        start = tuple(float(v) for v in np.asarray(start_xy_m, dtype=np.float64).reshape(-1))
-        goal = tuple(float(v) for v in np.asarray(goal_xy_m, dtype=np.float64).reshape(-1))
-        with self._lock:
-            self.start()
-            conn = self._conn
-            assert conn is not None
-            try:
-                if self._worker_version != map_version:
-                    conn.send(("map", int(map_version), costmap))
-                    self.maps_sent += 1
-                    reply = self._recv(deadline)
-                    if reply[0] == "error":
-                        self._worker_version = None
-                        raise PlanningError(f"planning worker rejected map version {map_version}: {reply[2]}")
-                    self._worker_version = int(map_version)
-                self._next_id += 1
-                req_id = self._next_id
-                # The budget is the whole request's: a new map's preparation spends part of
-                # it (the planner still always returns its first path).
-                budget = max(0.0, limit - (time.monotonic() - t0))
-                conn.send(("plan", req_id, start, goal, budget, snap_goal))
-                while True:
-                    reply = self._recv(deadline)
-                    if reply[1] == req_id or reply[0] == "error":
-                        break
-            except TimeoutError:
-                self._abandon()
-                return PlanResult.failure(
-                    PlanStatus.TIMEOUT, f"planning did not finish within {wait:.2f} s; worker restarted",
-                    time.monotonic() - t0, map_version,
-                )
-            except (EOFError, OSError, BrokenPipeError) as exc:
-                self._warn_dead(exc)
-                self._abandon()
-                return PlanResult.failure(
-                    PlanStatus.TIMEOUT, f"planning worker stopped ({type(exc).__name__}); it will be restarted",
-                    time.monotonic() - t0, map_version,
-                )
-        if reply[0] == "error":
-            raise PlanningError(f"planning request rejected: {reply[2]}")
-        result: PlanResult = reply[2]
+        start = _xy(start_xy_m)
+        goal = _xy(goal_xy_m)
+
+        def request(req_id: int) -> PlanRequest:
+            # The budget is the whole request's: a new map's preparation spends part of it
+            # (the planner still always returns its first path).
+            return PlanRequest(req_id, start, goal, max(0.0, limit - (time.monotonic() - t0)), snap_goal)
+
+        try:
+            result = self._call(costmap, map_version, t0 + wait, request)
+        except TimeoutError:
+            return PlanResult.failure(
+                PlanStatus.TIMEOUT, f"planning did not finish within {wait:.2f} s; worker restarted",
+                time.monotonic() - t0, map_version,
+            )
+        except (EOFError, OSError) as exc:
+            return PlanResult.failure(
+                PlanStatus.TIMEOUT, f"planning worker stopped ({type(exc).__name__}); it will be restarted",
+                time.monotonic() - t0, map_version,
+            )
+        assert isinstance(result, PlanResult)
         return result
 
     def path_free(self, costmap: Costmap, map_version: int, path_xy_m: NDArray[np.floating],
@@ -273,34 +319,27 @@ class PlanningService:
         transferred only if the worker does not hold this version yet. Returns None when the
         worker did not answer within ``timeout_s`` (it is restarted, as for :meth:`plan`)."""
         path = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
-        deadline = time.monotonic() + float(timeout_s)
-        with self._lock:
-            self.start()
-            conn = self._conn
-            assert conn is not None
-            try:
-                if self._worker_version != map_version:
-                    conn.send(("map", int(map_version), costmap))
-                    self.maps_sent += 1
-                    reply = self._recv(deadline)
-                    if reply[0] == "error":
-                        self._worker_version = None
-                        raise PlanningError(f"planning worker rejected map version {map_version}: {reply[2]}")
-                    self._worker_version = int(map_version)
-                self._next_id += 1
-                req_id = self._next_id
-                conn.send(("check", req_id, path))
-                while True:
-                    reply = self._recv(deadline)
-                    if reply[1] == req_id or reply[0] == "error":
-                        break
-            except TimeoutError:
-                self._abandon()
-                return None
-            except (EOFError, OSError, BrokenPipeError) as exc:
-                self._warn_dead(exc)
-                self._abandon()
-                return None
-        if reply[0] == "error":
-            raise PlanningError(f"path check rejected: {reply[2]}")
-        return bool(reply[2])
+        try:
+            free = self._call(costmap, map_version, time.monotonic() + float(timeout_s),
+                              lambda req_id: CheckPath(req_id, path))
+        except (TimeoutError, EOFError, OSError):
+            return None
+        return bool(free)
+
+    def escape_point(self, costmap: Costmap, map_version: int, xy_m: Sequence[float] | NDArray[np.floating],
+                     extra_m: float = 0.05, timeout_s: float = 5.0) -> NDArray[np.float64] | None:
+        """The nearest map-frame point to ``xy_m`` where the vehicle fits with ``extra_m`` to
+        spare on ``costmap``, from the worker's configuration space; None when there is none
+        or the worker did not answer within ``timeout_s`` (it is restarted)."""
+        xy = _xy(xy_m)
+        try:
+            point = self._call(costmap, map_version, time.monotonic() + float(timeout_s),
+                               lambda req_id: EscapeRequest(req_id, xy, float(extra_m)))
+        except (TimeoutError, EOFError, OSError):
+            return None
+        return None if point is None else np.asarray(point, dtype=np.float64)
+
+
+def _xy(value: Sequence[float] | NDArray[np.floating]) -> XY:
+    """Plain floats for the pipe; the planner validates the shape (two finite numbers)."""
+    return tuple(float(v) for v in np.asarray(value, dtype=np.float64).reshape(-1))

@@ -22,13 +22,13 @@ import functools
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import MissionError
 from companion.mavlink.link import MavlinkLink, Message, Subscription
 from companion.mavlink.state import HomePosition, Vec3
+from companion.missions import FRAME_LOCAL_NED, LOCAL_SCALE, MissionItemInt
 
 log = logging.getLogger(__name__)
 
@@ -41,69 +41,15 @@ _GLOBAL_FRAMES = {
 _RELATIVE_FRAMES = {
     mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
 }
-_LOCAL_FRAMES = {mavlink.MAV_FRAME_LOCAL_NED}
 
 
-@dataclass(frozen=True)
-class MissionItem:
-    """One mission item as MISSION_ITEM_INT carries it.
-
-    For global frames ``x``/``y`` are latitude/longitude in degrees (converted from degE7)
-    and ``z`` is the altitude in metres (AMSL or relative to home per ``frame``); for
-    ``MAV_FRAME_LOCAL_NED`` they are north/east/down in metres.
-    """
-
-    seq: int
-    frame: int  # MAV_FRAME
-    command: int  # MAV_CMD
-    current: bool
-    autocontinue: bool
-    param1: float
-    param2: float
-    param3: float
-    param4: float
-    x: float
-    y: float
-    z: float
-    mission_type: int = mavlink.MAV_MISSION_TYPE_MISSION
-
-    @property
-    def command_name(self) -> str:
-        entry = mavlink.enums["MAV_CMD"].get(self.command)
-        return entry.name if entry is not None else str(self.command)
-
-    @property
-    def is_navigation(self) -> bool:
-        """True for items that move the vehicle to a position (waypoint, takeoff, land...)."""
-        return self.command in (
-            mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
-            mavlink.MAV_CMD_NAV_LOITER_TIME, mavlink.MAV_CMD_NAV_LOITER_UNLIM,
-        )
-
-    @classmethod
-    def from_message(cls, msg: Message) -> "MissionItem":
-        """From MISSION_ITEM_INT (or the deprecated float MISSION_ITEM)."""
-        frame = int(msg.frame)
-        x, y = float(msg.x), float(msg.y)
-        if msg.get_type() == "MISSION_ITEM_INT":
-            scale = 1e-4 if frame in _LOCAL_FRAMES else 1e-7
-            x, y = x * scale, y * scale
-        return cls(
-            seq=int(msg.seq), frame=frame, command=int(msg.command), current=bool(msg.current),
-            autocontinue=bool(msg.autocontinue), param1=float(msg.param1),
-            param2=float(msg.param2), param3=float(msg.param3), param4=float(msg.param4),
-            x=x, y=y, z=float(msg.z),
-            mission_type=int(getattr(msg, "mission_type", mavlink.MAV_MISSION_TYPE_MISSION)),
-        )
-
-
-def waypoint_ned_m(item: MissionItem, home: HomePosition) -> Vec3:
+def waypoint_ned_m(item: MissionItemInt, home: HomePosition) -> Vec3:
     """The item's position in PX4 local NED (metres), via the home position.
 
     Raises :class:`MissionError` for frames we cannot place (e.g. terrain-relative).
     """
-    if item.frame in _LOCAL_FRAMES:
-        return item.x, item.y, item.z
+    if item.frame == FRAME_LOCAL_NED:
+        return item.x / LOCAL_SCALE, item.y / LOCAL_SCALE, item.z
     if item.frame in _GLOBAL_FRAMES:
         up_m = item.z - home.altitude_amsl_m
     elif item.frame in _RELATIVE_FRAMES:
@@ -114,8 +60,8 @@ def waypoint_ned_m(item: MissionItem, home: HomePosition) -> Vec3:
             "(use a global, relative-altitude or local NED frame)"
         )
     lat0 = math.radians(home.latitude_deg)
-    north_m = math.radians(item.x - home.latitude_deg) * _EARTH_RADIUS_M
-    east_m = math.radians(item.y - home.longitude_deg) * _EARTH_RADIUS_M * math.cos(lat0)
+    north_m = math.radians(item.lat_deg - home.latitude_deg) * _EARTH_RADIUS_M
+    east_m = math.radians(item.lon_deg - home.longitude_deg) * _EARTH_RADIUS_M * math.cos(lat0)
     hn, he, hd = home.position_ned_m
     return hn + north_m, he + east_m, hd - up_m
 
@@ -181,21 +127,21 @@ class _Download:
         raise MissionError(f"mission download: no answer for {what} from "
                            f"{self.ts}/{self.tc} after {self.retries + 1} attempts")
 
-    async def run(self) -> tuple[MissionItem, ...]:
+    async def run(self) -> tuple[MissionItemInt, ...]:
         mav = self.link.mav
         count_msg = await self._request(
             lambda: mav.mission_request_list_encode(self.ts, self.tc, self.mission_type),
             "MISSION_COUNT", None, "the item count (MISSION_REQUEST_LIST)",
         )
         count = int(count_msg.count)
-        items: list[MissionItem] = []
+        items: list[MissionItemInt] = []
         for seq in range(count):
             msg = await self._request(
                 functools.partial(mav.mission_request_int_encode, self.ts, self.tc, seq,
                                   self.mission_type),
                 "ITEM", seq, f"mission item {seq} of {count}",
             )
-            items.append(MissionItem.from_message(msg))
+            items.append(MissionItemInt.from_message(msg))
         self.link.send(mav.mission_ack_encode(
             self.ts, self.tc, mavlink.MAV_MISSION_ACCEPTED, self.mission_type
         ))
@@ -211,7 +157,7 @@ async def download_mission(
     mission_type: int = mavlink.MAV_MISSION_TYPE_MISSION,
     timeout_s: float = 1.5,
     retries: int = 3,
-) -> tuple[MissionItem, ...]:
+) -> tuple[MissionItemInt, ...]:
     """Download the autopilot's mission (items in sequence order). Raises :class:`MissionError`."""
     async with link.subscribe(*_MISSION_TYPES, maxsize=256) as sub:
         return await _Download(link, sub, target_system, target_component, mission_type,

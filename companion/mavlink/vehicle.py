@@ -34,12 +34,13 @@ from companion.background import BackgroundTasks
 from companion.errors import CommandError
 from companion.mavlink.commands import CommandSender, VehicleCommands
 from companion.mavlink.link import MavlinkLink
-from companion.mavlink.mission_download import MissionItem, download_mission
+from companion.mavlink.mission_download import download_mission
 from companion.mavlink.obstacle_distance import ObstacleDistanceFeed, ObstacleDistanceInput
 from companion.mavlink.offboard import OffboardController
 from companion.mavlink.sched import request_short_slice
 from companion.mavlink.state import VehicleState, VehicleStateTracker
 from companion.mavlink.timesync import AutopilotClock, TimesyncResponder
+from companion.missions import MissionItemInt
 
 if TYPE_CHECKING:
     from companion.config import LinkConfig
@@ -161,7 +162,7 @@ class Vehicle:
                 log.warning("autopilot did not send HOME_POSITION on request: %s", exc)
         return state
 
-    async def download_mission(self) -> tuple[MissionItem, ...]:
+    async def download_mission(self) -> tuple[MissionItemInt, ...]:
         """The autopilot's current mission (see :func:`download_mission`)."""
         return await download_mission(
             self.link, self.cfg.target_system, self.cfg.target_component,

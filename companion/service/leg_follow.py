@@ -5,8 +5,8 @@ controller's setpoint slot, one named step per tick: advance trajectory time whi
 controller flies our setpoints (:meth:`LegFollow.advance`), send the setpoint
 (:meth:`LegFollow.send_setpoint`), judge arrival (:meth:`LegFollow.arrival`), splice in a
 finished re-plan (:meth:`LegFollow.splice_replan`) and check the path ahead on the newest
-costmap (:meth:`LegFollow.check_path_ahead`). :class:`PathChecker` judges paths exactly as
-the planner does.
+costmap (:meth:`LegFollow.check_path_ahead`), which the planning process judges exactly as
+the planner judges its own paths.
 """
 
 from __future__ import annotations
@@ -30,8 +30,6 @@ from companion.service.mission_legs import (
     map_frame_of,
     position_enu,
 )
-from planner.config import PlannerConfig
-from planner.cspace import CSpace, CSpaceParams, build_cspace, update_cspace
 from planner.trajectory import Trajectory, TrajectorySample, time_parametrize
 from planner.types import PlanResult
 from semmap.costmap import Costmap
@@ -46,46 +44,6 @@ log = logging.getLogger(__name__)
 CHECK_PERIOD_S = 0.5
 #: A trajectory counts as "late" this long after its end with the vehicle not arrived (s).
 LATE_AFTER_S = 5.0
-
-
-class PathChecker:
-    """The planner's own configuration space on the newest costmap (updated by window), so
-    the service judges paths exactly as the planner does: ``path_free`` for the remaining
-    path, ``escape_point`` when the vehicle has ended up too close to an obstacle."""
-
-    def __init__(self, cfg: PlannerConfig) -> None:
-        self.params = CSpaceParams(vehicle_radius_m=cfg.vehicle_radius_m, unknown_cost=cfg.unknown_cost,
-                                   clearance_decay_m=cfg.clearance_decay_m, geofence_xy_m=cfg.geofence_xy_m)
-        self.cs: CSpace | None = None
-        self._version = 0
-
-    def update(self, costmap: Costmap) -> CSpace:
-        """Adopt ``costmap`` (full build on a new grid or band, else the changed window)."""
-        self._version += 1
-        if self.cs is None or self.cs.spec != costmap.spec or self.cs.band != costmap.band:
-            self.cs = build_cspace(costmap, self.params, self._version)
-        else:
-            self.cs, _window = update_cspace(self.cs, costmap, self._version)
-        return self.cs
-
-    def path_free(self, path_xy_m: NDArray[np.floating]) -> bool:
-        """True if the (K, 2) polyline is free on the last costmap."""
-        return self.cs is None or self.cs.path_free(path_xy_m)
-
-    def escape_point(self, xy_m: NDArray[np.floating], extra_m: float = 0.05) -> NDArray[np.float64] | None:
-        """The nearest point to ``xy_m`` where the vehicle fits with ``extra_m`` to spare."""
-        cs = self.cs
-        if cs is None:
-            return None
-        rows, cols = np.nonzero(cs.free & (cs.clearance_m >= cs.free_threshold_m + extra_m))
-        if len(rows) == 0:
-            return None
-        spec = cs.spec
-        cx = spec.origin_xy_m[0] + (cols + 0.5) * spec.resolution_m
-        cy = spec.origin_xy_m[1] + (rows + 0.5) * spec.resolution_m
-        k = int(np.argmin((cx - xy_m[0]) ** 2 + (cy - xy_m[1]) ** 2))
-        return np.array([cx[k], cy[k]])
-
 
 
 class LegFollow:

@@ -19,7 +19,6 @@ wrong cells. With ``service.localization: slam`` every frame passes through
 Degenerate scans (a corridor, a blank wall) fall back to odometry for the direction they do
 not constrain or entirely (``SlamStatus``); that is counted and reported, not silent, and
 such a pose is not sent to PX4 as vision (:func:`vision_pose`).
-``slam.mode: odometry`` keeps the stage but trusts the autopilot.
 
 The stage runs where the camera is read: :class:`LocalizedFrameSource` wraps the frame source,
 so the SLAM runs in the camera's reader thread of the perception process, never on the

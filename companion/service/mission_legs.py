@@ -17,8 +17,9 @@ from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import MissionError
-from companion.mavlink.mission_download import MissionItem, waypoint_ned_m
+from companion.mavlink.mission_download import waypoint_ned_m
 from companion.mavlink.state import HomePosition, MapFrame, VehicleState
+from companion.missions import MissionItemInt
 from semmap.frames import ned_to_enu
 
 log = logging.getLogger(__name__)
@@ -43,7 +44,7 @@ class Leg:
     acceptance_m: float = DEFAULT_ACCEPTANCE_M
 
 
-def mission_legs(items: Sequence[MissionItem], home: HomePosition, altitude_m: float) -> list[Leg]:
+def mission_legs(items: Sequence[MissionItemInt], home: HomePosition, altitude_m: float) -> list[Leg]:
     """The waypoint items of a downloaded mission as legs at ``altitude_m`` (the planner's
     flight altitude: the semantic map's band is built for it). Takeoff, land and RTL items
     are flown by the service itself; other items are skipped with a log line."""

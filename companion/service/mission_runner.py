@@ -34,7 +34,6 @@ from companion.px4 import FlightMode
 from companion.service.leg_follow import (
     CHECK_PERIOD_S,
     LegFollow,
-    PathChecker,
     _between,
     _remaining,
 )
@@ -70,7 +69,7 @@ from semmap.frames import yaw_ned_to_enu
 #: :mod:`~companion.service.leg_follow`).
 __all__ = [
     "CHECK_PERIOD_S", "DEFAULT_ACCEPTANCE_M", "FEED_PERIOD_S", "SETTLED_SPEED_M_S", "SURVEY_CARROT_DEG",
-    "Leg", "LegReport", "MissionRunner", "PathChecker", "SurveyTurn", "arrived", "horizontal_speed_m_s",
+    "Leg", "LegReport", "MissionRunner", "SurveyTurn", "arrived", "horizontal_speed_m_s",
     "map_frame_of", "min_engage_height_m", "mission_legs", "position_enu", "took_off", "_between", "_remaining",
 ]
 
@@ -113,7 +112,6 @@ class MissionRunner(TakeoffSteps):
         self.leg_timeout_s = leg_timeout_s
         self._map_version = 0
         self._versioned: Costmap | None = None
-        self.checker = PathChecker(planner_cfg)
         #: Latest plan duration (ms), for the per-stage timings.
         self.last_plan_ms: float | None = None
         self.capture_time = capture_time
@@ -188,8 +186,7 @@ class MissionRunner(TakeoffSteps):
             rep.plans += 1
             rep.plan_ms.append(1e3 * result.planning_time_s)
             if result.status is PlanStatus.START_BLOCKED:
-                await asyncio.to_thread(self.checker.update, costmap)
-                esc = self.checker.escape_point(start)
+                esc = await asyncio.to_thread(self.planning.escape_point, costmap, self._version_of(costmap), start)
                 if esc is not None and np.linalg.norm(esc - start) < 1.0:
                     log.info("leg %d: too close to an obstacle; backing off %.2f m first", leg.seq,
                              float(np.linalg.norm(esc - start)))

@@ -10,7 +10,8 @@ map and its checkpoints live in a child process (``spawn``):
 * the child opens the frame source itself (a camera's frames never cross a process
   boundary), runs :class:`~companion.service.perception_worker.PerceptionWorker` on the
   newest frame (bounded queue, the oldest frame dropped) and saves map checkpoints;
-* after every frame it sends a :class:`PerceptionUpdate` through a pipe: counters, stage
+* after every frame it sends a :class:`PerceptionUpdate` through a pipe (a
+  :class:`~planner.process.WorkerProcess`, the helper the planning process uses too): counters, stage
   timings, and - at most every ``COSTMAP_PERIOD_S`` - the costmap at the flight band and the
   object list, with the capture time of the newest frame they include;
 * :class:`PerceptionProcess` (async context manager, in the service) starts the child, keeps
@@ -26,7 +27,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import multiprocessing as mp
 import os
 import signal
 import threading
@@ -36,7 +36,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from types import TracebackType
-from typing import Any
+from typing import Literal
 
 from companion.config import CompanionConfig
 from companion.service.checkpoint import Checkpointer, checkpoint_path, restore_map
@@ -48,6 +48,7 @@ from companion.service.perception_worker import (
     new_semantic_map,
 )
 from companion.sources.base import FrameSource, WrappedSource
+from planner.process import WorkerProcess
 from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import MapError, PerceptionError
 from semmap.grid import GridSpec
@@ -86,7 +87,8 @@ class PerceptionUpdate:
     ``costmap_capture_mono_s`` is the capture time of the newest frame in that costmap.
     """
 
-    kind: str  # "ready", "frame", "final"
+    #: "ready" (the first update: the child serves), "frame", "final" (the map is saved).
+    kind: Literal["ready", "frame", "final"]
     restored: bool
     frames_done: int
     frames_failed: int
@@ -145,7 +147,7 @@ class _TimedPipeline(PerceptionPipeline):
         return out
 
 
-def _child_main(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
+def _child_main(conn: Connection, stop: Connection, spec: _ChildSpec) -> None:
     """The perception process's entry point (``spawn``)."""
     # The service decides when perception stops (SIGTERM/Ctrl-C reach the whole process group).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -194,7 +196,7 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
                               queue_size=cfg.service.frame_queue_size, stale_after_s=cfg.map.stale_after_s)
     ckpt = Checkpointer(smap, checkpoint_path(cfg), cfg.service.checkpoint_interval_s, pipeline.lock)
 
-    def update(kind: str, with_map: bool) -> PerceptionUpdate:
+    def update(kind: Literal["ready", "frame", "final"], with_map: bool) -> PerceptionUpdate:
         cm, cm_t, objs = None, None, None
         if with_map:
             cm_t = pipeline.capture_mono_s
@@ -242,9 +244,9 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
 class _Child:
     """One perception process as the service holds it."""
 
-    proc: Any
-    #: The service's end of the stop pipe: closing it (or the service dying) stops the child.
-    stop: Connection
+    #: The process and the service's ends of its pipes: closing the stop pipe
+    #: (:meth:`~planner.process.WorkerProcess.request_stop`, or the service dying) stops it.
+    proc: WorkerProcess
     reader: threading.Thread
     ready: asyncio.Event = field(default_factory=asyncio.Event)
     ended: asyncio.Event = field(default_factory=asyncio.Event)
@@ -322,17 +324,12 @@ class PerceptionProcess:
 
     async def _spawn(self) -> int | None:
         """Start a child and wait until it is ready: None when it is, else its exit code."""
-        ctx = mp.get_context("spawn")
-        recv, send = ctx.Pipe(duplex=False)
-        stop_recv, stop_send = ctx.Pipe(duplex=False)
         spec = _ChildSpec(self.cfg, self.source, self.object_classes, logging.getLogger().getEffectiveLevel())
-        proc = ctx.Process(target=_child_main, args=(spec, send, stop_recv), name="companion-perception",
-                           daemon=True)
+        proc = WorkerProcess(_child_main, (spec,), "companion-perception", duplex=False, stop_pipe=True)
+        # The child holds the only sending end: the reader gets EOF when it exits.
         await asyncio.to_thread(proc.start)
-        send.close()  # the child holds the only sending end: EOF here when it exits
-        stop_recv.close()
-        child = _Child(proc, stop_send, threading.Thread(target=lambda: None))
-        child.reader = threading.Thread(target=self._read, args=(recv, child), name="perception-updates",
+        child = _Child(proc, threading.Thread(target=lambda: None))
+        child.reader = threading.Thread(target=self._read, args=(proc.conn, child), name="perception-updates",
                                         daemon=True)
         self._child = child
         child.reader.start()
@@ -357,7 +354,7 @@ class PerceptionProcess:
             assert child is not None
             await child.ended.wait()
             await asyncio.to_thread(child.proc.join, 5.0)
-            child.stop.close()  # the dead child's stop pipe: one descriptor less per restart
+            child.proc.request_stop()  # closes the dead child's stop pipe: one descriptor less per restart
             log.error("the perception process %d died (exit code %s): the map goes stale, the vehicle "
                       "holds; starting it again from the last map checkpoint", child.proc.pid, child.proc.exitcode)
             for attempt in range(1, MAX_RESTARTS + 1):
@@ -392,7 +389,7 @@ class PerceptionProcess:
         """Stop one child: closing the stop pipe never blocks, whether the child lives or not
         (it saves the map and exits); ``kill`` does not wait for that."""
         proc = child.proc
-        child.stop.close()
+        proc.request_stop()
         if kill and proc.is_alive():
             proc.kill()
         await asyncio.to_thread(proc.join, STOP_TIMEOUT_S)

@@ -26,6 +26,7 @@ from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.mission_legs import FEED_PERIOD_S, map_frame_of, position_enu
 from planner.config import PlannerConfig
+from semmap.frames import wrap_angle_rad
 
 log = logging.getLogger(__name__)
 
@@ -84,17 +85,17 @@ class SurveyTurn:
 
     def next_yaw(self, heading_rad: float | None) -> float | None:
         if heading_rad is not None:
-            self.turned_rad += math.remainder(heading_rad - self._prev, 2.0 * math.pi)
+            self.turned_rad += wrap_angle_rad(heading_rad - self._prev)
             self._prev = heading_rad
         left = self.total_rad - self.turned_rad
         if left <= math.radians(SURVEY_DONE_DEG):
             return None
-        return math.remainder(self._prev + min(left, math.radians(SURVEY_CARROT_DEG)), 2.0 * math.pi)
+        return wrap_angle_rad(self._prev + min(left, math.radians(SURVEY_CARROT_DEG)))
 
     @property
     def final_yaw_rad(self) -> float:
         """The heading the turn ends at (the setpoint to hold afterwards)."""
-        return math.remainder(self.yaw0_rad + self.total_rad, 2.0 * math.pi)
+        return wrap_angle_rad(self.yaw0_rad + self.total_rad)
 
 
 

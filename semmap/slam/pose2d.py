@@ -11,17 +11,14 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.frames import wrap_angle_rad as wrap
+
 Pose2 = NDArray[np.float64]  # (3,) x_m, y_m, yaw_rad
 
 
 def pose2(x_m: float, y_m: float, yaw_rad: float) -> Pose2:
     """A (3,) pose."""
     return np.array([x_m, y_m, yaw_rad], dtype=np.float64)
-
-
-def wrap(angle_rad: float | NDArray[np.float64]) -> NDArray[np.float64]:
-    """Angles wrapped to [-pi, pi) (any shape)."""
-    return (np.asarray(angle_rad, dtype=np.float64) + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def compose(a: Pose2, b: Pose2) -> Pose2:

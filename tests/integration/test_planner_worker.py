@@ -85,3 +85,19 @@ def test_cancel_from_another_thread(service: PlanningService) -> None:
     timer.cancel()
     assert r.status is PlanStatus.TIMEOUT
     assert time.monotonic() - t0 < 15.0
+
+
+def test_path_checks_and_escape_points_are_answered_by_the_worker(service: PlanningService) -> None:
+    through_chair = np.array([[1.0, 1.5], [5.0, 1.5]])
+    beside_chair = np.array([[1.0, 0.5], [5.0, 0.5]])
+    assert service.path_free(base(), 1, through_chair) is True
+    assert service.path_free(with_chair(), 2, through_chair) is False
+    assert service.path_free(with_chair(), 2, beside_chair) is True
+    # From inside the chair, the nearest point where the vehicle fits lies outside it, with
+    # the vehicle's radius to spare.
+    esc = service.escape_point(with_chair(), 2, (3.0, 1.5))
+    assert esc is not None
+    assert not (2.7 - CONFIG.vehicle_radius_m < esc[0] < 3.3 + CONFIG.vehicle_radius_m
+                and 1.1 - CONFIG.vehicle_radius_m < esc[1] < 1.9 + CONFIG.vehicle_radius_m)
+    assert np.linalg.norm(esc - (3.0, 1.5)) < 1.0
+    assert service.path_free(with_chair(), 2, np.vstack([esc, esc + (0.0, 0.05)])) is True

@@ -67,3 +67,26 @@ def test_one_exception_tree_with_each_error_where_its_concept_lives() -> None:
     # Every error companion code raises is importable from one place.
     assert set(companion_errors.__all__) >= {n for n, v in vars(semmap_errors).items()
                                              if isinstance(v, type) and issubclass(v, BaseException)}
+
+
+def test_the_onboard_service_builds_no_configuration_space() -> None:
+    """Path checks and escape points are the planning process's: a configuration-space update
+    in the service would compete with the setpoint stream for its GIL."""
+    wrong = [f"{path.relative_to(REPO)}:{line} imports {name}"
+             for path in sorted((REPO / "companion" / "service").rglob("*.py"))
+             for name, line in sorted(_imported_modules(path))
+             if name in ("planner.cspace", "planner.planner")]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_angles_are_wrapped_in_one_place() -> None:
+    """semmap.frames.wrap_angle_rad is the one angle wrap; a second copy drifts (one wrapped
+    to [-pi, pi], another to [-pi, pi))."""
+    import re
+
+    hand_wrap = re.compile(r"remainder\(.*\bpi\b|%\s*\(?\s*2(\.0)?\s*\*\s*(math|np)\.pi|%\s*(math|np)\.tau")
+    wrong = [f"{path.relative_to(REPO)}:{n}: {line.strip()}"
+             for package in ("semmap", "planner", "companion", "bench")
+             for path in sorted((REPO / package).rglob("*.py")) if path != REPO / "semmap" / "frames.py"
+             for n, line in enumerate(path.read_text().splitlines(), 1) if hand_wrap.search(line)]
+    assert not wrong, "\n".join(wrong)

@@ -142,3 +142,17 @@ def test_cli_version(capsys: pytest.CaptureFixture[str]) -> None:
         main(["--version"])
     assert e.value.code == 0
     assert capsys.readouterr().out.startswith("companion ")
+
+
+@pytest.mark.parametrize("given", [{"slam": {"mode": "odometry"}},
+                                   {"slam": {"mode": "slam"}, "service": {"localization": "slam"}}])
+def test_slam_mode_is_refused_naming_service_localization(given: dict[str, object]) -> None:
+    # One switch chooses whether SLAM poses the map; a second one could contradict it.
+    with pytest.raises(ConfigError, match=r"<t>: slam: mode is not a key here.*service\.localization"):
+        config_from_dict(given, "<t>")
+
+
+def test_the_effective_config_names_one_localization_switch() -> None:
+    data = yaml.safe_load(dump_config(config_from_dict({"service": {"localization": "slam"}})))
+    assert data["service"]["localization"] == "slam"
+    assert "mode" not in data["slam"]

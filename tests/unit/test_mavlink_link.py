@@ -28,11 +28,12 @@ from companion.mavlink.commands import (
 )
 from companion.mavlink.failsafe import PositionSetpoint
 from companion.mavlink.link import MavlinkLink, SigningConfig, load_signing_key
-from companion.mavlink.mission_download import MissionItem, download_mission, waypoint_ned_m
+from companion.mavlink.mission_download import download_mission, waypoint_ned_m
 from companion.mavlink.obstacle_distance import ObstacleDistanceFeed, ObstacleDistanceInput
 from companion.mavlink.offboard import SetpointStreamer
 from companion.mavlink.state import HomePosition, LandedState, VehicleStateTracker
 from companion.mavlink.tlog import TlogWriter, iter_tlog
+from companion.missions import MissionItemInt
 from companion.px4 import FlightMode, encode_heartbeat_base_mode
 from semmap.costmap import Costmap, VerticalBand
 from semmap.grid import GridSpec
@@ -359,8 +360,8 @@ async def test_mission_download(peer_and_link: tuple[Peer, MavlinkLink]) -> None
     peer.handlers.update(_mission_server(items, drop_first_request_of=1))
     got = await download_mission(link, timeout_s=0.3)
     assert [i.seq for i in got] == [0, 1, 2]
-    assert all(isinstance(i, MissionItem) and i.is_navigation for i in got)
-    assert got[1].x == pytest.approx(47.39775) and got[2].y == pytest.approx(8.54567)
+    assert all(isinstance(i, MissionItemInt) and i.is_navigation for i in got)
+    assert got[1].lat_deg == pytest.approx(47.39775) and got[2].lon_deg == pytest.approx(8.54567)
     assert got[0].command_name == "MAV_CMD_NAV_WAYPOINT" and got[0].current
     await _until(lambda: bool(peer.of_type("MISSION_ACK")))
     assert peer.of_type("MISSION_ACK")[-1].type == mavlink.MAV_MISSION_ACCEPTED
@@ -397,14 +398,14 @@ async def test_mission_download_gives_up_on_silence(peer_and_link: tuple[Peer, M
 
 def test_waypoint_frames() -> None:
     home = HomePosition(47.0, 8.0, 500.0, (1.0, 2.0, 0.0))
-    local = MissionItem(0, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_CMD_NAV_WAYPOINT, False, True,
-                        0, 0, 0, 0, 3.0, 4.0, -1.0)
+    local = MissionItemInt(0, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_CMD_NAV_WAYPOINT, 0, 1,
+                           0, 0, 0, 0, 30_000, 40_000, -1.0)  # x/y: metres times 1e4
     assert waypoint_ned_m(local, home) == (3.0, 4.0, -1.0)
-    amsl = MissionItem(0, mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_CMD_NAV_WAYPOINT, False, True,
-                       0, 0, 0, 0, 47.0, 8.0, 503.0)
+    amsl = MissionItemInt(0, mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_CMD_NAV_WAYPOINT, 0, 1,
+                          0, 0, 0, 0, 470_000_000, 80_000_000, 503.0)
     assert waypoint_ned_m(amsl, home) == pytest.approx((1.0, 2.0, -3.0))
-    terrain = MissionItem(4, mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT, mavlink.MAV_CMD_NAV_WAYPOINT,
-                          False, True, 0, 0, 0, 0, 47.0, 8.0, 3.0)
+    terrain = MissionItemInt(4, mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT, mavlink.MAV_CMD_NAV_WAYPOINT,
+                             0, 1, 0, 0, 0, 0, 470_000_000, 80_000_000, 3.0)
     with pytest.raises(MissionError, match="mission item 4"):
         waypoint_ned_m(terrain, home)
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import MissionError
 from companion.geo import GeoOrigin
@@ -20,6 +21,7 @@ from companion.missions import (
     CMD_RTL,
     CMD_TAKEOFF,
     CMD_WAYPOINT,
+    MissionItemInt,
     MissionPlan,
     Waypoint,
     items_to_plan,
@@ -228,3 +230,19 @@ def test_save_and_load_round_trip(tmp_path: Path, suffix: str) -> None:
     assert again.home == plan.home
     with pytest.raises(MissionError, match="unknown mission file type"):
         save_mission(plan, tmp_path / "out.txt")
+
+
+@pytest.mark.parametrize(("frame", "x", "y", "x_int", "y_int"), [
+    (mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, 47.3977421, 8.5455941, 473977421, 85455941),
+    (mavlink.MAV_FRAME_LOCAL_NED, 3.25, -4.5, 32500, -45000),
+])
+def test_a_float_mission_item_becomes_the_one_item_type(frame: int, x: float, y: float,
+                                                        x_int: int, y_int: int) -> None:
+    mav = mavlink.MAVLink(None)
+    legacy = mav.mission_item_encode(1, 1, 2, frame, mavlink.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 0.5, 0.0, 0.0,
+                                     x, y, 2.0)
+    as_int = mav.mission_item_int_encode(1, 1, 2, frame, mavlink.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 0.5, 0.0,
+                                         0.0, x_int, y_int, 2.0)
+    item = MissionItemInt.from_message(legacy)
+    assert item == MissionItemInt.from_message(as_int)
+    assert (item.x, item.y, item.param2, item.command_name) == (x_int, y_int, 0.5, "MAV_CMD_NAV_WAYPOINT")

@@ -13,8 +13,8 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import CompanionConfig
 from companion.errors import MissionError
-from companion.mavlink.mission_download import MissionItem
 from companion.mavlink.state import HomePosition
+from companion.missions import LOCAL_SCALE, MissionItemInt
 from companion.service.app import frozen_heap
 from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.localization import Localizer
@@ -29,8 +29,8 @@ HOME = HomePosition(47.397742, 8.545594, 488.0, (0.0, 0.0, 0.0))
 
 
 def _item(seq: int, cmd: int, frame: int = mavlink.MAV_FRAME_LOCAL_NED, x: float = 0.0, y: float = 0.0,
-          z: float = -1.0, acc: float = 0.0) -> MissionItem:
-    return MissionItem(seq, frame, cmd, False, True, 0.0, acc, 0.0, 0.0, x, y, z)
+          z: float = -1.0, acc: float = 0.0) -> MissionItemInt:
+    return MissionItemInt(seq, frame, cmd, 0, 1, 0.0, acc, 0.0, 0.0, round(x * LOCAL_SCALE), round(y * LOCAL_SCALE), z)
 
 
 def test_mission_legs_keep_waypoints_in_the_map_frame() -> None:
