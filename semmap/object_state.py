@@ -224,18 +224,30 @@ class ObjectState:
         s.evidence = FootprintEvidence.from_polygon(fp)
         return s
 
-    def absorb(self, drop: ObjectState) -> None:
-        """Fold another object's state (a duplicate of this one) into this one."""
+    def absorb(self, drop: ObjectState, shape: bool = True) -> None:
+        """Fold another object's state (a duplicate of this one) into this one; without
+        ``shape`` (``drop`` was a part of this object, seen in boxes that often named
+        something else) its class votes, position, footprint evidence, hull and heights are not taken."""
         keep = self  # the surviving object
-        # Class evidence fused by weight: multiplying the two posteriors counted the shared
-        # views twice and let a few confident boxes of the wrong object outvote many.
         wk, wd = max(keep.support, 1e-6), max(drop.support, 1e-6)
-        p = (wk * keep.class_probs + wd * drop.class_probs) / (wk + wd)
-        p = np.maximum(p, MIN_CLASS_PROB)
-        keep.class_probs = p / p.sum()
         keep.support += drop.support
         keep.logodds = max(keep.logodds, drop.logodds)
         keep.seen_near = keep.seen_near or drop.seen_near
+        keep.snapshot_cache = None
+        keep.n_observations += drop.n_observations
+        keep.first_seen_s = min(keep.first_seen_s, drop.first_seen_s)
+        keep.last_seen_s = max(keep.last_seen_s, drop.last_seen_s)
+        if not shape:
+            return
+        keep.evidence.merge(drop.evidence)
+        keep.view_sum_xy = keep.view_sum_xy + drop.view_sum_xy
+        keep.n_views += drop.n_views
+        keep.footprint_cache = None
+        # Class evidence fused by weight: multiplying the two posteriors counted the shared
+        # views twice and let a few confident boxes of the wrong object outvote many.
+        p = (wk * keep.class_probs + wd * drop.class_probs) / (wk + wd)
+        p = np.maximum(p, MIN_CLASS_PROB)
+        keep.class_probs = p / p.sum()
         va, vb = keep.position_var_m2, drop.position_var_m2
         keep.position_m = (keep.position_m * vb + drop.position_m * va) / (va + vb)
         keep.position_var_m2 = max(va * vb / (va + vb), 1e-4)
@@ -249,14 +261,6 @@ class ObjectState:
             keep.z_max_hist.extend(drop.z_max_hist)
             keep.z_min_hist.extend(drop.z_min_hist)
             keep.top_hist.extend(drop.top_hist)
-        keep.evidence.merge(drop.evidence)
-        keep.view_sum_xy = keep.view_sum_xy + drop.view_sum_xy
-        keep.n_views += drop.n_views
-        keep.footprint_cache = None
-        keep.snapshot_cache = None
-        keep.n_observations += drop.n_observations
-        keep.first_seen_s = min(keep.first_seen_s, drop.first_seen_s)
-        keep.last_seen_s = max(keep.last_seen_s, drop.last_seen_s)
 
     def footprint(self, config: MapConfig) -> NDArray[np.float64]:
         """The footprint from the evidence (:meth:`FootprintEvidence.footprint`), or from the

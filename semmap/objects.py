@@ -22,7 +22,8 @@ Every object fuses:
 
 Objects below ``existence_remove_below`` are removed, and unconfirmed ones not seen again
 within ``tentative_timeout_s``, so false positives fade away. Each object's state and its
-reported snapshot are in :mod:`semmap.object_state`; this module associates and merges.
+reported snapshot are in :mod:`semmap.object_state`, the pairwise tests of one thing mapped
+twice in :mod:`semmap.duplicates`; this module associates and merges.
 """
 
 from __future__ import annotations
@@ -37,6 +38,13 @@ from numpy.typing import NDArray
 from semmap.class_prior import ClassPrior
 from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
+from semmap.duplicates import (
+    CONTAINED,
+    CROSS_CLASS_IOU,
+    FRAGMENT_TOP_GAP_M,
+    SAME_TOP_OVERLAP,
+    DuplicateTests,
+)
 from semmap.errors import MapError
 from semmap.geometry import CameraView, ObjectObservation
 from semmap.object_evidence import view_quality
@@ -47,12 +55,10 @@ from semmap.object_state import (
     consistent,
     logit,
     overlaps,
-    quantile,
     sigmoid,
 )
 from semmap.polygons import (
     convex_footprint,
-    convex_intersection,
     polygon_area_m2,
     simplify_polygon,
 )
@@ -61,8 +67,6 @@ log = logging.getLogger(__name__)
 
 __all__ = ["CameraView", "MappedObject", "ObjectMap"]
 
-#: Any-class merge: a new track over an object of another class merges at this IoU.
-_CROSS_CLASS_IOU = 0.6
 #: Views beyond ``footprint_max_range_m`` alone keep an object this far (log-odds) below
 #: confirmation.
 _UNCONFIRMED_MARGIN = 0.01
@@ -72,16 +76,6 @@ _FAR_WEIGHT = 0.3
 
 #: Position variance factor of views cut by the image border.
 _EDGE_VARIANCE_FACTOR = 9.0
-#: A same-class footprint mostly inside an object's is a partial view of it.
-_CONTAINED = 0.6
-#: An unassociated observation whose top plane is within this (metres) of a mapped object's
-#: top, reaching no higher, and lying mostly inside its footprint shows that object's surface.
-_SAME_SURFACE_M = 0.04
-#: A table's top seen again from elsewhere joins it when the footprints overlap at least this
-#: much (intersection over the smaller).
-_SAME_TOP_OVERLAP = 0.05
-
-
 class ObjectMap:
     """Persistent objects from per-frame observations (see the module doc).
 
@@ -101,6 +95,7 @@ class ObjectMap:
         self.class_names = [c.name for c in self.classes]
         self._class_index = {n: i for i, n in enumerate(self.class_names)}
         self._prior = ClassPrior(self.classes)
+        self._pairs = DuplicateTests(self.classes, self.config)
         #: Reported class -> class indices its detections vote for (a detector's class that
         #: stands for several of ours, see semmap.detection.builtin.vote_groups).
         self._votes_for = {k: [self._class_index[c] for c in v if c in self._class_index]
@@ -216,72 +211,6 @@ class ObjectMap:
         close = np.linalg.norm(pos - xy, axis=1) <= self.config.reassociate_distance_m
         return [ids[i] for i in np.nonzero(overlap | close)[0]]
 
-    def _same_object(self, a: ObjectState, b: ObjectState, both_seen_now: bool) -> bool:
-        """Duplicate test: heavy overlap of the footprints whatever the classes, one showing the
-        other's surface (:meth:`_shows_surface_of`) whatever the classes, or (same class, not two
-        detections of one frame) overlap / proximity as for re-association.
-
-        Footprints here are the evidence footprints (cells several views agree on), not the
-        hulls: one view whose box held a neighbour too grows a hull over that neighbour.
-        """
-        cfg = self.config
-        fa, fb = a.footprint(self.config), b.footprint(self.config)
-        reach = float(max(np.ptp(a.hull_xy_m, axis=0).max(), np.ptp(fa, axis=0).max())
-                      + max(np.ptp(b.hull_xy_m, axis=0).max(), np.ptp(fb, axis=0).max()))
-        dist = float(np.linalg.norm(a.position_m[:2] - b.position_m[:2]))
-        if dist > reach:
-            return False
-        iou, contained = overlaps(fa, fb)
-        if iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou):
-            return True
-        if self._shows_surface_of(a, b) or self._shows_surface_of(b, a):
-            return True
-        same_class = int(np.argmax(a.class_probs)) == int(np.argmax(b.class_probs))
-        return same_class and not both_seen_now and (
-            iou >= cfg.reassociate_iou or contained >= _CONTAINED or dist <= cfg.reassociate_distance_m
-            or (contained > _SAME_TOP_OVERLAP and self._same_table_top(a, b))
-        )
-
-    def _same_table_top(self, a: ObjectState, b: ObjectState) -> bool:
-        """Two parts of one table's top: both table-shaped, seen near, the same top plane."""
-        k = int(np.argmax(a.class_probs))
-        if self.classes[k].shape != "table" or not (a.top_hist and b.top_hist and a.seen_near and b.seen_near):
-            return False
-        return abs(quantile(a.top_hist, 0.5) - quantile(b.top_hist, 0.5)) <= _SAME_SURFACE_M
-
-    def _shows_surface_of(self, inner: ObjectState, outer: ObjectState) -> bool:
-        """``inner`` is ``outer``'s top mapped a second time (often under another class): both
-        seen near, the same top plane (within ``_SAME_SURFACE_M``), ``inner`` reaching no
-        higher and lying mostly inside ``outer``'s footprint (see :meth:`_share_on_surface`).
-
-        The object-level form of :meth:`_surface_owner`, for a phantom whose first views had no
-        top plane or came before ``outer`` had one, so that test could not stop it at birth.
-        """
-        if not (inner.seen_near and inner.top_hist and inner.z_max_hist):
-            return False
-        # Only a table's top is a surface a whole object shows again: chairs side by side share
-        # a seat height, and one whose footprint grew over its neighbour is still two chairs.
-        if self.classes[int(np.argmax(outer.class_probs))].shape != "table":
-            return False
-        return self._share_on_surface(quantile(inner.top_hist, 0.5), quantile(inner.z_max_hist, 0.8),
-                                      inner.footprint(self.config), outer) >= _CONTAINED
-
-    def _share_on_surface(self, top_m: float, z_max_m: float, fp_xy_m: NDArray[np.float64], outer: ObjectState) -> float:
-        """The share of ``fp_xy_m`` inside ``outer``'s footprint when something with this top
-        plane and reach shows ``outer``'s surface (``outer`` seen near, the same top within
-        ``_SAME_SURFACE_M``, reaching no higher), else 0: the test of :meth:`_surface_owner`
-        (one observation) and :meth:`_shows_surface_of` (a mapped object)."""
-        if not outer.seen_near or not outer.top_hist or not outer.z_max_hist:
-            return 0.0
-        if abs(top_m - quantile(outer.top_hist, 0.5)) > _SAME_SURFACE_M:
-            return 0.0
-        if z_max_m > quantile(outer.z_max_hist, 0.8) + _SAME_SURFACE_M:
-            return 0.0
-        area = polygon_area_m2(fp_xy_m)
-        if area <= 0.0:
-            return 0.0
-        return polygon_area_m2(convex_intersection(outer.footprint(self.config), fp_xy_m)) / area
-
     def _merge_duplicates(self, touched: set[int], seen_now: set[int]) -> dict[int, int]:
         """Merge objects updated this frame into older duplicates (the same thing detected
         under two classes, or a track that started before re-association could catch it).
@@ -291,15 +220,19 @@ class ObjectMap:
             if oid not in self._objects:
                 continue
             me = self._objects[oid]
-            near = self._nearby(me.hull_xy_m.min(axis=0), me.hull_xy_m.max(axis=0), me.position_m[:2])
-            for other in sorted(near):
+            lo, hi = me.hull_xy_m.min(axis=0), me.hull_xy_m.max(axis=0)
+            near = set(self._nearby(lo, hi, me.position_m[:2]))
+            # Fragments are looked for farther: as far as one may lie from its object.
+            wide = self._nearby(lo - FRAGMENT_TOP_GAP_M, hi + FRAGMENT_TOP_GAP_M, me.position_m[:2])
+            for other in sorted(wide):
                 if other == oid or other not in self._objects or oid not in self._objects:
                     continue
                 a, b = self._objects[other], self._objects[oid]
-                if self._same_object(a, b, other in seen_now and oid in seen_now):
+                kind = self._pairs.same_object(a, b, seen_now, fragment_only=other not in near)
+                if kind is not None:
                     # The better-supported object survives, whatever the ids (ties: the older).
                     keep, drop = (a, b) if (a.support, -a.object_id) >= (b.support, -b.object_id) else (b, a)
-                    self._absorb(keep, drop)
+                    self._absorb(keep, drop, shape=kind == "duplicate")
                     merged[drop.object_id] = keep.object_id
                     break
         # Chains (a -> b -> c) resolve to the final survivor.
@@ -308,14 +241,14 @@ class ObjectMap:
                 merged[k] = merged[merged[k]]
         return merged
 
-    def _absorb(self, keep: ObjectState, drop: ObjectState) -> None:
-        """Fold ``drop`` into ``keep`` and remove it."""
-        keep.absorb(drop)
+    def _absorb(self, keep: ObjectState, drop: ObjectState, shape: bool = True) -> None:
+        """Fold ``drop`` into ``keep`` and remove it (``shape``: :meth:`ObjectState.absorb`)."""
+        keep.absorb(drop, shape)
         for tid, o in self._track_to_object.items():
             if o == drop.object_id:
                 self._track_to_object[tid] = keep.object_id
         del self._objects[drop.object_id]
-        log.debug("object %d merged into %d", drop.object_id, keep.object_id)
+        log.debug("object %d merged into %d (%s)", drop.object_id, keep.object_id, "duplicate" if shape else "fragment")
 
     def _associate(self, o: ObjectObservation, used: set[int]) -> int | None:
         cfg = self.config
@@ -342,10 +275,10 @@ class ObjectMap:
             iou, contained = overlaps(s.footprint(self.config), fp)
             dist = float(np.linalg.norm(s.position_m[:2] - o.centroid_xy_m))
             same_class = int(np.argmax(s.class_probs)) in ks
-            ok = (same_class and (iou >= cfg.reassociate_iou or contained >= _CONTAINED
+            ok = (same_class and (iou >= cfg.reassociate_iou or contained >= CONTAINED
                                   or dist <= cfg.reassociate_distance_m
-                                  or (contained > _SAME_TOP_OVERLAP and self._same_top(s, o)))) or (
-                iou >= max(_CROSS_CLASS_IOU, cfg.reassociate_iou)
+                                  or (contained > SAME_TOP_OVERLAP and self._pairs.same_top(s, o)))) or (
+                iou >= max(CROSS_CLASS_IOU, cfg.reassociate_iou)
             )
             score = max(iou, contained if same_class else 0.0)
             if ok and (best is None or (score, -dist) > (best[0], best[1])) and (track_object is None or score > 0):
@@ -353,16 +286,6 @@ class ObjectMap:
         if best is None:
             return track_object
         return best[2]
-
-    def _same_top(self, s: ObjectState, o: ObjectObservation) -> bool:
-        """The observation shows more of a table-shaped object's top: its top plane is the
-        object's (within ``_SAME_SURFACE_M``) and it reaches no higher. Another part of a long
-        table seen from its other end overlaps the part seen before only at the seam."""
-        k = int(np.argmax(s.class_probs))
-        if self.classes[k].shape != "table" or o.top_height_m is None or not s.top_hist:
-            return False
-        top = quantile(s.top_hist, 0.5)
-        return abs(o.top_height_m - top) <= _SAME_SURFACE_M and o.z_max_m <= top + _SAME_SURFACE_M
 
     def _surface_owner(self, o: ObjectObservation) -> int | None:
         """The object whose surface an unassociated observation shows, or None.
@@ -383,8 +306,8 @@ class ObjectMap:
             return None
         best: tuple[float, int] | None = None
         for cand in self._nearby(fp.min(axis=0), fp.max(axis=0), o.centroid_xy_m):
-            inside = self._share_on_surface(o.top_height_m, o.z_max_m, fp, self._objects[cand])
-            if inside >= _CONTAINED and (best is None or inside > best[0]):
+            inside = self._pairs.share_on_surface(o.top_height_m, o.z_max_m, fp, self._objects[cand])
+            if inside >= CONTAINED and (best is None or inside > best[0]):
                 best = (inside, cand)
         if best is not None:
             log.debug("track %d (%s) shows the surface of object %d: not a new object", o.track_id,

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
-    "convex_footprint", "convex_intersection", "convex_iou", "grow_to_least_size", "inside_convex",
+    "convex_footprint", "convex_gap_m", "convex_intersection", "convex_iou", "grow_to_least_size", "inside_convex",
     "min_area_rectangle", "min_perimeter_rectangle", "polygon_area_m2", "simplify_polygon",
 ]
 
@@ -244,3 +244,25 @@ def convex_iou(a_xy_m: NDArray[np.floating], b_xy_m: NDArray[np.floating]) -> fl
         return 0.0
     union = polygon_area_m2(a_xy_m) + polygon_area_m2(b_xy_m) - inter
     return inter / union if union > 0 else 0.0
+
+
+def _point_segment_distance_m(p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, M) distance from each point (N, 2) to each segment a[j]-b[j] (M, 2)."""
+    ab = b - a  # (M, 2)
+    ap = p[:, None, :] - a[None, :, :]  # (N, M, 2)
+    t = np.clip((ap * ab[None]).sum(axis=2) / np.maximum((ab * ab).sum(axis=1), 1e-18)[None], 0.0, 1.0)
+    d = ap - t[..., None] * ab[None]
+    return np.hypot(d[..., 0], d[..., 1])
+
+
+def convex_gap_m(a_xy_m: NDArray[np.floating], b_xy_m: NDArray[np.floating]) -> float:
+    """Distance between two convex polygons (M, 2), (L, 2): 0 when they overlap, else the least
+    vertex-to-edge distance (exact for disjoint convex polygons)."""
+    a = np.asarray(a_xy_m, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(b_xy_m, dtype=np.float64).reshape(-1, 2)
+    if len(a) < 3 or len(b) < 3:
+        raise ValueError(f"convex_gap_m needs two polygons of 3+ vertices, got {len(a)} and {len(b)}")
+    if inside_convex(a, b).any() or inside_convex(b, a).any() or len(convex_intersection(a, b)) >= 3:
+        return 0.0
+    ea, eb = np.roll(a, -1, axis=0), np.roll(b, -1, axis=0)
+    return float(min(_point_segment_distance_m(a, b, eb).min(), _point_segment_distance_m(b, a, ea).min()))

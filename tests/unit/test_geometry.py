@@ -191,3 +191,14 @@ def test_an_occluder_in_front_is_not_taken_for_a_wall() -> None:
     obs = observe(render(TABLE_BOXES + [FLOOR, screen], T), T)
     assert obs is not None
     assert obs.footprint_xy_m[:, 0].min() > 2.3
+
+
+def test_convex_gap_is_zero_on_overlap_and_the_edge_distance_apart() -> None:
+    from semmap.polygons import convex_gap_m
+
+    a = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    assert convex_gap_m(a, a + [0.5, 0.5]) == 0.0
+    assert convex_gap_m(a, a * 0.2 + 0.4) == 0.0  # one inside the other
+    assert convex_gap_m(a, a + [1.3, 0.2]) == pytest.approx(0.3)
+    diamond = np.array([[2.0, 0.5], [2.5, 0.0], [3.0, 0.5], [2.5, 1.0]])
+    assert convex_gap_m(a, diamond) == pytest.approx(1.0)  # vertex of one to the edge of the other

@@ -331,3 +331,38 @@ def test_chairs_side_by_side_stay_two_after_one_box_held_both() -> None:
     assert sorted(o.object_id for o in m.objects()) == before
     widths = sorted(float(np.ptp(o.footprint_xy_m[:, 0])) for o in m.objects())
     assert widths[-1] < 0.7  # neither footprint spans both chairs
+
+
+def test_a_fragment_at_a_desks_far_end_is_merged_into_the_desk() -> None:
+    # A desk whose views mostly showed its near part; two partial views of its far end became a
+    # small "desk" of their own, apart from the desk's footprint but on the same top plane
+    # (bench/mapping.py --world realistic, room 1001). Once the desk is seen again, one desk.
+    m = ObjectMap(default_classes())
+    for t in range(4):
+        m.update([_rect_obs(1, "desk", 3.0, 0.0, 4.1, 0.7, (0.0, 0.74), 0.73, float(t))], float(t))
+    for t in range(4, 6):
+        m.update([_rect_obs(2, "desk", 4.3, 0.2, 4.46, 0.4, (0.0, 0.74), 0.73, float(t))], float(t))
+    assert len(m.objects(confirmed_only=True)) == 2
+    for t in range(6, 8):
+        m.update([_rect_obs(1, "desk", 3.0, 0.0, 4.1, 0.7, (0.0, 0.74), 0.73, float(t))], float(t))
+    (desk,) = m.objects()
+    assert desk.n_observations == 8 and desk.class_name == "desk"
+
+
+def test_a_fragment_on_a_table_top_is_merged_but_a_chair_beside_it_is_not() -> None:
+    # A few chair boxes that showed only a patch of a conference table's top (chair backs
+    # above its edge) became a tiny "chair" inside the table (room 1007); a real chair pushed
+    # in at the table's side, seen as often, has a chair's footprint and stays.
+    m = ObjectMap(default_classes())
+    for t in range(5):
+        m.update([_rect_obs(1, "conference_table", 3.0, 0.0, 4.8, 1.0, (0.0, 0.76), 0.75, float(t))], float(t))
+    for t in range(5, 8):
+        m.update([_rect_obs(1, "conference_table", 3.0, 0.0, 4.8, 1.0, (0.0, 0.76), 0.75, float(t)),
+                  _rect_obs(2, "chair", 3.9, 0.8, 4.06, 0.96, (0.0, 0.98), 0.89, float(t)),
+                  _rect_obs(3, "chair", 3.2, 0.8, 3.7, 1.3, (0.0, 0.95), 0.46, float(t))], float(t))
+    assert len(m.objects(confirmed_only=True)) == 3
+    for t in range(8, 10):
+        m.update([_rect_obs(1, "conference_table", 3.0, 0.0, 4.8, 1.0, (0.0, 0.76), 0.75, float(t))], float(t))
+    assert sorted(o.class_name for o in m.objects()) == ["chair", "conference_table"]
+    (chair,) = [o for o in m.objects() if o.class_name == "chair"]
+    assert chair.footprint_xy_m[:, 1].max() > 1.2  # the pushed-in chair, not the fragment
