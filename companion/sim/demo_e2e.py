@@ -58,6 +58,8 @@ log = logging.getLogger(__name__)
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 #: How long a run waits for a landing the service commanded to touch down (the mock lands at 0.7 m/s).
 LANDING_TIMEOUT_S = 30.0
+#: Planning time for each candidate leg when a mission is chosen on the true map.
+SETUP_PLAN_TIME_LIMIT_S = 10.0
 
 
 @dataclass
@@ -207,8 +209,10 @@ def ground_truth_planner(placement: SimPlacement, cfg: CompanionConfig) -> Plann
     cm = semantic_costmap(room, spec, band, [c.name for c in cfg.classes])
     cm = dataclasses.replace(cm, objects=tuple(dataclasses.replace(fp, margin_m=margins.get(fp.class_name, 0.0))
                                                for fp in cm.objects))
+    # Choosing a mission is set-up, not flight: a loaded machine must not make a room infeasible.
     planner = Planner(cfg.planner.model_copy(update={
-        "geofence_xy_m": (0.0, 0.0, room.width_m, room.depth_m), "refine_with_ompl": False}))
+        "geofence_xy_m": (0.0, 0.0, room.width_m, room.depth_m), "refine_with_ompl": False,
+        "time_limit_s": max(cfg.planner.time_limit_s, SETUP_PLAN_TIME_LIMIT_S)}))
     planner.set_map(cm)
     return planner
 
