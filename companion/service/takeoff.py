@@ -255,14 +255,21 @@ class TakeoffSteps:
                 if not switch_asked and height is not None and height < engage_clearance_m(altitude_m) \
                         and time.monotonic() - climb_asked_s >= ENGAGE_CLIMB_RETRY_S:
                     climb_asked_s = time.monotonic()
-                    await self.climb_in_hold(snap, altitude_m)
+                    climbing.set()
+                    try:
+                        await self.climb_in_hold(snap, altitude_m)
+                    finally:
+                        climbing.clear()
                 await asyncio.sleep(FEED_PERIOD_S)
 
         switch_asked = False
+        # Set while a climb command (and its re-sends) is in flight: one landing after the
+        # OFFBOARD request would put PX4 back into Hold.
+        climbing = asyncio.Event()
 
         def ready(s: VehicleState) -> bool:
             nonlocal switch_asked
-            switch_asked = switch_asked or clear_to_engage(s, altitude_m)
+            switch_asked = switch_asked or (not climbing.is_set() and clear_to_engage(s, altitude_m))
             return switch_asked
 
         follower = asyncio.create_task(follow_climb())
