@@ -36,7 +36,7 @@ from companion.errors import LinkError
 from companion.mavlink.commands import VehicleCommands
 from companion.mavlink.failsafe import OffboardFailsafe, OffboardState, PositionSetpoint, Transition
 from companion.mavlink.link import MavlinkLink
-from companion.mavlink.state import StateTimeoutError, VehicleStateTracker
+from companion.mavlink.state import StateTimeoutError, VehicleState, VehicleStateTracker
 from companion.px4 import FlightMode
 
 log = logging.getLogger(__name__)
@@ -287,8 +287,13 @@ class OffboardController:
 
     # --- engage and release ----------------------------------------------------------
 
-    async def engage(self) -> None:
+    async def engage(self, ready: Callable[[VehicleState], bool] | None = None, ready_what: str = "",
+                     ready_timeout_s: float = 0.0) -> None:
         """Stream for ``warmup_s``, request OFFBOARD and wait until the vehicle reports it.
+
+        With ``ready``, OFFBOARD is requested only once ``ready(state)`` holds after the
+        warm-up (still streaming; waited for up to ``ready_timeout_s``, ``ready_what`` naming
+        it), so a condition checked before the warm-up is checked again right before the switch.
 
         Also the (only) way back after YIELDED or LINK_LOST. Raises :class:`LinkError`
         without a live autopilot or anything to stream, the command's
@@ -303,6 +308,10 @@ class OffboardController:
             self.failsafe.start_engage(self._clock(), vehicle)
             try:
                 await self._warm_up()
+                if ready is not None:
+                    await self.tracker.wait_for(lambda s: ready(s) or not self.failsafe.state.streams,
+                                                ready_timeout_s, ready_what or "the vehicle to be ready for OFFBOARD")
+                    self._check_still_engaging()
                 log.info("requesting OFFBOARD after %d setpoints", self.streamer.stats.sent)
                 await self.commands.set_mode(FlightMode.OFFBOARD)
                 await self.tracker.wait_for(

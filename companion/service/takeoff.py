@@ -17,8 +17,9 @@ import time
 
 import numpy as np
 from numpy.typing import NDArray
+from pymavlink.dialects.v20 import common as mavlink
 
-from companion.errors import MissionError
+from companion.errors import CommandError, MissionError
 from companion.mavlink.commands import CommandDeniedError, CommandTemporarilyRejectedError
 from companion.mavlink.failsafe import OffboardState, PositionSetpoint
 from companion.mavlink.state import VehicleState
@@ -43,6 +44,14 @@ MIN_ENGAGE_HEIGHT_M = 0.3
 #: The climb from the engage height to the flight altitude (m/s), and when it is done (m).
 CLIMB_SPEED_M_S = 0.5
 CLIMB_DONE_M = 0.1
+#: OFFBOARD is requested only this much above the engage height (metres, by the lower of the
+#: estimate and the range sensor), so a Hold sinking through the heartbeat's lag before PX4
+#: reports the switch still engages above it.
+ENGAGE_MARGIN_M = 0.1
+#: A Hold that sank below that is asked to climb again at most this often (seconds), and the
+#: engage gives up when the height is not back within ENGAGE_READY_TIMEOUT_S.
+ENGAGE_CLIMB_RETRY_S = 3.0
+ENGAGE_READY_TIMEOUT_S = 10.0
 #: OFFBOARD is engaged only with the first setpoint this close to the vehicle (metres).
 ENGAGE_MAX_OFFSET_M = 0.5
 #: Pause between refused arming attempts (PX4 re-runs its checks at about 1 Hz).
@@ -54,6 +63,13 @@ def min_engage_height_m(altitude_m: float) -> float:
     return max(MIN_ENGAGE_HEIGHT_M, 0.5 * altitude_m)
 
 
+def engage_clearance_m(altitude_m: float) -> float:
+    """How high above the floor the vehicle must be when OFFBOARD is requested: the engage
+    height plus :data:`ENGAGE_MARGIN_M`, but no higher than the take-off altitude."""
+    need = min_engage_height_m(altitude_m)
+    return max(need, min(need + ENGAGE_MARGIN_M, altitude_m))
+
+
 def took_off(state: VehicleState, altitude_m: float) -> bool:
     """PX4's take-off to ``altitude_m`` has finished: in the air, out of TAKEOFF (PX4 ends
     it in Hold, and drops an OFFBOARD request made before), and clear of the floor by
@@ -62,6 +78,14 @@ def took_off(state: VehicleState, altitude_m: float) -> bool:
     height = state.clearance_below_m()
     return (state.in_air and state.flight_mode is not FlightMode.TAKEOFF and height is not None
             and height >= min_engage_height_m(altitude_m))
+
+
+def clear_to_engage(state: VehicleState, altitude_m: float) -> bool:
+    """OFFBOARD may be requested now: :func:`took_off`, and by the lower of the estimate and
+    the range sensor at least :func:`engage_clearance_m` above the floor. PX4's Hold flies
+    its height estimate, which can creep away from the floor during the setpoint warm-up."""
+    height = state.clearance_below_m()
+    return took_off(state, altitude_m) and height is not None and height >= engage_clearance_m(altitude_m)
 
 
 class SurveyTurn:
@@ -217,22 +241,70 @@ class TakeoffSteps:
         async def follow_climb() -> None:
             # PX4's Hold may still be climbing while the stream warms up (1 s, then up to a
             # heartbeat for the switch): the hold rises with the vehicle, never pulling it back
-            # down towards the floor when OFFBOARD takes over.
+            # down towards the floor when OFFBOARD takes over. A Hold that sank below the
+            # engage clearance is asked to climb back to the take-off altitude.
             top_m = float(pos[2])
+            climb_asked_s = -math.inf
             while True:
-                now = position_enu(self.vehicle.snapshot())
+                snap = self.vehicle.snapshot()
+                now = position_enu(snap)
                 if now is not None and float(now[2]) > top_m:
                     top_m = float(now[2])
                     self.hold_at(xy, top_m)
+                height = snap.clearance_below_m()
+                # A climb asked for after the OFFBOARD request would switch PX4 back to Hold.
+                if not switch_asked and height is not None and height < engage_clearance_m(altitude_m) \
+                        and time.monotonic() - climb_asked_s >= ENGAGE_CLIMB_RETRY_S:
+                    climb_asked_s = time.monotonic()
+                    climbing.set()
+                    try:
+                        await self.climb_in_hold(snap, altitude_m)
+                    finally:
+                        climbing.clear()
                 await asyncio.sleep(FEED_PERIOD_S)
 
+        switch_asked = False
+        # Set while a climb command (and its re-sends) is in flight: one landing after the
+        # OFFBOARD request would put PX4 back into Hold.
+        climbing = asyncio.Event()
+
+        def ready(s: VehicleState) -> bool:
+            nonlocal switch_asked
+            switch_asked = switch_asked or (not climbing.is_set() and clear_to_engage(s, altitude_m))
+            return switch_asked
+
         follower = asyncio.create_task(follow_climb())
+        need_m = engage_clearance_m(altitude_m)
         try:
-            await self.vehicle.offboard.engage()
+            await self.vehicle.offboard.engage(
+                ready=ready, ready_timeout_s=ENGAGE_READY_TIMEOUT_S,
+                ready_what=f"the vehicle to hold {need_m:.2f} m above the floor (estimate and range "
+                           f"sensor) before OFFBOARD")
         finally:
             follower.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await follower
+
+    async def climb_in_hold(self, state: VehicleState, altitude_m: float) -> None:
+        """Ask PX4's Hold to climb where it is (DO_REPOSITION to an altitude above the current
+        one, position unchanged) until the lower of the estimate and the range sensor reads
+        ``altitude_m``; a refusal is logged (the engage then times out naming the height)."""
+        height = state.clearance_below_m()
+        pos = state.global_position
+        if height is None or pos is None:
+            return
+        up_m = altitude_m - height
+        log.warning("%.2f m above the floor (estimate %s, range sensor %s) is below the %.2f m to engage "
+                    "OFFBOARD: asking PX4's Hold to climb %.2f m", height,
+                    "none" if state.height_above_floor_m is None else f"{state.height_above_floor_m:.2f} m",
+                    "none" if state.range_down_m is None else f"{state.range_down_m:.2f} m",
+                    engage_clearance_m(altitude_m), up_m)
+        try:
+            await self.vehicle.commands.sender.command_long(
+                mavlink.MAV_CMD_DO_REPOSITION, -1.0, float(mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE), 0.0,
+                math.nan, math.nan, math.nan, pos.altitude_amsl_m + up_m)
+        except CommandError as exc:
+            log.warning("PX4 refused the climb in Hold: %s", exc)
 
     async def climb_to(self, altitude_m: float, timeout_s: float = 20.0) -> None:
         """Climb (or descend) on the spot, in OFFBOARD, to ``altitude_m`` above the floor, the

@@ -399,3 +399,29 @@ async def test_mission_items_at_0_0_are_flown_to_0_0() -> None:
     ap, texts = await _fly_mission_with_position_free_steps(replace(PX4, null_island_items=False))
     assert not any(t.startswith("First waypoint") for t in texts)
     assert ap.reached_items == [0, 1, 2] and math.hypot(ap.position_ned_m[0] - 2.0, ap.position_ned_m[1]) < 0.5
+
+
+@pytest.mark.parametrize("sinks", [True, False])
+async def test_hold_sinks_under_a_creeping_height_estimate_that_the_range_finder_shows(sinks: bool) -> None:
+    """PX4's Hold flies its height estimate, which creeps away from the floor: the vehicle
+    sinks while LOCAL_POSITION_NED holds its height; the downward range finder shows the truth."""
+    behaviour = replace(PX4, hold_sink_m_s=0.5 if sinks else 0.0, hold_sink_max_m=0.3)
+    async with mock(behaviour) as (ap, c):
+        await _take_off(ap, c, alt_m=1.5)
+        await asyncio.sleep(1.5)  # past the cap (0.6 s) and the vehicle's catching up
+        lp = await c.recv("LOCAL_POSITION_NED")
+        rng = await c.recv("DISTANCE_SENSOR")
+        true_height_m = -ap.position_ned_m[2]
+        reported_height_m = behaviour.floor_z_ned_m - lp.z
+        assert rng.orientation == mavlink.MAV_SENSOR_ROTATION_PITCH_270
+        assert rng.current_distance / 100.0 == pytest.approx(true_height_m, abs=0.02)
+        if sinks:
+            assert reported_height_m - true_height_m == pytest.approx(0.3, abs=0.02)
+            assert true_height_m == pytest.approx(1.5 - 0.3, abs=0.05)
+            # Back on the ground the estimate is true again.
+            assert await c.command(mavlink.MAV_CMD_NAV_LAND) == ACCEPTED
+            await ap.wait_until(lambda: not ap.in_air and ap.height_error_m == 0.0, 20.0,
+                                "landed with the estimate true again")
+        else:
+            assert reported_height_m == pytest.approx(true_height_m, abs=0.02)
+            assert true_height_m == pytest.approx(1.5, abs=0.05)

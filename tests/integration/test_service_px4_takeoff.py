@@ -8,6 +8,7 @@ import asyncio
 import math
 import time
 from collections.abc import Awaitable, Callable
+from dataclasses import replace
 
 import pytest
 
@@ -15,6 +16,7 @@ from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
 from companion.px4 import FlightMode
 from companion.service.mission_runner import MissionRunner, min_engage_height_m, took_off
+from companion.service.takeoff import engage_clearance_m
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.autopilot.behaviour import Px4Behaviour
 from companion.sim.demo_e2e import free_udp_port
@@ -139,6 +141,47 @@ def test_offboard_takes_over_a_climbing_hold_without_pulling_it_down() -> None:
     at_switch_m = heights[switch][1]
     assert at_switch_m > heights[0][1] + 0.3  # it climbed while the stream warmed up
     assert min(h for _o, h in heights[switch:]) >= at_switch_m - 0.15
+
+
+def test_offboard_is_not_engaged_over_a_hold_that_sank_during_the_warm_up() -> None:
+    """PX4's Hold flies its height estimate, which crept 0.17 m above the range finder's
+    height in SITL: the vehicle sank from above the engage height to 0.25 m during the
+    setpoint warm-up and OFFBOARD was reported there. The height is checked again, by the
+    range sensor too, right before the switch, and a sunk Hold is asked to climb back first."""
+    altitude_m = 0.6
+    heights: list[tuple[bool, float]] = []  # (in OFFBOARD, truth height above the floor)
+    sunk_m: list[float] = []
+
+    async def body(ap: MockAutopilot, v: Vehicle, runner: MissionRunner) -> None:
+        await runner.arm_when_ready()
+        await v.commands.takeoff(altitude_m)
+        await ap.wait_until(lambda: ap.mode is FlightMode.HOLD and ap.in_air, 15.0, "the take-off done")
+        await v.state.wait_for(lambda s: took_off(s, altitude_m) and s.flight_mode is FlightMode.HOLD,
+                               5.0, "Hold in the air")
+        # The estimate creeps up from now on: within the 1 s warm-up the Hold sinks 0.5 m
+        # (without the re-check OFFBOARD was reported 0.24 m above the floor).
+        ap.behaviour = replace(ap.behaviour, hold_sink_m_s=1.2, hold_sink_max_m=0.5)
+        done = asyncio.Event()
+
+        async def watch() -> None:
+            while not done.is_set():
+                heights.append((ap.mode is FlightMode.OFFBOARD, -ap.vehicle.position_ned_m[2]))
+                await asyncio.sleep(0.01)
+
+        watcher = asyncio.create_task(watch())
+        try:
+            await runner.engage_here(altitude_m)
+            await asyncio.sleep(0.2)
+        finally:
+            done.set()
+            await watcher
+        sunk_m.append(ap.height_error_m)
+        await runner.finish(FlightMode.HOLD)
+
+    _fly(Px4Behaviour(ready_after_s=0.0, hold_sink_m_s=0.0), body)
+    at_switch_m = next(h for offboard, h in heights if offboard)
+    assert sunk_m and sunk_m[0] >= 0.5 - 1e-6  # the Hold sank all the way before the switch
+    assert at_switch_m >= engage_clearance_m(altitude_m) - 0.05
 
 
 def test_take_off_waits_for_readiness_and_ends_the_take_off_before_offboard() -> None:

@@ -50,9 +50,10 @@ class Rig:
         return home.position_ned_m[2]
 
     def true_ned(self, local_ned_m: tuple[float, float, float]) -> tuple[float, float, float]:
-        """A reported local NED point in the mock's floor-based truth frame."""
+        """A reported local NED point in the mock's floor-based truth frame (the reported
+        height rises above the truth in Hold: ``Px4Behaviour.hold_sink_m_s``)."""
         n, e, d = local_ned_m
-        return (n, e, d - self.ground_z_m)
+        return (n, e, d - self.ground_z_m + self.ap.height_error_m)
 
     async def take_off(self) -> None:
         await self.cmds.arm()

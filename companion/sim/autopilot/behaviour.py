@@ -58,11 +58,19 @@ class Px4Behaviour:
     #: Mission items without a position (lat/lon 0/0) are flown to 0/0, with PX4's warning
     #: about the first waypoint; off: 0/0 means "here".
     null_island_items: bool = True
+    #: PX4's height estimate (EKF2, GPS height) creeps up while it holds in the air and Hold
+    #: flies the estimate, so the vehicle sinks at this rate (m/s) while LOCAL_POSITION_NED
+    #: and the altitudes stay put; the downward range finder (DISTANCE_SENSOR) shows the
+    #: truth. 0 = the estimate is the truth.
+    hold_sink_m_s: float = 0.05
+    #: ... until the estimate is this much above the truth (m); on the ground it is true again.
+    hold_sink_max_m: float = 0.1
 
     def __post_init__(self) -> None:
         if not self.clock_rate > 0.0:
             raise ValueError(f"Px4Behaviour.clock_rate must be > 0 (got {self.clock_rate})")
-        for name in ("ready_after_s", "tracking_delay_s", "wobble_m", "land_brake_accel_m_s2"):
+        for name in ("ready_after_s", "tracking_delay_s", "wobble_m", "land_brake_accel_m_s2", "hold_sink_m_s",
+                     "hold_sink_max_m"):
             value = getattr(self, name)
             if not value >= 0.0:
                 raise ValueError(f"Px4Behaviour.{name} must be >= 0 (got {value})")
@@ -73,7 +81,8 @@ class Px4Behaviour:
         return cls(floor_z_ned_m=0.0, ready_after_s=0.0, offboard_during_takeoff_dropped=False,
                    mode_after_disarm=False, heartbeat_on_change=True, clock_rate=1.0,
                    offboard_loss_px4_actions=False, tracking_delay_s=0.0, wobble_m=0.0,
-                   null_island_items=False, velocity_loop_lag=False, land_brake_accel_m_s2=0.0)
+                   null_island_items=False, velocity_loop_lag=False, land_brake_accel_m_s2=0.0,
+                   hold_sink_m_s=0.0)
 
 
 def behaviour_from_settings(settings: list[str], base: Px4Behaviour | None = None) -> Px4Behaviour:

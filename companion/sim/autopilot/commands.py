@@ -269,7 +269,7 @@ class CommandHandler:
         if math.isfinite(lat) and math.isfinite(lon) and (lat != 0 or lon != 0):
             n, e, _ = ap.home.to_ned(lat, lon, ap.home.alt_m)
         if math.isfinite(p[6]):
-            d = ap.home.alt_m - p[6]  # AMSL altitude
+            d = ap.home.alt_m - p[6] + ap.height_error_m  # AMSL altitude, as the estimate has it
         if p[0] > 0:
             ap.navigator.set_cruise_speed(p[0])
         ap.set_mode(FlightMode.HOLD, hold_at_ned_m=(n, e, d))

@@ -160,6 +160,8 @@ class MockAutopilot:
         self.aiding = VisionAiding(self.params, self.estimator, seed)
         self._mode = FlightMode.HOLD
         self._mode_after_disarm = FlightMode.HOLD
+        #: How far the reported height is above the true one (``Px4Behaviour.hold_sink_m_s``).
+        self.height_error_m = 0.0
         self._armed = False
         self._armed_at_s = 0.0
         self._has_flown = False
@@ -441,6 +443,7 @@ class MockAutopilot:
         self.vehicle.step(dt_s, clock_s=now)
         self.estimator.update(self.vehicle.state(), armed=self._armed)
         self.navigator.tick(self.vehicle.stamp_s)
+        self._sink_in_hold(dt_s)
         self.aiding.tick(now)
         self._check_offboard(now)
         self._check_position(now)
@@ -515,6 +518,24 @@ class MockAutopilot:
         v = tgt.velocity_ned_m_s
         return v is not None and math.isfinite(v[2]) and v[2] < -0.05
 
+    def _sink_in_hold(self, dt_s: float) -> None:
+        """PX4's Hold flies a height estimate that creeps up: the true hold point sinks while
+        the reported height stays (``Px4Behaviour.hold_sink_m_s``)."""
+        b = self.behaviour
+        if not self.in_air:
+            self.height_error_m = 0.0
+            return
+        if b.hold_sink_m_s <= 0.0 or self._mode is not FlightMode.HOLD:
+            return
+        step = min(b.hold_sink_m_s * dt_s, b.hold_sink_max_m - self.height_error_m)
+        if step > 0.0 and self.navigator.lower_hold(step):
+            self.height_error_m += step
+
+    @property
+    def reported_floor_z_ned_m(self) -> float:
+        """The local z the mock reports for the floor now (the estimate's height error included)."""
+        return self.behaviour.floor_z_ned_m - self.height_error_m
+
     def _update_landed(self, now: float) -> None:
         on_ground = (not self._armed) or (self.vehicle.on_ground and not self._wants_climb())
         if on_ground:
@@ -565,13 +586,14 @@ class MockAutopilot:
         floor_z = self.behaviour.floor_z_ned_m
         return telemetry.Snapshot(
             time_boot_ms=int(now * 1000), time_usec=int(now * 1e6),
-            vehicle=report_state(self.estimated_state(), floor_z), home=self.ekf_origin,
+            vehicle=report_state(self.estimated_state(), self.reported_floor_z_ned_m), home=self.ekf_origin,
             home_ned_m=report_ned(self.navigator.home_ned_m, floor_z), mode=self._mode,
             armed=self._armed, landed_state=self.landed_state,
             sensors_health=health, mission_seq=nav.mission_seq, mission_total=nav.mission_count,
             mission_state=int(nav.mission_state), battery_remaining_pct=int(self._battery_pct),
             system_id=self.system_id,
-            gps_fix=not any(u == mavlink.FAILURE_UNIT_SENSOR_GPS for u, _i in self.failures))
+            gps_fix=not any(u == mavlink.FAILURE_UNIT_SENSOR_GPS for u, _i in self.failures),
+            range_down_m=-self.vehicle.position_ned_m[2])
 
     def _stream(self, now: float) -> None:
         snap: telemetry.Snapshot | None = None
@@ -730,7 +752,7 @@ class MockAutopilot:
         mtype = msg.get_type()
         try:
             if mtype == "SET_POSITION_TARGET_LOCAL_NED":
-                floor_z = self.behaviour.floor_z_ned_m
+                floor_z = self.reported_floor_z_ned_m
                 est = report_state(self.estimated_state(), floor_z)
                 target = accept_target(
                     offboard.target_from_local_ned(msg, est.position_ned_m, est.yaw_rad), floor_z)

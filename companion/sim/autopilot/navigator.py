@@ -368,6 +368,17 @@ class Navigator:
         self._vehicle.set_target(Target(position_ned_m=leg.target_ned_m, yaw_rad=yaw,
                                         speed_xy_m_s=speed, speed_up_m_s=climb))
 
+    def lower_hold(self, delta_m: float) -> bool:
+        """Move a Hold's target ``delta_m`` down (true frame), as PX4's Hold does when its height
+        estimate creeps up; False when not holding a point."""
+        if self.mode is not FlightMode.HOLD or not self._legs or self._legs[0].phase is not _Phase.WAIT:
+            return False
+        leg = self._legs[0]
+        n, e, d = leg.target_ned_m
+        leg.target_ned_m = (n, e, d + delta_m)
+        self._apply_leg()
+        return True
+
     def tick(self, now_s: float) -> None:
         """Advance the active auto mode (call once per physics step, after the vehicle moved)."""
         if not self._vehicle.motors_on:

@@ -88,6 +88,7 @@ class Snapshot:
     battery_remaining_pct: int
     system_id: int
     gps_fix: bool = True  # False while a GPS failure is injected
+    range_down_m: float | None = None  # the downward range finder's truth (SIH has one)
 
 
 def quaternion_wxyz(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, ...]:
@@ -145,6 +146,17 @@ def global_position_int(mav: mavlink.MAVLink, s: Snapshot) -> Any:
         s.time_boot_ms, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
         int(round((s.home_ned_m[2] - d) * 1000)), int(round(vn * 100)), int(round(ve * 100)),
         int(round(vd * 100)), hdg)
+
+
+#: The downward range finder's limits (cm), as SIH's.
+RANGE_MIN_CM, RANGE_MAX_CM = 1, 4000
+
+
+def distance_sensor(mav: mavlink.MAVLink, s: Snapshot) -> Any:
+    """The downward range finder (orientation PITCH_270): the true height above the floor."""
+    cm = RANGE_MAX_CM + 1 if s.range_down_m is None else int(round(max(s.range_down_m, 0.0) * 100))
+    return mav.distance_sensor_encode(s.time_boot_ms, RANGE_MIN_CM, RANGE_MAX_CM, max(cm, RANGE_MIN_CM),
+                                      mavlink.MAV_DISTANCE_SENSOR_LASER, 0, mavlink.MAV_SENSOR_ROTATION_PITCH_270, 255)
 
 
 def home_position(mav: mavlink.MAVLink, s: Snapshot) -> Any:
@@ -276,6 +288,7 @@ STREAMS: dict[str, tuple[int, Encoder, float]] = {
     "BATTERY_STATUS": (mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, battery_status, 1.0),
     "MISSION_CURRENT": (mavlink.MAVLINK_MSG_ID_MISSION_CURRENT, mission_current, 1.0),
     "HIGHRES_IMU": (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, highres_imu, 0.0),
+    "DISTANCE_SENSOR": (mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR, distance_sensor, 10.0),
 }
 
 #: Messages that can be requested once (MAV_CMD_REQUEST_MESSAGE) but are not streamed.
