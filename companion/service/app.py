@@ -43,7 +43,6 @@ from companion.px4 import FlightMode
 from companion.service.checkpoint import checkpoint_path, restore_map
 from companion.service.flight_log import FlightLog
 from companion.service.latency import LatencyStats
-from companion.service.localization import ServiceLocalization
 from companion.service.mission_control import MissionControl
 from companion.service.mission_runner import LegReport, MissionRunner
 from companion.service.perception_process import PerceptionProcess
@@ -51,6 +50,7 @@ from companion.service.perception_worker import (
     PerceptionPipeline,
     new_semantic_map,
 )
+from companion.service.position_source import ServiceLocalization
 from companion.service.status import StatusPublisher
 from companion.sources.base import FrameSource
 from companion.sources.poses import SharedPoseHistory, TelemetryPosedSource, TelemetryPoseRecorder

@@ -18,7 +18,7 @@ wrong cells. With ``service.localization: slam`` every frame passes through
 
 Degenerate scans (a corridor, a blank wall) fall back to odometry for the direction they do
 not constrain or entirely (``SlamStatus``); that is counted and reported, not silent, and
-such a pose is not sent to PX4 as vision (:func:`vision_pose`).
+such a pose is not sent to PX4 as vision (:mod:`companion.service.position_source`).
 
 The stage runs where the camera is read: :class:`LocalizedFrameSource` wraps the frame source,
 so the SLAM runs in the camera's reader thread of the perception process, never on the
@@ -29,31 +29,22 @@ event loop. Its output reaches the service process through :class:`SharedLocaliz
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
 import sys
 import threading
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.background import BackgroundTasks
 from companion.config import CompanionConfig
-from companion.mavlink.commands import CommandSender
-from companion.mavlink.link import MavlinkLink
-from companion.mavlink.timesync import TimesyncConvergence
-from companion.mavlink.vision import VisionPose, VisionStream
 from companion.service.perception_worker import semantic_map_settings
-from companion.service.vision_loss import VisionLossGuard, VisionLossMonitor
 from companion.shared_record import SharedRecord
 from companion.sources.base import FrameSource, WrappedSource
 from semmap.costmap import VerticalBand
-from semmap.errors import ConfigError
 from semmap.frames import invert, pose_from_xyz_rpy, rpy_from_rotation
 from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth
 from semmap.slam.pose2d import compose, inverse, relative
@@ -147,68 +138,6 @@ class SharedLocalization:
 
 #: The GIL switch interval of the process the SLAM runs in (seconds).
 SLAM_SWITCH_INTERVAL_S = 0.0005
-#: A SLAM pose older than this is not sent to the autopilot (the camera stalled).
-VISION_MAX_AGE_S = 1.0
-#: External-vision message rate (PX4 expects 30 Hz or more from a VIO).
-VISION_RATE_HZ = 30.0
-
-
-class VisionPoseSource:
-    """The latest SLAM pose for the autopilot's external-vision input (the
-    :class:`VisionStream`'s source, called at its rate): None when there is none, it is
-    stale, or it was not matched in full (PX4 keeps its own estimate then). Each pose carries
-    the configured 1-sigma errors and a ``reset_counter`` that counts the SLAM's jumps (see
-    :class:`JumpCounter`) and every return after a gap of ``reset_after_gap_s`` or more:
-    PX4 dead-reckoned on its IMU meanwhile and would reject the pose at its innovation gate.
-
-    Why not a partly matched pose: along its unconstrained direction it is the previous SLAM
-    pose moved by the increment of PX4's estimate, and that estimate is what the earlier
-    vision poses corrected. Fed back, the direction closes a loop with no measurement in it:
-    each fusion pulls the estimate a fraction of the way to the SLAM pose, the next scan's
-    prediction moves the SLAM pose by that same pull, and both drift together at that
-    fraction of their offset per scan (test_service_slam: a 4.5 cm offset became 0.26 m in
-    eleven partly matched scans along a wall; the map then kept it). An odometry fallback
-    is not sent for the same reason."""
-
-    def __init__(self, shared: SharedLocalization, *, max_age_s: float = 1.0, position_std_m: float | None = None,
-                 yaw_std_rad: float | None = None, reset_after_gap_s: float = math.inf,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        self.shared = shared
-        self.max_age_s = max_age_s
-        self.position_std_m = position_std_m
-        self.yaw_std_rad = yaw_std_rad
-        self.reset_after_gap_s = reset_after_gap_s
-        self.clock = clock
-        #: Returns after a gap (each bumped the reset counter).
-        self.gap_resets = 0
-        self._last_given_s: float | None = None
-
-    @classmethod
-    def from_config(cls, shared: SharedLocalization, cfg: CompanionConfig) -> VisionPoseSource:
-        link = cfg.link
-        return cls(shared, max_age_s=VISION_MAX_AGE_S, position_std_m=link.vision_position_std_m,
-                   yaw_std_rad=math.radians(link.vision_yaw_std_deg), reset_after_gap_s=link.vision_lost_hold_s)
-
-    def __call__(self) -> VisionPose | None:
-        st = self.shared.latest()
-        if st is None or st.status != SlamStatus.OK.value or st.age_s > self.max_age_s:
-            return None
-        now = self.clock()
-        if self._last_given_s is not None and now - self._last_given_s >= self.reset_after_gap_s:
-            self.gap_resets += 1
-            log.warning("external vision back after %.1f s without a matched SLAM pose: reset counter bumped "
-                        "(PX4 takes the pose as it is)", now - self._last_given_s)
-        self._last_given_s = now
-        return VisionPose(st.stamp_s, st.T_map_body, 100, (st.resets + self.gap_resets) & 0xFF,
-                          self.position_std_m, self.yaw_std_rad)
-
-
-def vision_pose(shared: SharedLocalization, max_age_s: float = VISION_MAX_AGE_S) -> VisionPose | None:
-    """One look at the latest SLAM pose for PX4 (see :class:`VisionPoseSource`), without
-    covariances or gap tracking."""
-    return VisionPoseSource(shared, max_age_s=max_age_s)()
-
-
 class JumpCounter:
     """Counts the jumps of the matched SLAM pose: a pose farther than ``jump_m`` (or turned
     more than ``jump_rad``) from where the previous matched pose and the odometry since then
@@ -418,128 +347,3 @@ def localized_source(cfg: CompanionConfig, source: FrameSource,
     if cfg.service.localization != "slam":
         return source
     return LocalizedFrameSource(source, cfg, shared)
-
-
-class ServiceLocalization:
-    """The localization stage as the service wires it: the shared state, the camera wrapped
-    in the SLAM (:meth:`source`), the external-vision stream to PX4 (:meth:`vision_stream`)
-    and what the status reports (:meth:`health`, :meth:`detail`, :meth:`summary`).
-
-    With ``service.localization: slam`` the map is in the SLAM's frame; the planner flies
-    with the autopilot's position, which is in that frame only when PX4 fuses the SLAM pose,
-    so ``link.external_vision`` must be on (a :class:`ConfigError` otherwise)."""
-
-    #: A run of consecutive odometry fallbacks this long marks localization unhealthy.
-    UNHEALTHY_FALLBACK_RUN = 30
-
-    def __init__(self, cfg: CompanionConfig) -> None:
-        self.cfg = cfg
-        self.enabled = cfg.service.localization == "slam"
-        if self.enabled and not cfg.link.external_vision:
-            raise ConfigError("service.localization is 'slam' but link.external_vision is false: the map would be "
-                              "in the SLAM's frame and the setpoints in the autopilot's drifting one; set "
-                              "link.external_vision: true (PX4 then fuses the SLAM pose)")
-        if cfg.sim.gps_denied and cfg.sim.autopilot == "mock" and not (self.enabled and cfg.link.vision_is_position_source):
-            raise ConfigError("sim.gps_denied: the mock autopilot's only position source is the SLAM pose; set "
-                              "service.localization: slam, link.external_vision: true and "
-                              "link.vision_is_position_source: true")
-        self.shared = SharedLocalization() if self.enabled else None
-        self.stream: VisionStream | None = None
-        self.vision_source: VisionPoseSource | None = None
-        self.loss_guard_: VisionLossGuard | None = None
-        self.timesync: TimesyncConvergence | None = None
-
-    def source(self, frame_source: FrameSource) -> FrameSource:
-        """The camera as perception should read it (wrapped in the SLAM when enabled)."""
-        return localized_source(self.cfg, frame_source, self.shared)
-
-    def vision_stream(self, link: MavlinkLink) -> contextlib.AbstractAsyncContextManager[object]:
-        """The 30 Hz external-vision stream on ``link`` (a no-op when disabled), with PX4's
-        TIMESYNC brought to convergence first (:class:`TimesyncConvergence`): until then PX4
-        stamps each pose on arrival, a SLAM latency late."""
-        shared = self.shared
-        if shared is None or not self.cfg.link.external_vision:
-            return contextlib.nullcontext()
-        self.vision_source = VisionPoseSource.from_config(shared, self.cfg)
-        self.stream = VisionStream(link, self.vision_source, VISION_RATE_HZ)
-        c = self.cfg.link
-        self.timesync = TimesyncConvergence(link, CommandSender(link, c.target_system, c.target_component),
-                                            c.target_system)
-        return self._vision_stream(self.stream, self.timesync)
-
-    @contextlib.asynccontextmanager
-    async def _vision_stream(self, stream: VisionStream, timesync: TimesyncConvergence) -> AsyncIterator[VisionStream]:
-        detach = timesync.attach()
-        tasks = BackgroundTasks()
-        await tasks.open()
-        try:
-            tasks.start(timesync.run(), name="timesync-convergence")
-            async with stream:
-                yield stream
-        finally:
-            await tasks.close()
-            detach()
-
-    def latest(self) -> LocalizationState | None:
-        """The latest SLAM result (None when disabled or before the first frame)."""
-        return self.shared.latest() if self.shared is not None else None
-
-    def health(self) -> dict[str, bool]:
-        """``{"localization": ok}`` for the status (empty when disabled): False before the
-        first scan, when the last one is older than the camera allows, or in a long run
-        of odometry fallbacks."""
-        if not self.enabled:
-            return {}
-        st = self.latest()
-        ok = (st is not None and st.age_s <= self.cfg.map.stale_after_s
-              and st.consecutive_fallbacks < self.UNHEALTHY_FALLBACK_RUN)
-        return {"localization": ok}
-
-    def detail(self) -> str:
-        """A short status text (empty when disabled)."""
-        if not self.enabled:
-            return ""
-        st = self.latest()
-        if st is None:
-            return "slam: no scan yet"
-        sent = self.stream.sent if self.stream is not None else 0
-        return (f"slam {st.status}: {st.scans} scans, {st.partial} partly / {st.fallbacks} wholly from "
-                f"odometry, {st.loop_closures} loops, {sent} vision msgs")
-
-    def summary(self) -> dict[str, float | int | str]:
-        """The counters for the run's report (empty when disabled)."""
-        st = self.latest()
-        if st is None:
-            return {}
-        out = st.summary()
-        if self.stream is not None:
-            out["vision_sent"] = self.stream.sent
-            out["vision_sent_new"] = self.stream.sent_new
-        if self.vision_source is not None:
-            out["vision_gap_resets"] = self.vision_source.gap_resets
-        if self.loss_guard_ is not None:
-            out["vision_loss_actions"] = ",".join(a.value for _, a, _ in self.loss_guard_.events)
-        return out
-
-    @property
-    def pose_ok(self) -> bool:
-        """False while the vehicle holds or lands for want of our pose (see :mod:`.vision_loss`)."""
-        return self.loss_guard_ is None or self.loss_guard_.monitor.pose_ok
-
-    def loss_guard(self, link: MavlinkLink, in_air: Callable[[], bool],
-                   land: Callable[[], Awaitable[None]]) -> VisionLossGuard | None:
-        """The guard that holds and lands when PX4's vision stops (None unless the SLAM pose
-        goes to PX4 as its only position source, ``link.vision_is_position_source``)."""
-        link_cfg = self.cfg.link
-        if self.shared is None or not link_cfg.external_vision or not link_cfg.vision_is_position_source:
-            return None
-        monitor = VisionLossMonitor(self.cfg.link.vision_lost_hold_s, self.cfg.link.vision_lost_land_s)
-        self.loss_guard_ = VisionLossGuard(monitor, link, self.vision_age_s, in_air, land, clock=time.monotonic)
-        return self.loss_guard_
-
-    def vision_age_s(self) -> float | None:
-        """Seconds since the last new SLAM pose went to PX4 (None: never, or disabled); the
-        stream repeats a pose until the next scan, and a repeat tells EKF2 nothing."""
-        if self.stream is None or self.stream.last_new_s is None:
-            return None
-        return time.monotonic() - self.stream.last_new_s

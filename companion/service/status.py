@@ -18,9 +18,9 @@ from companion.config import CompanionConfig
 from companion.ground import MqttBridge
 from companion.mavlink.vehicle import Vehicle
 from companion.service.latency import LatencyStats
-from companion.service.localization import ServiceLocalization
 from companion.service.mission_runner import MissionRunner, position_enu
 from companion.service.perception_process import PerceptionProcess
+from companion.service.position_source import ServiceLocalization
 from companion.systemd_notify import SystemdNotifier, Watchdog
 from semmap.errors import CompanionError
 from semmap.frames import ned_to_enu, yaw_ned_to_enu

@@ -13,9 +13,8 @@ from companion.service.localization import (
     _STATUS_CODES,
     JumpCounter,
     SharedLocalization,
-    VisionPoseSource,
-    vision_pose,
 )
+from companion.service.position_source import VisionPoseSource, vision_pose
 from semmap.slam import SlamStatus
 
 
