@@ -67,6 +67,9 @@ LOSS_RECOVERY_S = 3.0
 #: A run of scans without a matched pose at least this long counts as a gap (s): the
 #: service holds after ``link.vision_lost_hold_s`` of them.
 GAP_S = 0.5
+#: The truth's height above the floor (m) at which the vehicle counts as touched down (its
+#: body stands 0.1 m up on its landing gear).
+TOUCHDOWN_M = 0.15
 
 
 def scan_gaps(scans: list[tuple[float, float, int, float]]) -> dict[str, Any]:
@@ -260,6 +263,8 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     summary["scan_gaps"] = scan_gaps(scans)
     summary["vision_loss_actions"] = report.localization.get("vision_loss_actions", "")
     if slam_loss_s > 0.0:
+        if loss_window:
+            loss.update(landing_after_loss(truth.samples, loss_window[0]))
         summary["slam_loss"] = {"seconds": slam_loss_s, **loss}
     summary["px4_log_events"] = sitl.log_lines_since(0, r"WARN|ERROR|Armed|Disarmed|[Ll]anding|[Tt]akeoff|"
                                                         r"[Ff]ailsafe|[Oo]ffboard|vision|EV |reset")[-40:]
@@ -271,6 +276,23 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
                         scans=np.array(scans).reshape(-1, 4))
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
     return summary
+
+
+def landing_after_loss(samples: list[Any], lost_at_s: float) -> dict[str, Any]:
+    """Where the vehicle touched down after the SLAM was lost at ``lost_at_s`` (our clock), by
+    SIH's truth: ``landing_drift_m`` horizontally from where it was at the loss, and
+    ``touchdown_after_loss_s``; empty when it did not land."""
+    arr = np.array([(t.local_s, t.x_m, t.y_m, t.z_m) for t in samples], dtype=np.float64).reshape(-1, 4)
+    after = arr[arr[:, 0] >= lost_at_s]
+    if len(after) == 0 or after[0, 3] <= TOUCHDOWN_M:
+        return {}
+    down = np.flatnonzero(after[:, 3] <= TOUCHDOWN_M)
+    if len(down) == 0:
+        return {}
+    t = after[int(down[0])]
+    return {"landing_drift_m": round(float(np.hypot(t[1] - after[0, 1], t[2] - after[0, 2])), 3),
+            "touchdown_after_loss_s": round(float(t[0] - lost_at_s), 2),
+            "height_at_loss_m": round(float(after[0, 3]), 2)}
 
 
 def judge(truth: SihTruth, est: EstimateRecorder, slam: list[tuple[float, float, float]],
