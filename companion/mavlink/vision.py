@@ -8,11 +8,13 @@ flipping y and z::
     R_ned_frd = R_ned_enu @ R_map_flu @ R_flu_frd
 
 The message is ODOMETRY with ``frame_id = MAV_FRAME_LOCAL_NED``, ``child_frame_id =
-MAV_FRAME_BODY_FRD`` and ``estimator_type = MAV_ESTIMATOR_TYPE_VISION``; unknown velocities,
-rates and covariances are NaN, which PX4 reads as "not provided". The pose covariance carries
-what the 2D SLAM measures (x, y and yaw variances); height, roll and pitch are PX4's own
-(the SLAM echoes them), so their variances are NaN and EKF2 must not fuse them
-(``EKF2_EV_CTRL`` without the vertical bit).
+MAV_FRAME_BODY_FRD`` and ``estimator_type = MAV_ESTIMATOR_TYPE_VISION``; unknown velocities
+and rates are NaN, which PX4 reads as "not provided". The pose covariance is finite on its
+whole diagonal: EKF2 takes the x/y/z variances only when all three are finite (else it fuses
+every axis at ``EKF2_EVP_NOISE``), and the roll/pitch/yaw ones likewise (``EKF2_EVA_NOISE``).
+x, y and yaw carry what the 2D SLAM measures; height, roll and pitch are PX4's own (the SLAM
+echoes them), so they carry a wide variance that says "not measured here" and EKF2 must not
+fuse them (``EKF2_EV_CTRL`` without the vertical bit; EKF2 fuses no vision roll or pitch).
 
 :class:`VisionStream` sends the latest pose at a fixed rate (30 Hz by default) from its own
 task, stamped with the pose's capture time, so PX4's EKF2 fuses it at that time (it drops a
@@ -44,20 +46,31 @@ log = logging.getLogger(__name__)
 _NAN21 = [math.nan] * 21
 #: Indices of the diagonal of MAVLink's upper-triangular 6x6 pose covariance (x y z roll pitch yaw).
 _DIAG = (0, 6, 11, 15, 18, 20)
+#: 1-sigma of what the pose echoes from PX4 (height, roll, pitch): wide, so that a fusion of
+#: them, were it enabled, would hardly move PX4's own estimate that they came from.
+ECHOED_HEIGHT_STD_M = 1.0
+ECHOED_TILT_STD_RAD = math.radians(10.0)
+#: The yaw 1-sigma sent when none is given (the SLAM's heading is still measured).
+DEFAULT_YAW_STD_RAD = math.radians(5.0)
 
 
 def pose_covariance(position_std_m: float | None, yaw_std_rad: float | None) -> list[float]:
     """ODOMETRY's ``pose_covariance`` (21, row-major upper triangle, NED/FRD) for a 2D pose:
     x and y variance ``position_std_m`` squared each (the SLAM's error is not directional in a
-    way it reports), yaw variance ``yaw_std_rad`` squared, z/roll/pitch NaN (not measured),
-    off-diagonals 0. All NaN ("unknown", MAVLink's rule: NaN first element) without a
-    position standard deviation."""
+    way it reports), yaw variance ``yaw_std_rad`` squared (:data:`DEFAULT_YAW_STD_RAD` when
+    None), height/roll/pitch the wide echoed variances, off-diagonals 0. Every diagonal entry
+    is finite: one NaN among x/y/z (or roll/pitch/yaw) makes EKF2 drop all three for its
+    ``EKF2_EVP_NOISE`` (``EKF2_EVA_NOISE``). All NaN ("unknown", MAVLink's rule: NaN first
+    element) without a position standard deviation."""
     if position_std_m is None or not math.isfinite(position_std_m) or position_std_m <= 0.0:
         return list(_NAN21)
+    if yaw_std_rad is None or not math.isfinite(yaw_std_rad) or yaw_std_rad <= 0.0:
+        yaw_std_rad = DEFAULT_YAW_STD_RAD
     cov = [0.0] * 21
     var_xy = float(position_std_m) ** 2
-    yaw_var = float(yaw_std_rad) ** 2 if yaw_std_rad is not None and math.isfinite(yaw_std_rad) else math.nan
-    for k, v in zip(_DIAG, (var_xy, var_xy, math.nan, math.nan, math.nan, yaw_var), strict=True):
+    tilt_var = ECHOED_TILT_STD_RAD ** 2
+    diag = (var_xy, var_xy, ECHOED_HEIGHT_STD_M ** 2, tilt_var, tilt_var, float(yaw_std_rad) ** 2)
+    for k, v in zip(_DIAG, diag, strict=True):
         cov[k] = v
     return cov
 

@@ -66,7 +66,7 @@ GPS_DENIED_PX4_PARAMS: dict[str, float | int] = {
     "EKF2_BARO_NOISE": 0.5,    # SIH's baro (0.08 m s.d. at rest) holds the height while it is the only aid
     "EKF2_EV_DELAY": 0.0,      # our stamps are capture times, mapped onto PX4's clock by TIMESYNC
     "EKF2_DELAY_MAX": 200.0,   # fusion horizon (ms, PX4's default): see docs/mavlink.md before raising it
-    "EKF2_EVP_NOISE": 0.02,    # the noise EKF2 fuses our poses with (our NaN height makes it ignore our variances)
+    "EKF2_EVP_NOISE": 0.02,    # the least noise EKF2 fuses our poses with; above it, our covariance
     "EKF2_EVA_NOISE": 0.02,
 }
 #: PX4's start-up script has run: its links and shell answer.

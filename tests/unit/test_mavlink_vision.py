@@ -12,6 +12,9 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.vision import (
+    DEFAULT_YAW_STD_RAD,
+    ECHOED_HEIGHT_STD_M,
+    ECHOED_TILT_STD_RAD,
     VisionPose,
     VisionStream,
     pose_covariance,
@@ -88,10 +91,41 @@ def test_pose_covariance_carries_what_the_slam_measures() -> None:
     # Upper triangle, row-major: x at 0, y at 6, z at 11, roll 15, pitch 18, yaw 20.
     assert cov[0] == pytest.approx(0.0025) and cov[6] == pytest.approx(0.0025)
     assert cov[20] == pytest.approx(math.radians(2.0) ** 2)
-    # Height, roll and pitch are PX4's own (the SLAM echoes them): unknown, never claimed.
-    assert all(math.isnan(cov[k]) for k in (11, 15, 18))
+    # Height, roll and pitch are PX4's own (the SLAM echoes them): finite, and wide.
+    assert cov[11] == pytest.approx(ECHOED_HEIGHT_STD_M ** 2) and cov[11] >= 100 * cov[0]
+    assert cov[15] == cov[18] == pytest.approx(ECHOED_TILT_STD_RAD ** 2) and cov[15] > cov[20]
     assert all(cov[k] == 0.0 for k in range(21) if k not in (0, 6, 11, 15, 18, 20))
     assert all(math.isnan(v) for v in pose_covariance(None, 0.1))
+
+
+def _ekf2_ev_variances(odom: mavlink.MAVLink_odometry_message, evp_noise_m: float,
+                       eva_noise_rad: float) -> tuple[list[float], list[float]]:
+    """The position and orientation variances PX4's EKF2 fuses an ODOMETRY with
+    (mavlink_receiver: the covariance's diagonal; EKF2::UpdateExtVisionSample with
+    EKF2_EV_NOISE_MD 0: the three taken, floored at the noise parameter, only when all three
+    are finite, else the parameter for all three)."""
+    c = odom.pose_covariance
+
+    def take(var: list[float], noise: float) -> list[float]:
+        if all(math.isfinite(v) for v in var):
+            return [max(noise ** 2, v) for v in var]
+        return [noise ** 2] * 3
+    return take([c[0], c[6], c[11]], evp_noise_m), take([c[15], c[18], c[20]], eva_noise_rad)
+
+
+def test_ekf2_fuses_the_variances_we_send_not_its_noise_parameters() -> None:
+    link = MavlinkLink("udpout://127.0.0.1:9")
+    msg = vision_odometry_message(link, pose_from_xyz_rpy(1.0, 2.0, 0.5, yaw_rad=0.3), 1,
+                                  position_std_m=0.05, yaw_std_rad=math.radians(2.0))
+    decoded = mavlink.MAVLink(None).decode(bytearray(msg.pack(link.mav)))
+    # GPS_DENIED_PX4_PARAMS: EKF2_EVP_NOISE and EKF2_EVA_NOISE 0.02 (floors below our errors).
+    pos_var, att_var = _ekf2_ev_variances(decoded, 0.02, 0.02)
+    assert pos_var[:2] == pytest.approx([0.0025, 0.0025])
+    assert att_var[2] == pytest.approx(math.radians(2.0) ** 2)
+    # Without a yaw error the heading still gets a finite one (else EKF2 drops the attitude triple).
+    no_yaw = mavlink.MAVLink(None).decode(bytearray(vision_odometry_message(
+        link, np.eye(4), 1, position_std_m=0.05).pack(link.mav)))
+    assert _ekf2_ev_variances(no_yaw, 0.02, 0.02)[1][2] == pytest.approx(DEFAULT_YAW_STD_RAD ** 2)
 
 
 def test_vision_stream_counts_new_poses_apart_from_repeats() -> None:
