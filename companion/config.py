@@ -91,13 +91,15 @@ class LinkConfig(StageConfig):
     vision_is_position_source: bool = False
     #: No SLAM pose sent for this long while flying on it: hold on PX4's last estimate ...
     vision_lost_hold_s: float = Field(default=1.0, gt=0.0)
-    #: ... and land when it has not come back after this long (keep it below PX4's
-    #: ``EKF2_NOAID_TOUT``, 5 s, after which PX4 drops its position and fails over itself).
-    vision_lost_land_s: float = Field(default=4.0, gt=0.0)
+    #: ... and land when it has not come back after this long. None (default): as late as
+    #: PX4's estimate allows, so that the descent at ``MPC_LAND_SPEED`` touches down before
+    #: ``EKF2_NOAID_TOUT`` ends it (both read from PX4). A value is refused when that
+    #: descent from ``planner.flight_altitude_m`` cannot end in time, and capped at any height.
+    vision_lost_land_s: float | None = Field(default=None, gt=0.0)
 
     @model_validator(mode="after")
     def _vision_lost_order(self) -> "LinkConfig":
-        if self.vision_lost_land_s <= self.vision_lost_hold_s:
+        if self.vision_lost_land_s is not None and self.vision_lost_land_s <= self.vision_lost_hold_s:
             raise ValueError(f"link.vision_lost_land_s ({self.vision_lost_land_s}) must be longer than "
                              f"link.vision_lost_hold_s ({self.vision_lost_hold_s})")
         return self

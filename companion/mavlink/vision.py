@@ -142,6 +142,8 @@ class VisionStream:
         self.skipped = 0
         self.last_sent_s: float | None = None
         self.last_new_s: float | None = None
+        #: Capture time of the last new pose sent (its ``stamp_s``; None before the first).
+        self.last_new_stamp_s: float | None = None
         self._last_stamp_s = -math.inf
         self._task: asyncio.Task[None] | None = None
 
@@ -181,6 +183,7 @@ class VisionStream:
         if pose.stamp_s > self._last_stamp_s:
             self.sent_new += 1
             self.last_new_s = self.last_sent_s
+            self.last_new_stamp_s = pose.stamp_s
             self._last_stamp_s = pose.stamp_s
         return True
 

@@ -18,10 +18,16 @@ from companion.background import BackgroundTasks
 from companion.config import CompanionConfig
 from companion.mavlink.commands import CommandSender
 from companion.mavlink.link import MavlinkLink
+from companion.mavlink.params import ParamWatch
 from companion.mavlink.timesync import TimesyncConvergence
 from companion.mavlink.vision import VisionPose, VisionStream
 from companion.service.localization import LocalizationState, SharedLocalization, localized_source
-from companion.service.vision_loss import VisionLossGuard, VisionLossMonitor
+from companion.service.vision_loss import (
+    LAND_SPEED_PARAM,
+    NOAID_PARAM,
+    VisionLossGuard,
+    VisionLossMonitor,
+)
 from companion.sources.base import FrameSource
 from semmap.errors import ConfigError
 from semmap.slam import SlamStatus
@@ -196,20 +202,31 @@ class ServiceLocalization:
         """False while the vehicle holds or lands for want of our pose (see :mod:`.vision_loss`)."""
         return self.loss_guard_ is None or self.loss_guard_.monitor.pose_ok
 
-    def loss_guard(self, link: MavlinkLink, in_air: Callable[[], bool],
-                   land: Callable[[], Awaitable[None]]) -> VisionLossGuard | None:
+    def loss_guard(self, link: MavlinkLink, in_air: Callable[[], bool], land: Callable[[], Awaitable[None]],
+                   height_m: Callable[[], float | None] | None = None) -> VisionLossGuard | None:
         """The guard that holds and lands when PX4's vision stops (None unless the SLAM pose
-        goes to PX4 as its only position source, ``link.vision_is_position_source``)."""
-        link_cfg = self.cfg.link
-        if self.shared is None or not link_cfg.external_vision or not link_cfg.vision_is_position_source:
+        goes to PX4 as its only position source, ``link.vision_is_position_source``). It reads
+        PX4's ``EKF2_NOAID_TOUT`` and ``MPC_LAND_SPEED`` to land in time from ``height_m()``
+        (above the floor; ``planner.flight_altitude_m`` while unknown)."""
+        c = self.cfg.link
+        if self.shared is None or not c.external_vision or not c.vision_is_position_source:
             return None
-        monitor = VisionLossMonitor(self.cfg.link.vision_lost_hold_s, self.cfg.link.vision_lost_land_s)
-        self.loss_guard_ = VisionLossGuard(monitor, link, self.vision_age_s, in_air, land, clock=time.monotonic)
+        altitude_m = self.cfg.planner.flight_altitude_m
+        monitor = VisionLossMonitor(c.vision_lost_hold_s, c.vision_lost_land_s, default_height_m=altitude_m)
+        params = ParamWatch(link, c.target_system, c.target_component, (NOAID_PARAM, LAND_SPEED_PARAM))
+        self.loss_guard_ = VisionLossGuard(monitor, link, self.vision_age_s, in_air, land, clock=time.monotonic,
+                                           height_m=height_m, params=params, flight_altitude_m=altitude_m)
         return self.loss_guard_
 
     def vision_age_s(self) -> float | None:
-        """Seconds since the last new SLAM pose went to PX4 (None: never, or disabled); the
-        stream repeats a pose until the next scan, and a repeat tells EKF2 nothing."""
-        if self.stream is None or self.stream.last_new_s is None:
+        """Seconds since the capture of the last new SLAM pose sent to PX4 (None: never, or
+        disabled): EKF2's dead-reckoning timeout runs from the fused pose's time stamp, its
+        capture. The stream repeats a pose until the next scan, and a repeat tells EKF2
+        nothing. A stamp that is no plausible capture time on our clock counts from the send."""
+        stream = self.stream
+        if stream is None or stream.last_new_s is None:
             return None
-        return time.monotonic() - self.stream.last_new_s
+        now = time.monotonic()
+        stamp = stream.last_new_stamp_s
+        latency = stream.last_new_s - stamp if stamp is not None else math.nan
+        return now - stream.last_new_s + (latency if 0.0 <= latency <= VISION_MAX_AGE_S else 0.0)

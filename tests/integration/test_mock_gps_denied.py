@@ -118,3 +118,25 @@ async def test_without_vision_the_estimate_dead_reckons_and_px4_lands() -> None:
         assert any("no local position" in t for t in c.status_texts())
         assert [f.reason for f in ap.failsafes] == ["local position lost"]
         await ap.wait_until(lambda: not ap.in_air, 15.0, "the landing")
+
+
+async def test_without_a_position_px4_stops_local_position_and_drifts_as_it_descends() -> None:
+    async with gps_denied_mock(MPC_LAND_SPEED=0.7) as (ap, c):
+        async with vision_from_truth(ap, c):
+            await c.wait_ready(timeout_s=8.0)
+            await ap.wait_until(lambda: ap.position_ok, 5.0, "a position from vision")
+            assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+            assert await c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN,
+                                   ap.home.alt_m + 1.5) == ACCEPTED
+            await ap.wait_until(lambda: ap.mode is FlightMode.HOLD and ap.in_air, 15.0, "take-off")
+            lost_at = np.array(ap.position_ned_m[:2])
+        # EKF2_NOAID_TOUT (1 s) later PX4's xy_valid is false: LOCAL_POSITION_NED stops (PX4
+        # streams it only while valid) and Land, without a position, descends level and drifts.
+        await ap.wait_until(lambda: bool(ap.failsafes), 3.0, "the no-position failsafe")
+        assert ap.mode is FlightMode.LAND and ap.in_air
+        await asyncio.sleep(0.1)
+        sent = c.count("LOCAL_POSITION_NED")
+        await asyncio.sleep(0.5)
+        assert c.count("LOCAL_POSITION_NED") == sent
+        await ap.wait_until(lambda: not ap.in_air, 15.0, "the landing")
+        assert float(np.linalg.norm(np.array(ap.position_ned_m[:2]) - lost_at)) > 0.2

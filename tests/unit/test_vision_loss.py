@@ -3,12 +3,24 @@
 from __future__ import annotations
 
 import asyncio
+import time
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.config import CompanionConfig
 from companion.mavlink.link import MavlinkLink
-from companion.service.vision_loss import VisionLossAction, VisionLossGuard, VisionLossMonitor
+from companion.mavlink.vision import VisionPose, VisionStream
+from companion.service.position_source import ServiceLocalization
+from companion.service.vision_loss import (
+    LAND_MARGIN_S,
+    EstimateLimits,
+    VisionLossAction,
+    VisionLossGuard,
+    VisionLossMonitor,
+    check_land_after,
+)
 from semmap.errors import ConfigError
 
 HOLD, RESUME, LAND = VisionLossAction.HOLD, VisionLossAction.RESUME, VisionLossAction.LAND
@@ -91,3 +103,62 @@ def test_the_guard_tells_the_ground_station_and_lands() -> None:
     texts = [m.text for m in sent if m.get_type() == "STATUSTEXT"]
     assert texts[0].startswith("SLAM lost: holding") and texts[1].startswith("SLAM lost 4s: landing")
     assert [m.severity for m in sent] == [mavlink.MAV_SEVERITY_WARNING, mavlink.MAV_SEVERITY_CRITICAL]
+
+
+#: PX4's defaults: EKF2_NOAID_TOUT 5 s (in microseconds), MPC_LAND_SPEED 0.7 m/s.
+PX4_DEFAULTS = EstimateLimits.from_params({"EKF2_NOAID_TOUT": 5_000_000, "MPC_LAND_SPEED": 0.7})
+
+
+def test_the_landing_is_timed_to_touch_down_before_px4_drops_its_position() -> None:
+    assert PX4_DEFAULTS.noaid_timeout_s == pytest.approx(5.0)
+    # From 1.4 m: 2 s of descent and the margin before PX4's 5 s.
+    assert LAND_MARGIN_S == 0.5
+    assert PX4_DEFAULTS.land_deadline_s(1.4) == pytest.approx(5.0 - 2.0 - LAND_MARGIN_S)
+    m = VisionLossMonitor(1.0, limits=PX4_DEFAULTS, default_height_m=1.4)
+    assert m.deadline_s(1.4) == m.deadline_s(None) == pytest.approx(2.5)
+    assert _run(m, [0.0], 3.0) == [(1.0, HOLD), (2.5, LAND)]
+    # A configured time later than that is capped by it (a mission item's altitude above the
+    # flight altitude), an earlier one kept.
+    assert VisionLossMonitor(1.0, 3.5, limits=PX4_DEFAULTS).deadline_s(1.4) == pytest.approx(2.5)
+    assert VisionLossMonitor(1.0, 1.5, limits=PX4_DEFAULTS).deadline_s(1.4) == pytest.approx(1.5)
+
+
+def test_too_high_for_a_hold_the_vehicle_lands_at_once() -> None:
+    m = VisionLossMonitor(1.0, limits=PX4_DEFAULTS)
+    steps = []
+    for k in range(30):
+        action = m.step(0.1 * k, 0.1 * k, True, height_m=2.8)  # 4 s of descent: no time to hold
+        if action is not None:
+            steps.append((round(0.1 * k, 1), action))
+    assert steps == [(1.0, LAND)]
+
+
+def test_before_px4_has_answered_the_loss_lands_at_the_hold() -> None:
+    assert VisionLossMonitor(1.0).deadline_s(1.0) == 1.0
+    assert VisionLossMonitor(1.0, 4.0).deadline_s(1.0) == 4.0  # a configured time stands alone
+
+
+def test_a_landing_time_px4_cannot_carry_is_refused_with_what_to_change() -> None:
+    with pytest.raises(ConfigError, match=r"vision_lost_land_s \(4 s\).*flight_altitude_m \(1\.5 m\).*"
+                                          r"MPC_LAND_SPEED.*by 2\.36 s.*EKF2_NOAID_TOUT"):
+        check_land_after(4.0, 1.0, PX4_DEFAULTS, 1.5)
+    assert check_land_after(2.3, 1.0, PX4_DEFAULTS, 1.5) == pytest.approx(5.0 - 0.5 - 1.5 / 0.7)
+    assert check_land_after(None, 1.0, PX4_DEFAULTS, 1.5) == pytest.approx(5.0 - 0.5 - 1.5 / 0.7)
+    with pytest.raises(ConfigError, match="MPC_LAND_SPEED"):
+        EstimateLimits.from_params({"EKF2_NOAID_TOUT": 5_000_000, "MPC_LAND_SPEED": 0.0})
+
+
+def test_the_time_without_vision_counts_from_the_last_poses_capture() -> None:
+    # EKF2's timeout runs from the fused pose's stamp (its capture), not from when we sent it.
+    base = CompanionConfig()
+    cfg = base.model_copy(update={"service": base.service.model_copy(update={"localization": "slam"}),
+                                  "link": base.link.model_copy(update={"external_vision": True})})
+    loc = ServiceLocalization(cfg)
+    link = MavlinkLink("udpout://127.0.0.1:9")
+    link.send = lambda msg: None  # type: ignore[method-assign]
+    captured = time.monotonic() - 0.3
+    loc.stream = VisionStream(link, lambda: VisionPose(captured, np.eye(4), position_std_m=0.05))
+    assert loc.vision_age_s() is None
+    assert loc.stream.send_once()
+    age = loc.vision_age_s()
+    assert age is not None and 0.3 <= age < 0.4

@@ -65,12 +65,17 @@ class Px4Behaviour:
     hold_sink_m_s: float = 0.05
     #: ... until the estimate is this much above the truth (m); on the ground it is true again.
     hold_sink_max_m: float = 0.1
+    #: Without a horizontal position (no GPS, no vision for ``EKF2_NOAID_TOUT``) PX4's Land
+    #: falls back to Descend: level attitude, no position control. The vehicle keeps the
+    #: velocity it had and accelerates sideways by this attitude error (deg, in a seeded
+    #: direction) while it descends at ``MPC_LAND_SPEED``.
+    blind_tilt_error_deg: float = 1.5
 
     def __post_init__(self) -> None:
         if not self.clock_rate > 0.0:
             raise ValueError(f"Px4Behaviour.clock_rate must be > 0 (got {self.clock_rate})")
         for name in ("ready_after_s", "tracking_delay_s", "wobble_m", "land_brake_accel_m_s2", "hold_sink_m_s",
-                     "hold_sink_max_m"):
+                     "hold_sink_max_m", "blind_tilt_error_deg"):
             value = getattr(self, name)
             if not value >= 0.0:
                 raise ValueError(f"Px4Behaviour.{name} must be >= 0 (got {value})")

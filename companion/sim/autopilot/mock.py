@@ -188,6 +188,11 @@ class MockAutopilot:
         self.peer_clock = PeerClock()
         self._last_vision_stamp_s = -math.inf
         self.failsafes: list[FailsafeEvent] = []
+        #: Since when PX4 descends without a horizontal position (None: it has one).
+        self._blind_since: float | None = None
+        self._blind_v0 = np.zeros(2)
+        heading = float(np.random.default_rng(seed + 7).uniform(-math.pi, math.pi))
+        self._blind_dir = np.array([math.cos(heading), math.sin(heading)])
         #: Every mode change as ``(mock clock s, new mode)``, for judging a flight afterwards.
         self.mode_changes: deque[tuple[float, FlightMode]] = deque(maxlen=1000)
         self.messages_received: Counter[str] = Counter()
@@ -502,13 +507,33 @@ class MockAutopilot:
         return not self.aiding.active or self.aiding.position_valid(self.now_s())
 
     def _check_position(self, now: float) -> None:
-        """GPS off and no vision for ``EKF2_NOAID_TOUT``: PX4 has no position and lands."""
-        if not (self.aiding.active and self._armed and self.in_air) or self._mode is FlightMode.LAND:
+        """GPS off and no vision for ``EKF2_NOAID_TOUT``: PX4 has no horizontal position, and
+        its failsafe lands without one (Descend, reported as Land): level, no position
+        control, drifting (:meth:`_descend_blind`) until vision comes back or it is down."""
+        if not (self.aiding.active and self._armed and self.in_air):
+            self._blind_since = None
             return
-        if self.aiding.position_lost(now):
+        if not self.aiding.position_lost(now):
+            if self._blind_since is not None:
+                self._blind_since = None
+                self.navigator.enter(self._mode)  # a position again: Land holds where it is now
+            return
+        if self._blind_since is None:
+            self._blind_since = now
+            self._blind_v0 = np.array(self.vehicle.state().velocity_ned_m_s[:2], dtype=np.float64)
             self.announce(mavlink.MAV_SEVERITY_CRITICAL, "Failsafe: no local position, Land")
             self.failsafes.append(FailsafeEvent(now, "local position lost", FlightMode.LAND))
-            self.set_mode(FlightMode.LAND, failsafe=True)
+            if self._mode is not FlightMode.LAND:
+                self.set_mode(FlightMode.LAND, failsafe=True)
+        self._descend_blind(now)
+
+    def _descend_blind(self, now: float) -> None:
+        assert self._blind_since is not None
+        accel = 9.81 * math.tan(math.radians(self.behaviour.blind_tilt_error_deg))
+        v_xy = self._blind_v0 + self._blind_dir * accel * (now - self._blind_since)
+        self.vehicle.set_target(Target(position_ned_m=(math.nan, math.nan, math.nan),
+                                       velocity_ned_m_s=(float(v_xy[0]), float(v_xy[1]),
+                                                         self.params.get("MPC_LAND_SPEED"))))
 
     def _wants_climb(self) -> bool:
         tgt = self.vehicle.target
@@ -601,6 +626,8 @@ class MockAutopilot:
             interval, due = sched
             if interval <= 0 or now < due or (name == "HOME_POSITION" and not self.ready):
                 continue
+            if name == "LOCAL_POSITION_NED" and self._blind_since is not None:
+                continue  # PX4 streams it only while xy_valid and v_xy_valid
             sched[1] = due + interval if now - due < interval else now + interval
             snap = snap or self.snapshot()
             self.send(telemetry.STREAMS[name][1](self._mav, snap))
