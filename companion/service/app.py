@@ -214,7 +214,7 @@ class CompanionService:
             missions = self.missions
             guard = loc.loss_guard(vehicle.link, lambda: vehicle.snapshot().in_air,
                                    lambda: missions.land_here("the SLAM pose (PX4's position source) is lost"),
-                                   height_m=lambda: vehicle.snapshot().clearance_below_m())
+                                   height_m=lambda: vehicle.snapshot().height_above_floor_m)
             flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
             self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
             self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,

@@ -16,7 +16,7 @@ with explicit times:
 * still none at the deadline -> ``LAND``: the mission is stopped and PX4 lands where it is.
   The deadline is the earlier of ``land_after_s`` (``link.vision_lost_land_s``, None: none)
   and the latest one PX4's estimate allows from the present height (a vehicle too high for
-  a hold first lands at once).
+  a hold lands without one when the loss is noticed, after ``hold_after_s``).
 
 :class:`VisionLossGuard` is the service's driver: it reads the two parameters from PX4 (and
 follows their changes), refuses a ``link.vision_lost_land_s`` they cannot carry from the
@@ -105,7 +105,7 @@ def check_land_after(land_after_s: float | None, hold_after_s: float, limits: Es
             f"or raise {NOAID_PARAM} or {LAND_SPEED_PARAM} on the autopilot")
     if deadline <= hold_after_s:
         log.warning("vision loss: at %.2f m PX4's position (%s %.1f s, %s %.2f m/s) lasts too short for a hold of "
-                    "%.1f s (link.vision_lost_hold_s) before the landing: the vehicle lands as soon as the pose is lost",
+                    "%.1f s (link.vision_lost_hold_s) before the landing: the vehicle lands without holding when the loss is noticed",
                     flight_altitude_m, NOAID_PARAM, limits.noaid_timeout_s, LAND_SPEED_PARAM,
                     limits.land_speed_m_s, hold_after_s)
     return deadline
