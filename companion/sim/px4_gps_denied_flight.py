@@ -218,12 +218,13 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
                 v = service.vehicle
                 if held_xy is None and v is not None and v.offboard.state is OffboardState.HOLDING:
                     held_xy = (time.monotonic(), truth.path_map_m()[-1, :2].copy())
+                    loss["held"] = True  # now: a landing during the loss ends the flight and this task
                 if held_xy is not None and time.monotonic() - held_xy[0] > 1.0:
                     drift = float(np.linalg.norm(truth.path_map_m()[-1, :2] - held_xy[1]))
                     loss["hold_drift_m"] = max(loss.get("hold_drift_m", 0.0), drift)
             truth.shared.camera_missing = False
             loss_window.append(time.monotonic() + LOSS_RECOVERY_S)
-            loss["held"] = held_xy is not None
+            loss.setdefault("held", False)
 
         async def on_active(svc: CompanionService) -> None:
             v = svc.vehicle

@@ -79,13 +79,15 @@ async def _lose_slam(world: SimWorld, svc: CompanionService, seconds: float, out
 
 
 @pytest.mark.slow
-def test_a_mission_flown_on_the_slam_pose_alone_survives_three_seconds_without_it(tmp_path: Path) -> None:
+def test_a_mission_flown_on_the_slam_pose_alone_survives_two_seconds_without_it(tmp_path: Path) -> None:
     cfg = _cfg(tmp_path)
     out: dict[str, Any] = {}
 
     async def inject(world: SimWorld, svc: CompanionService, broker: Any) -> None:
         assert world.autopilot.aiding.active
-        await _lose_slam(world, svc, 3.0, out)
+        # Shorter than the landing deadline at the flight altitude (3.1 s at 0.6 m with PX4's
+        # EKF2_NOAID_TOUT 5 s), pipeline latency included: the flight goes on.
+        await _lose_slam(world, svc, 2.0, out)
 
     result = asyncio.run(run_e2e(cfg, tmp_path / "out", use_broker=False, timeout_s=150.0, inject=inject))
     s = result.summary

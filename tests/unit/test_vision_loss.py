@@ -112,14 +112,14 @@ PX4_DEFAULTS = EstimateLimits.from_params({"EKF2_NOAID_TOUT": 5_000_000, "MPC_LA
 def test_the_landing_is_timed_to_touch_down_before_px4_drops_its_position() -> None:
     assert PX4_DEFAULTS.noaid_timeout_s == pytest.approx(5.0)
     # From 1.4 m: 2 s of descent and the margin before PX4's 5 s.
-    assert LAND_MARGIN_S == 0.5
+    assert LAND_MARGIN_S == 1.0
     assert PX4_DEFAULTS.land_deadline_s(1.4) == pytest.approx(5.0 - 2.0 - LAND_MARGIN_S)
     m = VisionLossMonitor(1.0, limits=PX4_DEFAULTS, default_height_m=1.4)
-    assert m.deadline_s(1.4) == m.deadline_s(None) == pytest.approx(2.5)
-    assert _run(m, [0.0], 3.0) == [(1.0, HOLD), (2.5, LAND)]
+    assert m.deadline_s(1.4) == m.deadline_s(None) == pytest.approx(2.0)
+    assert _run(m, [0.0], 3.0) == [(1.0, HOLD), (2.0, LAND)]
     # A configured time later than that is capped by it (a mission item's altitude above the
     # flight altitude), an earlier one kept.
-    assert VisionLossMonitor(1.0, 3.5, limits=PX4_DEFAULTS).deadline_s(1.4) == pytest.approx(2.5)
+    assert VisionLossMonitor(1.0, 3.5, limits=PX4_DEFAULTS).deadline_s(1.4) == pytest.approx(2.0)
     assert VisionLossMonitor(1.0, 1.5, limits=PX4_DEFAULTS).deadline_s(1.4) == pytest.approx(1.5)
 
 
@@ -140,10 +140,10 @@ def test_before_px4_has_answered_the_loss_lands_at_the_hold() -> None:
 
 def test_a_landing_time_px4_cannot_carry_is_refused_with_what_to_change() -> None:
     with pytest.raises(ConfigError, match=r"vision_lost_land_s \(4 s\).*flight_altitude_m \(1\.5 m\).*"
-                                          r"MPC_LAND_SPEED.*by 2\.36 s.*EKF2_NOAID_TOUT"):
+                                          r"MPC_LAND_SPEED.*by 1\.86 s.*EKF2_NOAID_TOUT"):
         check_land_after(4.0, 1.0, PX4_DEFAULTS, 1.5)
-    assert check_land_after(2.3, 1.0, PX4_DEFAULTS, 1.5) == pytest.approx(5.0 - 0.5 - 1.5 / 0.7)
-    assert check_land_after(None, 1.0, PX4_DEFAULTS, 1.5) == pytest.approx(5.0 - 0.5 - 1.5 / 0.7)
+    assert check_land_after(1.8, 1.0, PX4_DEFAULTS, 1.5) == pytest.approx(5.0 - 1.0 - 1.5 / 0.7)
+    assert check_land_after(None, 1.0, PX4_DEFAULTS, 1.5) == pytest.approx(5.0 - 1.0 - 1.5 / 0.7)
     with pytest.raises(ConfigError, match="MPC_LAND_SPEED"):
         EstimateLimits.from_params({"EKF2_NOAID_TOUT": 5_000_000, "MPC_LAND_SPEED": 0.0})
 
