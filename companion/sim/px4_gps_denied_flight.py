@@ -252,7 +252,8 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     summary = _summary(cfg, placement, report, truth.path_map_m(), wps_map, [], service, time.monotonic() - t_start)
     for k in ("setpoint_gaps", "setpoints_received", "stage_timings_ms", "objects_found", "checkpoints"):
         summary.pop(k, None)
-    window = (loss_window[0], loss_window[1]) if len(loss_window) == 2 else None
+    # A landing during the loss ends the flight before the loss does: judged apart to the end.
+    window = (loss_window[0], loss_window[1] if len(loss_window) == 2 else math.inf) if loss_window else None
     summary.update(judge(truth, est, slam, window))
     if window is not None:
         with_loss = judge(truth, est, slam)
