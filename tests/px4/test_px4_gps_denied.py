@@ -22,7 +22,7 @@ from companion.errors import CommandError
 from companion.geo import GeoOrigin
 from companion.mavlink.timesync import TimesyncConvergence
 from companion.mavlink.vehicle import Vehicle
-from companion.mavlink.vision import VisionPose, VisionStream
+from companion.mavlink.vision import ECHOED_HEIGHT_STD_M, VisionPose, VisionStream
 from companion.sim.px4_gps_denied import (
     EstimateRecorder,
     GpsDeniedSitl,
@@ -111,6 +111,7 @@ def test_ekf2_takes_the_companions_odometry_as_its_position(gps_denied_sitl: Gps
                     "vehicle_visual_odometry"]
                 out["odom"] = await asyncio.to_thread(sitl.listener, "vehicle_visual_odometry")
                 out["flags"] = await asyncio.to_thread(sitl.listener, "estimator_status_flags")
+                out["ev_pos"] = await asyncio.to_thread(sitl.listener, "estimator_aid_src_ev_pos")
                 s = v.snapshot()
                 assert s.position_ned_m is not None and truth.latest is not None
                 t = truth.latest[1][:3, 3]
@@ -129,10 +130,13 @@ def test_ekf2_takes_the_companions_odometry_as_its_position(gps_denied_sitl: Gps
     asyncio.run(run())
     odom, flags = str(out["odom"]), str(out["flags"])
     assert float(out["hz"]) >= 20.0, out["hz"]  # type: ignore[arg-type]
-    # Our covariance reached EKF2 as we sent it: x/y 0.05 m, yaw 2 deg, the rest unknown.
+    # Our covariance reached EKF2 as we sent it: x/y 0.05 m, yaw 2 deg, the echoed height wide.
     var = _field(odom, "position_variance")
-    assert var[:2] == pytest.approx([0.0025, 0.0025], rel=1e-3) and math.isnan(var[2]), odom
+    assert var == pytest.approx([0.0025, 0.0025, ECHOED_HEIGHT_STD_M ** 2], rel=1e-3), odom
     assert _field(odom, "orientation_variance")[2] == pytest.approx(math.radians(2.0) ** 2, rel=1e-2), odom
+    # ... and EKF2 fuses it (all three finite), not EKF2_EVP_NOISE (0.02 m: 0.0004).
+    fused = _field(str(out["ev_pos"]), "observation_variance")
+    assert fused[:2] == pytest.approx([0.0025, 0.0025], rel=1e-2), out["ev_pos"]
     # Stamped at capture on PX4's clock (TIMESYNC), not on arrival: fused as old as it was,
     # seconds after the stream started (PX4's default TIMESYNC rate takes 50 s).
     assert "mapped_after_s" in out, out
