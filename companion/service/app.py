@@ -327,7 +327,7 @@ class CompanionService:
         await self.missions.cancel()
         v = self.vehicle
         if v is not None and v.offboard.state.streams:
-            land = self.cfg.service.on_sigterm == "land" or self.missions.perception_lost
+            land = self.cfg.service.on_sigterm == "land" or self.missions.perception_lost or self.missions.landing_here
             then = FlightMode.LAND if land else FlightMode.HOLD
             try:
                 await v.offboard.release(then)

@@ -51,6 +51,8 @@ class MissionControl:
         self.paused = False
         #: Set once perception could not be started again: the vehicle lands (stop included).
         self.perception_lost = False
+        #: A landing where the vehicle is has been commanded (:meth:`land_here`): a stop keeps it.
+        self.landing_here = False
         #: The last mission's failure, for the run's report.
         self.error: str | None = None
         #: The latest planned path (K, 2), map frame.
@@ -71,6 +73,7 @@ class MissionControl:
 
     def start_mission(self, tg: asyncio.TaskGroup) -> None:
         """Fly the autopilot's mission in ``tg`` (the service's task group)."""
+        self.landing_here = False
         self._task = tg.create_task(self._mission(), name="mission")
 
     async def cancel(self) -> None:
@@ -92,6 +95,9 @@ class MissionControl:
         (``lost``: the map cannot be trusted, a stop lands too), or PX4's position source is.
         The vehicle has been holding since its map or pose went stale."""
         self.perception_lost = self.perception_lost or lost
+        # Set before the mission is cancelled: its end can stop the service, whose hand-over
+        # must then keep this landing (a hold without a position source drifts).
+        self.landing_here = True
         mission = self._task
         if mission is not None and not mission.done():
             # Cancelled now (it stops at its next await), awaited after the landing is commanded:
@@ -189,6 +195,7 @@ class MissionControl:
         if isinstance(cmd, GoalCommand):
             if busy:
                 raise MissionError("a mission or goal is being flown; abort it first")
+            self.landing_here = False
             self._task = asyncio.create_task(self._fly_goal(cmd), name="goal")
         elif isinstance(cmd, MissionCommand):
             await self._mission_command(cmd.action, busy)
@@ -214,6 +221,7 @@ class MissionControl:
                 raise MissionError("a mission or goal is already being flown")
             resume = self.paused and bool(self.legs_left)
             self.done.clear()
+            self.landing_here = False
             self._task = asyncio.create_task(self._mission(resume=resume), name="mission")
             return
         if not busy and not (action == "abort" and self.paused):

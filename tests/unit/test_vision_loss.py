@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import time
+from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -12,6 +14,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.config import CompanionConfig
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.vision import VisionPose, VisionStream
+from companion.px4 import FlightMode
+from companion.service.app import CompanionService
 from companion.service.position_source import ServiceLocalization
 from companion.service.vision_loss import (
     LAND_MARGIN_S,
@@ -162,3 +166,35 @@ def test_the_time_without_vision_counts_from_the_last_poses_capture() -> None:
     assert loc.stream.send_once()
     age = loc.vision_age_s()
     assert age is not None and 0.3 <= age < 0.4
+
+
+class _FakeVehicle:
+    """What CompanionService.deactivate touches: an offboard stream and the landed state."""
+
+    def __init__(self) -> None:
+        self.released: list[object] = []
+        self.offboard = self
+        self.state = self
+        self.streams = True
+
+    async def release(self, then: object) -> None:
+        self.released.append(then)
+        self.streams = False
+
+    async def wait_for(self, *args: object) -> None:
+        return None
+
+    def snapshot(self) -> object:
+        return type("Snapshot", (), {"in_air": False})()
+
+
+def test_a_stop_while_the_slam_lost_landing_is_commanded_keeps_the_landing(tmp_path: Path) -> None:
+    # The landing ends the mission, and a mission's end can stop the service at once: its
+    # hand-over (on_sigterm: hold) must not turn PX4's Land back into a Hold without a position.
+    svc = CompanionService(CompanionConfig(), cast(Any, None), out_dir=tmp_path)
+    assert svc.cfg.service.on_sigterm == "hold"
+    vehicle = _FakeVehicle()
+    svc.vehicle = cast(Any, vehicle)
+    asyncio.run(svc.missions.land_here("the SLAM pose (PX4's position source) is lost"))
+    asyncio.run(svc.deactivate())
+    assert vehicle.released == [FlightMode.LAND]
