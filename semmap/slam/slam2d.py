@@ -148,9 +148,6 @@ class Slam2D:
         in its local ENU frame at the scan's time. Never waits for loop closure."""
         odom = np.asarray(odometry_pose, dtype=np.float64).reshape(3)
         ls = scan if isinstance(scan, LevelScan) else LevelScan.from_points(np.asarray(scan))
-        if self.cfg.mode == "odometry":
-            return SlamPose(stamp_s, odom.copy(), SlamStatus.ODOMETRY, odom.copy(), self.generation,
-                            False, "odometry mode", 0.0, 0.0)
         res = self.local.add_scan(stamp_s, ls, odom)
         self._count(stamp_s, res.status, res.reason)
         if res.inserted:

@@ -58,13 +58,6 @@ def test_slam_closes_the_loop_in_the_background_and_beats_drifting_odometry() ->
     assert _ate(final[:, 1:], truth) < 0.05
 
 
-def test_odometry_mode_passes_the_autopilot_pose_through() -> None:
-    with Slam2D(SlamConfig(mode="odometry"), background=False) as slam:
-        est = slam.add_scan(0.0, np.array([[1.0, 0.0], [1.0, 0.5]]), (1.0, 2.0, 0.3))
-    assert est.status is SlamStatus.ODOMETRY
-    np.testing.assert_allclose(est.pose_map, [1.0, 2.0, 0.3])
-
-
 def test_too_few_points_is_reported_not_diverged() -> None:
     with Slam2D(SlamConfig(), background=False) as slam:
         p = pose2(3.0, 2.0, 0.0)
