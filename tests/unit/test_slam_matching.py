@@ -14,12 +14,12 @@ from semmap.config import SlamConfig
 from semmap.errors import MapError
 from semmap.grid import GridSpec
 from semmap.occupancy import ProbabilityGrid
+from semmap.scan import BandScan
 from semmap.slam.correlative import BranchAndBoundMatcher, MatchGrid, real_time_correlative_match
 from semmap.slam.local import LocalSlam, SlamStatus, constrained_translation
-from semmap.slam.pose2d import compose, inverse, pose2, relative, transform_xy, wrap
+from semmap.slam.pose2d import compose, inverse, pose2, relative, transform_scan, transform_xy, wrap
 from semmap.slam.pose_graph import Edge, optimize
 from semmap.slam.refine import refine_pose
-from semmap.slam.scan2d import LevelScan
 
 finite = st.floats(-50.0, 50.0, allow_nan=False)
 angle = st.floats(-math.pi, math.pi, allow_nan=False)
@@ -53,7 +53,7 @@ def test_probability_likelihood_field_peaks_on_occupied_cells() -> None:
     spec = GridSpec.covering(-1.0, -1.0, 9.0, 7.0, 0.05)
     grid = ProbabilityGrid(spec)
     p = pose2(2.0, 1.5, 0.3)
-    r = LevelScan.from_points(cast(room_world(), p, fov_deg=360.0, n_rays=720)).transformed(p)
+    r = transform_scan(p, BandScan.from_points(cast(room_world(), p, fov_deg=360.0, n_rays=720)))
     for _ in range(3):
         grid.insert_scan(r.origin_xy_m, r.near_xy_m, r.far_xy_m, r.hit_xy_m, r.is_hit, r.valid)
     field = MatchGrid.likelihood_field(grid, 0.05)
@@ -102,7 +102,7 @@ def test_corridor_takes_only_the_along_corridor_direction_from_odometry() -> Non
         odom = pose2(0.1 * i * 1.03, 1.0 + (0.05 if i >= 5 else 0.0), 0.0)
         # Looking along the corridor at a slant: both walls, nothing across.
         pts = cast(world, compose(truth, pose2(0, 0, 0.0)), fov_deg=80.0, max_range_m=6.0)
-        res = local.add_scan(0.1 * i, LevelScan.from_points(pts), odom)
+        res = local.add_scan(0.1 * i, BandScan.from_points(pts), odom)
         if i > 2:
             assert res.status is SlamStatus.PARTIAL_ODOMETRY, res.reason
             assert "unconstrained" in res.reason
@@ -121,7 +121,7 @@ def test_one_wall_in_view_is_matched_across_it() -> None:
     for i in range(16):
         truth = pose2(0.05 * i, 0.0, math.pi / 2)  # facing the wall at y = 2
         odom = pose2(0.05 * i * 1.05, 0.0, math.pi / 2)  # reads 5 % long along the wall
-        res = local.add_scan(0.2 * i, LevelScan.from_points(cast(wall, truth, fov_deg=60.0)), odom)
+        res = local.add_scan(0.2 * i, BandScan.from_points(cast(wall, truth, fov_deg=60.0)), odom)
         statuses.append(res.status)
         if i > 2:
             assert res.pose_local[0] == pytest.approx(res.prediction_local[0], abs=0.01)  # along: odometry
