@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import csv
-import dataclasses
 import json
 import logging
 import math
@@ -206,9 +205,7 @@ def ground_truth_planner(placement: SimPlacement, cfg: CompanionConfig) -> Plann
     spec = room_grid_spec(room, cfg.map.resolution_m)
     band = VerticalBand.for_altitude(cfg.planner.flight_altitude_m, cfg.planner.vehicle_height_m,
                                      cfg.planner.vertical_margin_m)
-    cm = semantic_costmap(room, spec, band, [c.name for c in cfg.classes])
-    cm = dataclasses.replace(cm, objects=tuple(dataclasses.replace(fp, margin_m=margins.get(fp.class_name, 0.0))
-                                               for fp in cm.objects))
+    cm = semantic_costmap(room, spec, band, [c.name for c in cfg.classes], margins)
     # Choosing a mission is set-up, not flight: a loaded machine must not make a room infeasible.
     planner = Planner(cfg.planner.model_copy(update={
         "geofence_xy_m": (0.0, 0.0, room.width_m, room.depth_m), "refine_with_ompl": False,
