@@ -38,6 +38,19 @@ def test_pose2_compose_inverse_relative(x1: float, y1: float, a1: float, x2: flo
     np.testing.assert_allclose(transform_xy(compose(a, b), pts), transform_xy(a, transform_xy(b, pts)), atol=1e-8)
 
 
+def test_transform_scan_moves_every_ray_and_keeps_the_rest() -> None:
+    scan = BandScan.from_points(np.array([[1.0, 0.0], [1.0, 0.5], [2.0, -1.0]]), stamp_s=3.5)
+    p = pose2(2.0, -1.0, 0.7)
+    moved = transform_scan(p, scan)
+    np.testing.assert_allclose(moved.origin_xy_m, transform_xy(p, scan.origin_xy_m)[0])
+    for name in ("near_xy_m", "far_xy_m", "hit_xy_m"):
+        np.testing.assert_allclose(getattr(moved, name), transform_xy(p, getattr(scan, name)))
+    assert moved.stamp_s == 3.5 and moved.band == scan.band
+    np.testing.assert_array_equal(moved.is_hit, scan.is_hit)
+    np.testing.assert_array_equal(moved.valid, scan.valid)
+    np.testing.assert_allclose(moved.hits_xy_m, transform_xy(p, scan.hits_xy_m))
+
+
 def _hits(poses: list[np.ndarray], world: list) -> np.ndarray:
     return np.concatenate([transform_xy(p, cast(world, p, fov_deg=360.0, n_rays=720)) for p in poses])
 
