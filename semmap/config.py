@@ -437,9 +437,6 @@ class SlamConfig(StageConfig):
     moved_keys: ClassVar[dict[str, str]] = {
         "mode": "whether SLAM poses the map is chosen by service.localization (odometry | slam)",
     }
-    #: Not a setting: a SLAM always estimates the pose, and whether one runs at all is
-    #: ``service.localization``; kept as a constant while the service's log line names it.
-    mode: ClassVar[str] = "slam"
     resolution_m: float = Field(default=0.05, gt=0.0, le=0.5)
     #: Scans each submap receives (consecutive submaps overlap by half of them).
     scans_per_submap: int = Field(default=60, ge=2)
