@@ -21,7 +21,6 @@ Everything is in the room frame (interior ``[0, w] x [0, d]``).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -91,9 +90,7 @@ def ground_truth_planner(room: Room, cfg: CompanionConfig, altitude_m: float,
     spec = room_grid_spec(room, cfg.map.resolution_m)
     band = band_at(cfg, altitude_m)
     band = VerticalBand(band.z_min_m - tolerance_m, band.z_max_m + tolerance_m)
-    cm = semantic_costmap(room, spec, band, [c.name for c in cfg.classes])
-    cm = dataclasses.replace(cm, objects=tuple(dataclasses.replace(fp, margin_m=margins.get(fp.class_name, 0.0))
-                                               for fp in cm.objects))
+    cm = semantic_costmap(room, spec, band, [c.name for c in cfg.classes], margins)
     planner = Planner(cfg.planner.model_copy(update={
         "flight_altitude_m": altitude_m, "geofence_xy_m": (0.0, 0.0, room.width_m, room.depth_m),
         "refine_with_ompl": False}))

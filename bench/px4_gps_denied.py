@@ -40,7 +40,6 @@ import json
 import logging
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -50,44 +49,26 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from companion.config import load_config  # noqa: E402
-from companion.sim.demo_e2e import feasible_seed  # noqa: E402
+from bench._px4 import add_common_args, prepare, room_seeds, start_sitl, with_seed  # noqa: E402
 from companion.sim.odometry import OdometryDriftModel  # noqa: E402
 from companion.sim.px4_gps_denied import GPS_DENIED_PX4_PARAMS, GpsDeniedSitl  # noqa: E402
 from companion.sim.px4_gps_denied_flight import fly_gps_denied  # noqa: E402
-from companion.sim.px4_sitl import Px4SitlError, sitl_available  # noqa: E402
+from companion.sim.px4_sitl import Px4SitlError  # noqa: E402
 
 EKF_TARGET_M = 0.15
 EV_TARGET_HZ = 20.0
 SLAM_LOSS_S = 3.0
-#: PX4's start on a loaded machine.
-READY_TIMEOUT_S = 240.0
 #: SLAM settings for a motion prior that is no independent measurement (``--weak-prior``).
 WEAK_PRIOR = {"correlative_linear_window_m": 0.3, "correlative_angular_window_deg": 10.0,
               "translation_weight": 1.0, "rotation_weight": 1.0, "odometry_calibration_window_s": 0.0}
 log = logging.getLogger("bench.px4_gps_denied")
 
 
-def room_seeds(cfg: Any, start: int, n: int) -> list[int]:
-    """The first ``n`` seeds from ``start`` whose room has a feasible crossing (each once)."""
-    seeds: list[int] = []
-    s = start
-    while len(seeds) < n:
-        got = feasible_seed(cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": s})})).sim.seed
-        if got not in seeds:
-            seeds.append(got)
-        s = got + 1
-    return seeds
-
-
 async def fly_room(cfg: Any, seed: int, out: Path, timeout_s: float, slam_loss_s: float,
                    odometry_sensor: bool) -> dict[str, Any] | None:
-    c = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": seed})})
-    s = c.sim
-    sitl = GpsDeniedSitl(home_lat_lon_alt=(s.home_lat_deg, s.home_lon_deg, s.home_alt_m),
-                         ready_timeout_s=READY_TIMEOUT_S)
+    c = with_seed(cfg, seed)
     try:
-        await asyncio.to_thread(sitl.start)
+        sitl = await asyncio.to_thread(start_sitl, c, log, GpsDeniedSitl)
     except Px4SitlError as exc:
         log.error("room %d not flown: %s", seed, exc)
         return None
@@ -102,17 +83,13 @@ async def fly_room(cfg: Any, seed: int, out: Path, timeout_s: float, slam_loss_s
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--rooms", type=int, default=3, help="seeded rooms to fly (default 3)")
-    ap.add_argument("--seed", type=int, default=0, help="first room seed (default 0)")
-    ap.add_argument("--quick", action="store_true", help="1 room, no SLAM loss")
+    add_common_args(ap, rooms=3, quick_help="1 room, no SLAM loss")
     ap.add_argument("--no-slam-loss", action="store_true", help="do not stop the camera mid-flight")
     ap.add_argument("--slam-loss-s", type=float, default=SLAM_LOSS_S,
                     help=f"how long the camera stops (default {SLAM_LOSS_S:g} s; longer than "
                          "link.vision_lost_hold_s plus the landing deadline: the vehicle lands)")
     ap.add_argument("--altitude", type=float, default=None,
                     help="flight altitude above the floor (m; default planner.flight_altitude_m)")
-    ap.add_argument("--detector", choices=("onnx", "oracle"), default="onnx",
-                    help="onnx (default, as the demo): the shipped model; oracle: the simulator's")
     ap.add_argument("--camera-scale", type=float, default=1.0,
                     help="scale the camera's resolution and intrinsics (0.5: 320x240), for a loaded machine")
     ap.add_argument("--weak-prior", action="store_true",
@@ -121,19 +98,12 @@ def main() -> int:
     ap.add_argument("--odometry-sensor", action="store_true",
                     help="the vehicle has an odometry sensor of its own (flow, VIO: the truth drifting as "
                          "the mock's odometry) for the SLAM's motion prior, instead of PX4's velocity")
-    ap.add_argument("--out", default=None, help="keep the flights' outputs here (default: a temporary folder)")
-    ap.add_argument("--timeout", type=float, default=240.0, help="give a room's mission up after this many seconds")
     args = ap.parse_args()
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
-    log.setLevel(logging.INFO)
-    ok, why = sitl_available()
-    if not ok:
-        print(f"px4_gps_denied bench: {why}", file=sys.stderr)
+    prepared = prepare(args, "px4_gps_denied", log)
+    if prepared is None:
         return 2
+    cfg, out = prepared
     n = 1 if args.quick else args.rooms
-    cfg = load_config(None)
-    cfg = cfg.model_copy(update={"detector": cfg.detector.model_copy(update={
-        "kind": args.detector, "model_path": cfg.detector.model_path or "builtin:furniture"})})
     if args.camera_scale != 1.0:
         c, k = cfg.camera, args.camera_scale
         cfg = cfg.model_copy(update={"camera": c.model_copy(update={
@@ -143,7 +113,6 @@ def main() -> int:
         cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update=WEAK_PRIOR)})
     if args.altitude is not None:
         cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"flight_altitude_m": args.altitude})})
-    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench-px4-gps-denied-"))
     camera = (f"{cfg.camera.width_px}x{cfg.camera.height_px} at {cfg.camera.rate_hz:g} Hz, detector "
               f"{cfg.detector.kind}, SLAM prior {'weak' if args.weak_prior else 'as shipped'} from "
               f"{'an odometry sensor' if args.odometry_sensor else 'PX4 velocity'}")

@@ -39,7 +39,6 @@ import json
 import logging
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -49,8 +48,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from companion.config import load_config  # noqa: E402
-from companion.sim.demo_e2e import feasible_seed  # noqa: E402
+from bench._px4 import add_common_args, prepare, room_seeds, start_sitl, with_seed  # noqa: E402
 from companion.sim.demo_px4 import Px4Flight, fly_px4  # noqa: E402
 from companion.sim.px4_probes import (  # noqa: E402
     ProbeResult,
@@ -58,56 +56,24 @@ from companion.sim.px4_probes import (  # noqa: E402
     probe_mission_start,
     probe_offboard_loss,
 )
-from companion.sim.px4_sitl import Px4Sitl, Px4SitlError, sitl_available  # noqa: E402
+from companion.sim.px4_sitl import Px4SitlError  # noqa: E402
 
 SETPOINT_TARGET_HZ = 25.0
-#: PX4's readiness on a loaded machine: the EKF can take minutes (README: 15-70 s idle).
-READY_TIMEOUT_S = 240.0
 OBSTACLE_TARGET_HZ = 8.0
 SCENARIOS = ("mission_start", "engage", "offboard_loss", "landing_rearm", "obstacle_distance")
 log = logging.getLogger("bench.px4_sitl")
-
-
-def room_seeds(cfg: Any, start: int, n: int) -> list[int]:
-    """The first ``n`` seeds from ``start`` whose room has a feasible crossing (each once)."""
-    seeds: list[int] = []
-    s = start
-    while len(seeds) < n:
-        c = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": s})})
-        got = feasible_seed(c).sim.seed
-        if got not in seeds:
-            seeds.append(got)
-        s = got + 1
-    return seeds
 
 
 def _median(values: list[float]) -> float | None:
     return round(float(np.median(values)), 1) if values else None
 
 
-def start_sitl(cfg: Any) -> Px4Sitl:
-    """A started PX4 SITL at the config's home; a second try when the first is not ready in
-    time (on a loaded machine PX4's EKF can take minutes to converge)."""
-    s = cfg.sim
-    for attempt in (1, 2):
-        sitl = Px4Sitl(home_lat_lon_alt=(s.home_lat_deg, s.home_lon_deg, s.home_alt_m),
-                       ready_timeout_s=READY_TIMEOUT_S)
-        try:
-            sitl.start()
-            return sitl
-        except Px4SitlError as exc:
-            if attempt == 2:
-                raise
-            log.warning("PX4 SITL did not start (%s); trying once more", str(exc).splitlines()[0])
-    raise AssertionError("unreachable")
-
-
 async def fly_rooms(cfg: Any, seeds: list[int], out: Path, timeout_s: float) -> list[Px4Flight]:
     flights = []
     for seed in seeds:
-        c = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": seed})})
+        c = with_seed(cfg, seed)
         try:
-            sitl = await asyncio.to_thread(start_sitl, c)
+            sitl = await asyncio.to_thread(start_sitl, c, log)
         except Px4SitlError as exc:
             log.error("room %d not flown: %s", seed, exc)
             continue
@@ -121,7 +87,7 @@ async def fly_rooms(cfg: Any, seeds: list[int], out: Path, timeout_s: float) -> 
 
 async def run_probe(name: str, cfg: Any, out: Path) -> tuple[ProbeResult, Px4Flight | None]:
     try:
-        sitl = await asyncio.to_thread(start_sitl, cfg)
+        sitl = await asyncio.to_thread(start_sitl, cfg, log)
     except Px4SitlError as exc:
         return ProbeResult(name, False, f"PX4 SITL not ready: {str(exc).splitlines()[0]}"), None
     with sitl:
@@ -138,21 +104,13 @@ async def run_probe(name: str, cfg: Any, out: Path) -> tuple[ProbeResult, Px4Fli
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--rooms", type=int, default=5, help="seeded rooms to fly (default 5)")
-    ap.add_argument("--seed", type=int, default=0, help="first room seed (default 0)")
-    ap.add_argument("--quick", action="store_true", help="1 room; the scenarios that flight shows")
+    add_common_args(ap, rooms=5, quick_help="1 room; the scenarios that flight shows")
     ap.add_argument("--only", default=None, help=f"comma-separated scenarios to run ({', '.join(SCENARIOS)})")
-    ap.add_argument("--detector", choices=("onnx", "oracle"), default="onnx",
-                    help="onnx (default, as the demo): the shipped model; oracle: the simulator's")
-    ap.add_argument("--out", default=None, help="keep the flights' outputs here (default: a temporary folder)")
-    ap.add_argument("--timeout", type=float, default=240.0, help="give a room's mission up after this many seconds")
     args = ap.parse_args()
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
-    log.setLevel(logging.INFO)
-    ok, why = sitl_available()
-    if not ok:
-        print(f"px4_sitl bench: {why}", file=sys.stderr)
+    prepared = prepare(args, "px4_sitl", log)
+    if prepared is None:
         return 2
+    cfg, out = prepared
     n_rooms = 1 if args.quick else args.rooms
     wanted = SCENARIOS if args.only is None else tuple(x.strip() for x in args.only.split(","))
     if args.quick and args.only is None:
@@ -161,10 +119,6 @@ def main() -> int:
     if unknown:
         print(f"--only: unknown scenarios {sorted(unknown)} (known: {', '.join(SCENARIOS)})", file=sys.stderr)
         return 2
-    cfg = load_config(None)
-    cfg = cfg.model_copy(update={"detector": cfg.detector.model_copy(update={
-        "kind": args.detector, "model_path": cfg.detector.model_path or "builtin:furniture"})})
-    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench-px4-"))
     load0 = os.getloadavg()
     t0 = time.monotonic()
     seeds = room_seeds(cfg, args.seed, n_rooms) if n_rooms > 0 else []

@@ -27,7 +27,6 @@ Figures per room and overall:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import sys
@@ -50,7 +49,7 @@ from semmap.frames import wrap_angle_rad  # noqa: E402
 from semmap.scan import BandScan, extract_band_scan  # noqa: E402
 from semmap.semantic_map import SemanticMap, SemanticMapSettings  # noqa: E402
 from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth  # noqa: E402
-from semmap.slam.pose2d import interpolate, transform_xy  # noqa: E402
+from semmap.slam.pose2d import interpolate, transform_scan  # noqa: E402
 from semmap.slam.scan2d import T_level_camera  # noqa: E402
 from semmap.types import CameraIntrinsics  # noqa: E402
 
@@ -90,20 +89,13 @@ def map_settings(room: Any, offset_xy_m: tuple[float, float]) -> SemanticMapSett
     )
 
 
-def posed(scan: BandScan, pose: np.ndarray) -> BandScan:
-    """A band scan taken in the level body frame, placed with the 2D ``pose`` (x, y, yaw)."""
-    return dataclasses.replace(
-        scan, origin_xy_m=transform_xy(pose, scan.origin_xy_m)[0], near_xy_m=transform_xy(pose, scan.near_xy_m),
-        far_xy_m=transform_xy(pose, scan.far_xy_m), hit_xy_m=transform_xy(pose, scan.hit_xy_m))
-
-
 def map_agreement(room: Any, settings: SemanticMapSettings, scans: list[BandScan], poses: np.ndarray) -> float:
     """Agreement with ground truth of the semantic map's occupancy grid built from the level
     ``scans`` at (N, 3) ``poses``: observed cells whose occupancy (p > 0.5) equals
     ``occupancy_at_band``."""
     smap = SemanticMap(settings)
     for sc, p in zip(scans, poses, strict=True):
-        smap.layers.update_scan(posed(sc, p))
+        smap.layers.update_scan(transform_scan(p, sc))
     truth = gt.occupancy_at_band(room, smap.spec, MAP_BAND)
     known = smap.grid.known
     occ = smap.grid.probability() > 0.5

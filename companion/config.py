@@ -313,15 +313,6 @@ class CompanionConfig(StageConfig):
     service: ServiceConfig = ServiceConfig()
     sim: SimConfig = SimConfig()
 
-    @field_validator("slam", mode="before")
-    @classmethod
-    def _one_localization_switch(cls, v: Any) -> Any:
-        given = v.model_fields_set if isinstance(v, SlamConfig) else v if isinstance(v, dict) else ()
-        if "mode" in given:
-            raise ValueError(f"mode is not a key here (got {_slam_mode_of(v)!r}): whether SLAM poses the map "
-                             "is chosen by service.localization (odometry | slam)")
-        return v
-
     @model_validator(mode="after")
     def _cross_checks(self) -> "CompanionConfig":
         names = [c.name for c in self.classes]
@@ -350,10 +341,6 @@ class CompanionConfig(StageConfig):
             if c.name == name:
                 return c
         raise KeyError(name)
-
-
-def _slam_mode_of(v: Any) -> Any:
-    return v.mode if isinstance(v, SlamConfig) else v.get("mode")
 
 
 # --- loading and dumping --------------------------------------------------------------
@@ -487,7 +474,7 @@ def load_config(path: str | Path | None, *, allow_empty: bool = False) -> Compan
 
 def dump_config(cfg: CompanionConfig) -> str:
     """The effective config as YAML (round-trips through :func:`load_config`)."""
-    data = cfg.model_dump(mode="json", exclude={"slam": {"mode"}})  # service.localization chooses
+    data = cfg.model_dump(mode="json")
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
 
 

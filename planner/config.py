@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import Field, model_validator
 
@@ -11,6 +11,10 @@ from semmap.config import StageConfig
 
 class PlannerConfig(StageConfig):
     """OMPL planning and trajectory limits for a multicopter at a commanded altitude."""
+
+    moved_keys: ClassVar[dict[str, str]] = {
+        "clearance_decay_m": "the map owns how cost decays: use map.clearance_decay_m",
+    }
 
     #: OMPL planner. (PRM* is not offered: it grows its roadmap in a second thread that
     #: would call the Python validity checker while ``solve`` holds the GIL: a deadlock.)
@@ -44,8 +48,6 @@ class PlannerConfig(StageConfig):
     #: resolution; coarser is faster, the search falls back to full resolution if the coarse
     #: grid disconnects start and goal).
     search_cell_m: float = Field(default=0.1, gt=0.0, le=1.0)
-    #: Proximity cost near obstacles decays by e over this distance beyond the vehicle radius.
-    clearance_decay_m: float = Field(default=0.15, gt=0.0, le=5.0)
     #: Spend the rest of the time budget on the OMPL planner to improve the first path.
     refine_with_ompl: bool = True
     #: Corners are taken at a speed whose change of velocity vector is at most this.

@@ -1,15 +1,12 @@
 """The configuration space of a multicopter at one flight altitude, as precomputed fields.
 
-Two entry points:
-
-* :func:`band_costmap` applies the altitude rule to a base occupancy costmap plus object
-  footprints: an object blocks (its whole footprint becomes lethal) only if its height range
-  intersects the vehicle's vertical band. A coffee table (top at ~0.45 m) does not block a
-  vehicle at 1.5 m; a desk (0.75 m) blocks one at 0.5 m, including the space between its legs.
-* :func:`build_cspace` turns a :class:`~semmap.costmap.Costmap` into a :class:`CSpace`: the
-  blocked cells (lethal, grown by each object's margin, plus unknown when unknown space is
-  forbidden), a clearance field in metres from a Euclidean distance transform, the boolean
-  free grid for the vehicle's radius and a 0..1 traversal cost per cell.
+The costmap arrives with every object already costed by the map's layers
+(:mod:`semmap.layers`: footprints, class margins, the altitude rule, their decay);
+:func:`build_cspace` only adds the vehicle: the blocked cells (lethal and inscribed, plus
+unknown when unknown space is forbidden, plus outside the geofence), a clearance field in
+metres from a Euclidean distance transform, the boolean free grid for the vehicle's radius
+and a 0..1 traversal cost per cell whose proximity term decays with the costmap's
+``clearance_decay_m`` (:func:`semmap.layers.cost_decay`).
 
 All validity checks are lookups in these fields, vectorised over many points: a state check
 is one array index, a motion check samples the segment every half cell in one numpy call.
@@ -24,6 +21,7 @@ plus a quarter cell (the largest gap between motion samples spaced half a cell a
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -33,43 +31,20 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from semmap.costmap import (
+    DEFAULT_CLEARANCE_DECAY_M,
     INSCRIBED_INFLATED_OBSTACLE,
     LETHAL_OBSTACLE,
     MAX_NON_OBSTACLE,
     NO_INFORMATION,
     Costmap,
-    ObjectFootprint,
     VerticalBand,
 )
 from semmap.errors import PlanningError
-from semmap.grid import GridSpec, rasterize_polygon
+from semmap.grid import GridSpec
+from semmap.layers import cost_decay
 
 #: A point (x, y) in the map frame, metres: a (2,) array or any pair of numbers.
 XYLike = NDArray[np.floating] | Sequence[float] | tuple[float, float]
-
-
-def band_costmap(
-    base: Costmap,
-    objects: Sequence[ObjectFootprint],
-    band: VerticalBand,
-    min_existence: float = 0.0,
-) -> Costmap:
-    """The costmap for a vehicle occupying ``band``: ``base`` plus every object that blocks it.
-
-    ``base`` is the occupancy at the flight altitude (walls, whatever a depth slice sees);
-    each object in ``objects`` with ``existence >= min_existence`` whose height range
-    intersects ``band`` has its whole footprint polygon made lethal. Objects that do not
-    block (flown over or under) leave the base cost untouched. The result carries ``band``
-    and all of ``objects`` (so margins can be applied later).
-    """
-    cost = base.cost.copy()
-    for fp in objects:
-        if fp.existence >= min_existence and fp.blocks(band):
-            cost[fp.mask(base.spec)] = LETHAL_OBSTACLE
-    return Costmap(
-        base.spec, cost, band, stamp_s=base.stamp_s, class_index=base.class_index,
-        objects=tuple(objects),
-    )
 
 
 @dataclass(frozen=True)
@@ -78,35 +53,26 @@ class CSpaceParams:
 
     ``vehicle_radius_m``: horizontal radius of the vehicle. ``unknown_cost`` (0..1): cost of
     an unknown cell relative to the highest traversable cost; 1 forbids unknown space.
-    ``clearance_decay_m``: distance over which the proximity cost near obstacles decays by
-    e (beyond the radius). ``extra_margins_m``: per class name, added to each object's own
-    ``margin_m``. ``geofence_xy_m``: the vehicle (its whole radius) stays inside it.
+    ``geofence_xy_m``: the vehicle (its whole radius) stays inside it.
     """
 
     vehicle_radius_m: float
     unknown_cost: float = 0.5
-    clearance_decay_m: float = 0.2
-    extra_margins_m: tuple[tuple[str, float], ...] = ()
     #: [x_min, y_min, x_max, y_max] in the map frame; cells outside it are blocked.
     geofence_xy_m: tuple[float, float, float, float] | None = None
 
-    def margin_for(self, fp: ObjectFootprint) -> float:
-        extra = dict(self.extra_margins_m).get(fp.class_name, 0.0)
-        return max(0.0, fp.margin_m + extra)
-
-    @property
-    def influence_m(self) -> float:
+    def influence_m(self, clearance_decay_m: float) -> float:
         """Beyond this clearance a cell's cost and freedom no longer depend on obstacles."""
-        return self.vehicle_radius_m + 8.0 * self.clearance_decay_m + 0.5
+        return self.vehicle_radius_m + 8.0 * clearance_decay_m + 0.5
 
 
 @dataclass(frozen=True, eq=False)
 class CSpace:
     """Precomputed fields for one map version at one altitude (all (rows, cols) on ``spec``).
 
-    ``blocked``: cells the vehicle's centre region may not touch (lethal, object margins,
-    forbidden unknown). ``clearance_m``: conservative horizontal clearance of the cell,
-    capped at ``params.influence_m``. ``free``: the vehicle fits anywhere in the cell.
+    ``blocked``: cells the vehicle's centre region may not touch (lethal, inscribed object
+    margins, forbidden unknown). ``clearance_m``: conservative horizontal clearance of the
+    cell, capped at :attr:`influence_m`. ``free``: the vehicle fits anywhere in the cell.
     ``cost``: traversal cost 0..1 per cell (proximity to obstacles, unknown space, the map's
     own soft costs). ``source_cost``: the costmap's uint8 grid it was built from.
     """
@@ -120,6 +86,12 @@ class CSpace:
     free: NDArray[np.bool_]
     cost: NDArray[np.float32]
     version: int = 0
+    #: The costmap's decay of cost beyond a keep-out zone, which the proximity cost follows.
+    clearance_decay_m: float = DEFAULT_CLEARANCE_DECAY_M
+
+    @property
+    def influence_m(self) -> float:
+        return self.params.influence_m(self.clearance_decay_m)
 
     @property
     def free_threshold_m(self) -> float:
@@ -268,48 +240,24 @@ def _unit_steps(n: int) -> NDArray[np.float64]:
 
 
 def _blocked_mask(costmap: Costmap, params: CSpaceParams) -> NDArray[np.bool_]:
-    """Lethal and inscribed cells, lethal objects grown by their margin; unknown if forbidden.
+    """Lethal and inscribed cells; unknown ones if forbidden; outside the geofence.
 
-    INSCRIBED_INFLATED_OBSTACLE is blocked too: the semantic map writes it inside an object's
-    class margin (a keep-out zone, beyond which the vehicle radius is added here).
+    INSCRIBED_INFLATED_OBSTACLE is blocked too: the map's margin layer writes it inside an
+    object's class margin (a keep-out zone, beyond which the vehicle radius is added here).
     """
-    spec = costmap.spec
-    lethal = costmap.cost == LETHAL_OBSTACLE
-    blocked = lethal | (costmap.cost == INSCRIBED_INFLATED_OBSTACLE)
+    blocked = (costmap.cost == LETHAL_OBSTACLE) | (costmap.cost == INSCRIBED_INFLATED_OBSTACLE)
     if params.unknown_cost >= 1.0:
         blocked |= costmap.cost == NO_INFORMATION
     if params.geofence_xy_m is not None:
         x0, y0, x1, y1 = params.geofence_xy_m
-        X, Y = spec.cell_centers_xy()
+        X, Y = costmap.spec.cell_centers_xy()
         blocked |= (X < x0) | (X > x1) | (Y < y0) | (Y > y1)
-    res = spec.resolution_m
-    for fp in costmap.objects:
-        margin = params.margin_for(fp)
-        if margin <= 0.0 or not fp.blocks(costmap.band):
-            continue
-        # Work in the object's window only: its bounding box grown by the margin.
-        poly = np.asarray(fp.polygon_xy_m, dtype=np.float64).reshape(-1, 2)
-        pad = int(math.ceil(margin / res)) + 2
-        lo = spec.cell_of(poly.min(axis=0, keepdims=True))[0] - pad
-        hi = spec.cell_of(poly.max(axis=0, keepdims=True))[0] + pad + 1
-        r0, c0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
-        r1, c1 = min(int(hi[0]), spec.rows), min(int(hi[1]), spec.cols)
-        if r1 <= r0 or c1 <= c0:
-            continue
-        sub = GridSpec(res, (spec.origin_xy_m[0] + c0 * res, spec.origin_xy_m[1] + r0 * res), (r1 - r0, c1 - c0))
-        # Only objects the costmap actually made lethal get a margin (an object the map
-        # dropped for low existence must not come back through its margin).
-        m = rasterize_polygon(sub, poly) & lethal[r0:r1, c0:c1]
-        if not m.any():
-            continue
-        dist = ndimage.distance_transform_edt(~m, sampling=res)
-        blocked[r0:r1, c0:c1] |= dist <= margin
     return blocked
 
 
 def _fields(
     blocked: NDArray[np.bool_], source_cost: NDArray[np.uint8], resolution_m: float,
-    params: CSpaceParams, unknown_cost: float,
+    params: CSpaceParams, decay_m: float,
 ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32]]:
     """Clearance, free and cost fields of one window (arrays of the same shape)."""
     if blocked.all():
@@ -319,14 +267,14 @@ def _fields(
     else:
         dist = ndimage.distance_transform_edt(~blocked, sampling=resolution_m)
     # Lower bound from any point of this cell to any point of the nearest blocked cell.
-    clearance = np.minimum(dist - math.sqrt(2.0) * resolution_m, params.influence_m).astype(np.float32)
+    clearance = np.minimum(dist - math.sqrt(2.0) * resolution_m, params.influence_m(decay_m)).astype(np.float32)
     threshold = params.vehicle_radius_m + resolution_m / 4.0
     free = clearance >= threshold
-    proximity = np.exp(-(np.maximum(clearance - threshold, 0.0)) / params.clearance_decay_m)
+    proximity = cost_decay(clearance - threshold, decay_m)
     soft = np.zeros(blocked.shape, dtype=np.float32)
     traversable = source_cost <= MAX_NON_OBSTACLE
     soft[traversable] = source_cost[traversable].astype(np.float32) / float(MAX_NON_OBSTACLE)
-    soft[source_cost == NO_INFORMATION] = unknown_cost
+    soft[source_cost == NO_INFORMATION] = min(params.unknown_cost, 1.0)
     cost = np.maximum(proximity.astype(np.float32), soft)
     cost[~free] = 1.0
     return clearance, free, cost.astype(np.float32)
@@ -336,15 +284,12 @@ def build_cspace(costmap: Costmap, params: CSpaceParams, version: int = 0) -> CS
     """Precompute the configuration space of ``costmap`` for a vehicle of ``params``."""
     if params.vehicle_radius_m <= 0.0:
         raise PlanningError(f"vehicle_radius_m must be > 0 (got {params.vehicle_radius_m})")
-    if params.clearance_decay_m <= 0.0:
-        raise PlanningError(f"clearance_decay_m must be > 0 (got {params.clearance_decay_m})")
+    decay = costmap.clearance_decay_m
     blocked = _blocked_mask(costmap, params)
-    clearance, free, cost = _fields(
-        blocked, costmap.cost, costmap.spec.resolution_m, params, min(params.unknown_cost, 1.0)
-    )
+    clearance, free, cost = _fields(blocked, costmap.cost, costmap.spec.resolution_m, params, decay)
     return CSpace(
         costmap.spec, costmap.band, params, costmap.cost.copy(), blocked, clearance, free, cost,
-        version,
+        version, decay,
     )
 
 
@@ -368,17 +313,16 @@ def update_cspace(
     Returns the new space and the window (r0, r1, c0, c1) whose fields changed (None when
     nothing did). Falls back to a full rebuild when the grid geometry or band changed.
     """
-    if costmap.spec != cs.spec or costmap.band != cs.band:
+    if costmap.spec != cs.spec or costmap.band != cs.band or costmap.clearance_decay_m != cs.clearance_decay_m:
         return build_cspace(costmap, cs.params, version), (0, cs.spec.rows, 0, cs.spec.cols)
     blocked = _blocked_mask(costmap, cs.params)
     changed = _union_window(
         changed_window(blocked, cs.blocked), changed_window(costmap.cost, cs.source_cost)
     )
     if changed is None:
-        return CSpace(cs.spec, cs.band, cs.params, cs.source_cost, cs.blocked, cs.clearance_m,
-                      cs.free, cs.cost, version), None
+        return dataclasses.replace(cs, version=version), None
     res = cs.spec.resolution_m
-    reach = int(math.ceil(cs.params.influence_m / res)) + 2
+    reach = int(math.ceil(cs.influence_m / res)) + 2
     rows, cols = cs.spec.shape_rc
     r0, r1, c0, c1 = changed
     # Cells whose clearance can change lie within ``reach`` of a changed cell; computing their
@@ -387,7 +331,7 @@ def update_cspace(
     b = (max(0, a[0] - reach), min(rows, a[1] + reach), max(0, a[2] - reach), min(cols, a[3] + reach))
     sub_blocked = blocked[b[0]:b[1], b[2]:b[3]]
     sub_cost = costmap.cost[b[0]:b[1], b[2]:b[3]]
-    clr, fr, cst = _fields(sub_blocked, sub_cost, res, cs.params, min(cs.params.unknown_cost, 1.0))
+    clr, fr, cst = _fields(sub_blocked, sub_cost, res, cs.params, cs.clearance_decay_m)
     inner = (slice(a[0] - b[0], a[1] - b[0]), slice(a[2] - b[2], a[3] - b[2]))
     window = (slice(a[0], a[1]), slice(a[2], a[3]))
     clearance = cs.clearance_m.copy()
@@ -397,7 +341,7 @@ def update_cspace(
     free[window] = fr[inner]
     cost[window] = cst[inner]
     new = CSpace(cs.spec, cs.band, cs.params, costmap.cost.copy(), blocked, clearance, free, cost,
-                 version)
+                 version, cs.clearance_decay_m)
     return new, a
 
 

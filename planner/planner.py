@@ -29,12 +29,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner.config import PlannerConfig
-from planner.cspace import CSpace, CSpaceParams, band_costmap, build_cspace, update_cspace
+from planner.cspace import CSpace, CSpaceParams, build_cspace, update_cspace
 from planner.gridsearch import GridGraph, refine_vertices, shortcut
 from planner.ompl_backend import ompl_solve
 from planner.types import PlanResult, PlanStatus, path_length_m
 from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import PlanningError
+from semmap.layers import paint_objects
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +55,6 @@ class Planner:
         self.params = CSpaceParams(
             vehicle_radius_m=config.vehicle_radius_m,
             unknown_cost=config.unknown_cost,
-            clearance_decay_m=config.clearance_decay_m,
             geofence_xy_m=config.geofence_xy_m,
         )
         self._cs: CSpace | None = None
@@ -83,8 +83,9 @@ class Planner:
 
     def set_base_map(self, base: Costmap, objects: Sequence[ObjectFootprint],
                      version: int | None = None, min_existence: float = 0.0) -> None:
-        """Use an occupancy costmap plus object footprints, applying the altitude rule."""
-        self.set_map(band_costmap(base, objects, self.band, min_existence), version)
+        """Use an occupancy costmap plus object footprints, costed by the map's layers at the
+        vehicle's band: objects at or above ``min_existence`` are lethal with their margin."""
+        self.set_map(paint_objects(base, objects, self.band, existence_confirm=min_existence), version)
 
     def set_map(self, costmap: Costmap, version: int | None = None) -> tuple[int, int, int, int] | None:
         """Adopt a new costmap version; returns the window (r0, r1, c0, c1) whose fields changed.

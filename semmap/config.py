@@ -8,11 +8,12 @@ plain values; the ``from_config`` factories next to them take these models.
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from semmap.costmap import DEFAULT_CLEARANCE_DECAY_M
 from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform, rotation_from_rpy
 from semmap.types import CameraIntrinsics
 
@@ -30,6 +31,18 @@ class StageConfig(BaseModel):
     and ``true``/``false`` are not numbers."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+    #: Keys this model no longer takes, each with where its setting went: an old file fails
+    #: naming the replacement instead of "unknown key".
+    moved_keys: ClassVar[dict[str, str]] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_moved_keys(cls, data: object) -> object:
+        if isinstance(data, dict):
+            for name, instead in cls.moved_keys.items():
+                if name in data:
+                    raise ValueError(f"{name} is not a key here (got {data[name]!r}): {instead}")
+        return data
 
     @model_validator(mode="before")
     @classmethod
@@ -331,6 +344,10 @@ MAX_MAP_CELLS = 25_000_000
 class MapConfig(StageConfig):
     """Occupancy grid, object map and semantic layers."""
 
+    moved_keys: ClassVar[dict[str, str]] = {
+        "margin_decay_m": "use map.clearance_decay_m (one decay for the map's margins and the planner's proximity cost)",
+    }
+
     resolution_m: float = Field(default=0.05, gt=0.0, le=1.0)
     #: Initial extent; the grid grows as the vehicle explores unless ``fixed_size``.
     width_m: float = Field(default=20.0, gt=0.0)
@@ -386,8 +403,9 @@ class MapConfig(StageConfig):
     #: Negative evidence: the measured depth at an object's centroid pixel must be at least
     #: expected - tolerance (not occluded) for a missed detection to count against it.
     visibility_tolerance_m: float = Field(default=0.3, gt=0.0)
-    #: Decay length of the safety margin's cost beyond the class margin, metres.
-    margin_decay_m: float = Field(default=0.3, gt=0.0)
+    #: Cost beyond a keep-out zone falls by e over this distance: beyond an object's class
+    #: margin in the map, and beyond the vehicle radius in the planner's proximity cost.
+    clearance_decay_m: float = Field(default=DEFAULT_CLEARANCE_DECAY_M, gt=0.0, le=5.0)
 
     @model_validator(mode="after")
     def _size(self) -> "MapConfig":
@@ -416,8 +434,9 @@ class SlamConfig(StageConfig):
     """Cartographer-style 2D SLAM (:mod:`semmap.slam`): local scan-to-submap matching and
     background loop closure over a pose graph."""
 
-    #: ``slam``: the SLAM pose drives mapping and planning; ``odometry``: trust the autopilot.
-    mode: Literal["slam", "odometry"] = "slam"
+    moved_keys: ClassVar[dict[str, str]] = {
+        "mode": "whether SLAM poses the map is chosen by service.localization (odometry | slam)",
+    }
     resolution_m: float = Field(default=0.05, gt=0.0, le=0.5)
     #: Scans each submap receives (consecutive submaps overlap by half of them).
     scans_per_submap: int = Field(default=60, ge=2)

@@ -22,6 +22,9 @@ INSCRIBED_INFLATED_OBSTACLE = 253
 LETHAL_OBSTACLE = 254
 NO_INFORMATION = 255
 
+#: Default e-folding distance of the cost beyond a keep-out zone (see :class:`Costmap`).
+DEFAULT_CLEARANCE_DECAY_M = 0.15
+
 
 @dataclass(frozen=True)
 class VerticalBand:
@@ -73,6 +76,9 @@ class Costmap:
 
     ``cost``: (rows, cols) uint8 with the constants above. ``class_index``: optional (rows,
     cols) int16, the most likely class per cell (-1 none) for pictures and reports.
+    ``clearance_decay_m``: the distance over which cost decays by e beyond a keep-out zone;
+    the map's margins were painted with it and the planner's proximity cost beyond the
+    vehicle radius uses it, so one setting shapes both.
     """
 
     spec: GridSpec
@@ -81,8 +87,11 @@ class Costmap:
     stamp_s: float = 0.0
     class_index: NDArray[np.int16] | None = None
     objects: tuple[ObjectFootprint, ...] = field(default_factory=tuple)
+    clearance_decay_m: float = DEFAULT_CLEARANCE_DECAY_M
 
     def __post_init__(self) -> None:
+        if not self.clearance_decay_m > 0.0:
+            raise ValueError(f"clearance_decay_m must be > 0 (got {self.clearance_decay_m})")
         if self.cost.shape != self.spec.shape_rc or self.cost.dtype != np.uint8:
             raise ValueError(
                 f"cost must be uint8 of shape {self.spec.shape_rc}, got {self.cost.dtype} {self.cost.shape}"

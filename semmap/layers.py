@@ -13,17 +13,23 @@ Layers:
 * :class:`ObjectFootprintLayer` - whole footprints of objects whose height range meets the
   vehicle's band, costed by the object's existence probability.
 * :class:`SafetyMarginLayer` - a per-class margin around those objects whose cost decays with
-  distance, scaled by existence.
+  distance (:func:`cost_decay`), scaled by existence.
 * :class:`ClassProbabilityLayer` and :class:`HeightLayer` - per-cell semantic planes (class
   probabilities with a "none" plane, object top height); they add no cost.
 
 The object-derived layers share one :class:`~semmap.object_rasters.ObjectRasters` cache,
 so each object's polygon is rasterised (and its distance field computed) once per change,
 not once per layer and frame.
+
+This module is the one place that turns an object into cost: :func:`paint_objects` applies
+the same footprint and margin layers to a costmap that did not come from the layer stack (a
+ROS map with its objects, a ground-truth room), and the planner's proximity cost uses
+:func:`cost_decay` with the costmap's ``clearance_decay_m``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from typing import Protocol, runtime_checkable
 
@@ -31,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semmap.costmap import (
+    DEFAULT_CLEARANCE_DECAY_M,
     FREE_SPACE,
     INSCRIBED_INFLATED_OBSTACLE,
     LETHAL_OBSTACLE,
@@ -142,6 +149,12 @@ def _paint_max(out: NDArray[np.uint8], where: NDArray[np.bool_], value: NDArray[
     out[where] = np.where(cur == NO_INFORMATION, new, np.maximum(cur, new))
 
 
+def cost_decay(beyond_m: NDArray[np.floating] | float, decay_m: float) -> NDArray[np.float64]:
+    """Cost fraction 0..1 at ``beyond_m`` metres outside a keep-out zone: 1 at its edge (and
+    inside), falling by e every ``decay_m`` (nav2's inflation curve)."""
+    return np.exp(-np.maximum(np.asarray(beyond_m, np.float64), 0.0) / decay_m)
+
+
 def existence_scale(existence: float, confirm: float) -> float:
     """1 once an object is confirmed, else its existence probability."""
     return 1.0 if existence >= confirm else float(np.clip(existence, 0.0, 1.0))
@@ -209,7 +222,7 @@ class SafetyMarginLayer(_ObjectLayer):
 
     def costs(self, spec: GridSpec, band: VerticalBand, window: Bounds) -> NDArray[np.uint8]:
         out = np.full((window.r1 - window.r0, window.c1 - window.c0), NO_INFORMATION, np.uint8)
-        decay = self.rasters.margin_decay_m
+        decay = self.rasters.clearance_decay_m
         for r in self.rasters.overlapping(window):
             views = r.views(window)
             if views is None or not r.footprint.blocks(band):
@@ -218,8 +231,7 @@ class SafetyMarginLayer(_ObjectLayer):
             d = r.dist_m[src]
             m = r.footprint.margin_m
             scale = existence_scale(r.footprint.existence, self.existence_confirm)
-            with np.errstate(over="ignore"):
-                soft = MAX_NON_OBSTACLE * np.exp(-(d - m) / decay)
+            soft = MAX_NON_OBSTACLE * cost_decay(d - m, decay)
             cost = np.where(d <= m, float(INSCRIBED_INFLATED_OBSTACLE), soft) * scale
             cost_u8 = np.rint(cost).astype(np.uint8)
             _paint_max(out[dst], (d <= self.rasters.reach_m(r.footprint)) & (cost_u8 > 0), cost_u8)
@@ -340,13 +352,13 @@ class LayeredCostmap:
     def __init__(
         self, grid: ProbabilityGrid, class_names: Sequence[str], *, rule: str = "maximum",
         occupied_threshold: float = 0.6, free_threshold: float = 0.5,
-        existence_confirm: float = 0.6, margin_decay_m: float = 0.3,
+        existence_confirm: float = 0.6, clearance_decay_m: float = DEFAULT_CLEARANCE_DECAY_M,
     ) -> None:
         if rule not in COMBINE_RULES:
             raise MapError(f"unknown combination rule {rule!r} (known: {sorted(COMBINE_RULES)})")
         self.rule = rule
         self.grid = grid
-        self.rasters = ObjectRasters(class_names, margin_decay_m)
+        self.rasters = ObjectRasters(class_names, clearance_decay_m)
         self.rasters.set_spec(grid.spec)
         self.occupancy = OccupancyLayer(grid, occupied_threshold, free_threshold)
         self.footprints = ObjectFootprintLayer(self.rasters, existence_confirm)
@@ -419,7 +431,7 @@ class LayeredCostmap:
         objects = tuple(r.footprint for r in self.rasters.rasters.values())
         return Costmap(
             spec, cost.copy(), band, stamp_s=min(stamps) if stamps else 0.0,
-            class_index=cls.copy(), objects=objects,
+            class_index=cls.copy(), objects=objects, clearance_decay_m=self.rasters.clearance_decay_m,
         )
 
     def nbytes(self) -> int:
@@ -430,3 +442,29 @@ class LayeredCostmap:
         for r in self.rasters.rasters.values():
             n += r.mask.nbytes + r.dist_m.nbytes
         return n
+
+
+def paint_objects(
+    base: Costmap, objects: Sequence[ObjectFootprint], band: VerticalBand, *,
+    existence_confirm: float = 0.6, class_names: Sequence[str] = (),
+) -> Costmap:
+    """``base`` with the footprint and margin layers of ``objects`` at ``band`` combined in by
+    the maximum rule, as :class:`LayeredCostmap` combines them for the map's own objects.
+
+    For a costmap that did not come from the layer stack: an occupancy map read from a file
+    plus its objects, or a ground-truth room. Objects at or above ``existence_confirm`` are
+    lethal with an inscribed margin; the margins decay over ``base.clearance_decay_m``. The
+    result carries ``band`` and all of ``objects``.
+    """
+    spec = base.spec
+    rasters = ObjectRasters(class_names, base.clearance_decay_m)
+    rasters.set_spec(spec)
+    # Ids are the caller's business (files and tests reuse them); the rasters need them unique.
+    rasters.update([dataclasses.replace(fp, object_id=i) for i, fp in enumerate(objects)])
+    window = Bounds(0, 0, spec.rows, spec.cols)
+    layers = (ObjectFootprintLayer(rasters, existence_confirm), SafetyMarginLayer(rasters, existence_confirm))
+    cost = combine_maximum([base.cost, *(layer.costs(spec, band, window) for layer in layers)])
+    return Costmap(
+        spec, cost, band, stamp_s=base.stamp_s, class_index=base.class_index, objects=tuple(objects),
+        clearance_decay_m=base.clearance_decay_m,
+    )

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from semmap.costmap import ObjectFootprint
+from semmap.costmap import DEFAULT_CLEARANCE_DECAY_M, ObjectFootprint
 from semmap.errors import MapError
 from semmap.grid import GridSpec, rasterize_polygon
 from semmap.occupancy import Bounds
@@ -74,10 +74,11 @@ class ObjectRasters:
     """
 
     def __init__(
-        self, class_names: Sequence[str], margin_decay_m: float = 0.3, redraw_fraction: float = 0.25,
+        self, class_names: Sequence[str], clearance_decay_m: float = DEFAULT_CLEARANCE_DECAY_M,
+        redraw_fraction: float = 0.25,
     ) -> None:
         self.class_names = list(class_names)
-        self.margin_decay_m = margin_decay_m
+        self.clearance_decay_m = clearance_decay_m
         self.redraw_fraction = redraw_fraction
         self.spec: GridSpec | None = None
         self.rasters: dict[int, ObjectRaster] = {}
@@ -86,7 +87,7 @@ class ObjectRasters:
 
     def reach_m(self, fp: ObjectFootprint) -> float:
         """How far beyond the footprint the margin layer may put cost."""
-        return fp.margin_m + 3.0 * self.margin_decay_m
+        return fp.margin_m + 3.0 * self.clearance_decay_m
 
     def one_hot(self, class_name: str) -> NDArray[np.float32]:
         """(K,) class probabilities of an object known only by its class name."""

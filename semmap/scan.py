@@ -33,7 +33,11 @@ from semmap.types import CameraIntrinsics
 
 @dataclass(frozen=True, eq=False)
 class BandScan:
-    """One fan of rays in the map frame, one ray per used image column, ordered by column.
+    """One fan of rays in a horizontal frame, one ray per used image column, ordered by bearing.
+
+    The frame is the one the extraction was given: the map frame for the occupancy grid, the
+    gravity-aligned body frame for the SLAM (:func:`semmap.slam.scan2d.level_scan_from_depth`,
+    moved into a submap by :func:`semmap.slam.pose2d.transform_scan`).
 
     ``origin_xy_m``: (2,) sensor position. ``near_xy_m``/``far_xy_m``: (N, 2) start and end of
     each ray's free part inside the band. ``is_hit``: (N,) the ray meets an obstacle, at
@@ -60,6 +64,20 @@ class BandScan:
     @property
     def n_rays(self) -> int:
         return int(len(self.valid))
+
+    @classmethod
+    def from_points(cls, points_xy_m: NDArray[np.floating], origin_xy_m: tuple[float, float] = (0.0, 0.0),
+                    stamp_s: float = 0.0) -> "BandScan":
+        """Rays from ``origin_xy_m`` to each of the (N, 2) points, every point a hit. Points
+        should be ordered by bearing (consecutive rays bound the free polygon). Their heights
+        are unknown: the band is unbounded and ``hit_z_m`` NaN."""
+        pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+        if not np.all(np.isfinite(pts)):
+            raise FrameError("scan points must be finite")
+        o = np.asarray(origin_xy_m, dtype=np.float64).reshape(2)
+        n = len(pts)
+        return cls(stamp_s, VerticalBand(-math.inf, math.inf), o, np.tile(o, (n, 1)), pts.copy(), pts.copy(),
+                   np.ones(n, bool), np.ones(n, bool), np.full(n, np.nan))
 
 
 def fill_dropouts(

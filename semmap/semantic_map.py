@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
+from semmap.costmap import DEFAULT_CLEARANCE_DECAY_M, Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import MapError
 from semmap.geometry import ObjectObservation
 from semmap.grid import GridSpec
@@ -74,7 +74,7 @@ class SemanticMapSettings:
     occupied_threshold: float = 0.6
     free_threshold: float = 0.5
     existence_confirm: float = 0.6
-    margin_decay_m: float = 0.3
+    clearance_decay_m: float = DEFAULT_CLEARANCE_DECAY_M
     #: Per-class safety margin (metres) used when an object arrives without one.
     class_margins_m: tuple[tuple[str, float], ...] = ()
     combine_rule: str = "maximum"
@@ -102,7 +102,7 @@ class SemanticMapSettings:
             hit_probability=map_cfg.hit_probability, miss_probability=map_cfg.miss_probability,
             min_probability=map_cfg.min_probability, max_probability=map_cfg.max_probability,
             depth_min_m=depth_min_m, depth_max_m=depth_max_m,
-            existence_confirm=map_cfg.existence_confirm, margin_decay_m=map_cfg.margin_decay_m,
+            existence_confirm=map_cfg.existence_confirm, clearance_decay_m=map_cfg.clearance_decay_m,
             class_margins_m=tuple((c.name, float(c.margin_m)) for c in classes),
             stale_after_s=map_cfg.stale_after_s, mode=map_cfg.mode,
         )
@@ -115,6 +115,9 @@ class SemanticMapSettings:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "SemanticMapSettings":
         data = dict(d)
+        # Maps saved before the one decay setting name it by its old key.
+        if "margin_decay_m" in data and "clearance_decay_m" not in data:
+            data["clearance_decay_m"] = data.pop("margin_decay_m")
         known = set(cls.__dataclass_fields__)
         unknown = sorted(set(data) - known)
         if unknown:
@@ -158,7 +161,7 @@ class SemanticMap:
         self.layers = LayeredCostmap(
             self.grid, s.class_names, rule=s.combine_rule,
             occupied_threshold=s.occupied_threshold, free_threshold=s.free_threshold,
-            existence_confirm=s.existence_confirm, margin_decay_m=s.margin_decay_m,
+            existence_confirm=s.existence_confirm, clearance_decay_m=s.clearance_decay_m,
         )
         self._objects: tuple[ObjectFootprint, ...] = ()
         self._class_probs: dict[int, NDArray[np.float32]] = {}
@@ -319,7 +322,8 @@ class SemanticMap:
         band = band or self.settings.scan_band
         cost = layers.occupancy.costs(spec, band, Bounds(0, 0, spec.rows, spec.cols))
         stamp = layers.occupancy.stamp_s
-        return Costmap(spec, np.ascontiguousarray(cost), band, stamp_s=stamp if np.isfinite(stamp) else 0.0)
+        return Costmap(spec, np.ascontiguousarray(cost), band, stamp_s=stamp if np.isfinite(stamp) else 0.0,
+                       clearance_decay_m=self.settings.clearance_decay_m)
 
     def stale_layers(self, now_s: float) -> list[str]:
         """Layers older than ``settings.stale_after_s`` at ``now_s`` (empty = fresh map)."""

@@ -24,7 +24,6 @@ from numpy.typing import NDArray
 from companion.config import load_config
 from companion.errors import DataError, MapError
 from planner.config import PlannerConfig
-from planner.cspace import band_costmap
 from planner.planner import Planner
 from planner.types import PlanResult
 from semmap.costmap import (
@@ -36,6 +35,7 @@ from semmap.costmap import (
     ObjectFootprint,
     VerticalBand,
 )
+from semmap.layers import paint_objects
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +132,8 @@ def load_map(folder: Path, band: VerticalBand, source: str) -> tuple[Costmap, st
             objects = object_footprints_from_records(records)
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise DataError(f"{obj_path}: cannot read objects ({exc})") from exc
-    return band_costmap(base, objects, band), f"{yaml_path} + {len(objects)} objects"
+    # A plain map file carries no existence threshold: every object it lists is kept out of.
+    return paint_objects(base, objects, band, existence_confirm=0.0), f"{yaml_path} + {len(objects)} objects"
 
 
 # --- the picture --------------------------------------------------------------------------

@@ -293,7 +293,7 @@ class LocalizedFrameSource(WrappedSource):
         """The SLAM stage (created on first use)."""
         if self._localizer is None:
             self._localizer = Localizer(self.cfg, self.inner.intrinsics, self.shared)
-            log.info("localization: SLAM (%s mode) on the camera's frames", self.cfg.slam.mode)
+            log.info("localization: SLAM on the camera's frames")
         return self._localizer
 
     def open(self) -> None:

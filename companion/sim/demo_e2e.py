@@ -14,8 +14,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import csv
-import dataclasses
-import json
 import logging
 import math
 import shutil
@@ -34,11 +32,15 @@ from numpy.typing import NDArray
 
 from companion.config import CompanionConfig, write_effective_config
 from companion.errors import SimulationError
-from companion.mavsdk_client import MavsdkClient
-from companion.missions import MissionPlan, Waypoint
 from companion.px4 import FlightMode
 from companion.service.app import CompanionService, ServiceReport
-from companion.service.checkpoint import checkpoint_path
+from companion.sim.demo_flight import (
+    export_flight,
+    flight_config,
+    upload_crossing,
+    with_room_geofence,
+    write_summary,
+)
 from companion.sim.groundtruth import (
     clearance_m,
     collides,
@@ -51,7 +53,6 @@ from companion.sim.world import Room
 from companion.sources.sim import room_from_config
 from planner.planner import Planner
 from semmap.costmap import VerticalBand
-from semmap.export import export_all, render_picture
 
 log = logging.getLogger(__name__)
 
@@ -206,9 +207,7 @@ def ground_truth_planner(placement: SimPlacement, cfg: CompanionConfig) -> Plann
     spec = room_grid_spec(room, cfg.map.resolution_m)
     band = VerticalBand.for_altitude(cfg.planner.flight_altitude_m, cfg.planner.vehicle_height_m,
                                      cfg.planner.vertical_margin_m)
-    cm = semantic_costmap(room, spec, band, [c.name for c in cfg.classes])
-    cm = dataclasses.replace(cm, objects=tuple(dataclasses.replace(fp, margin_m=margins.get(fp.class_name, 0.0))
-                                               for fp in cm.objects))
+    cm = semantic_costmap(room, spec, band, [c.name for c in cfg.classes], margins)
     # Choosing a mission is set-up, not flight: a loaded machine must not make a room infeasible.
     planner = Planner(cfg.planner.model_copy(update={
         "geofence_xy_m": (0.0, 0.0, room.width_m, room.depth_m), "refine_with_ompl": False,
@@ -231,17 +230,6 @@ def feasible_seed(cfg: CompanionConfig, tries: int = 20) -> CompanionConfig:
             continue
         return c
     raise SimulationError(f"no room seed in {seed}..{seed + tries - 1} has a feasible crossing")
-
-
-async def upload_mission_mavsdk(port: int, waypoints_map_xy: list[tuple[float, float]], altitude_m: float,
-                                acceptance_m: float) -> None:
-    """Upload a waypoint mission (map-frame points) with MAVSDK listening on UDP ``port``."""
-    plan = MissionPlan(tuple(Waypoint(xyz_map_m=(x, y, altitude_m), acceptance_radius_m=acceptance_m)
-                             for x, y in waypoints_map_xy), None, "demo crossing")
-    async with MavsdkClient(f"udpin://127.0.0.1:{port}", connect_timeout_s=20.0) as client:
-        home = await client.home()
-        await client.upload_mission(plan.resolved(home))
-    log.info("mission of %d waypoints uploaded with MAVSDK", len(waypoints_map_xy))
 
 
 def setpoint_gap_stats_ms(stamps_s: list[float], offboard_gap_max_s: float = 0.0) -> dict[str, float | int]:
@@ -276,33 +264,16 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
     with tempfile.TemporaryDirectory(prefix="companion-demo-") as tmp, \
             (local_broker(Path(tmp)) if use_broker else contextlib.nullcontext(None)) as broker:
         broker_port = broker.port if broker is not None else None
-        mqtt = cfg.mqtt.model_copy(update={"enabled": broker_port is not None, "port": broker_port or 1883})
-        link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
-        service_cfg = cfg.service.model_copy(update={"output_dir": str(out), "map_dir": str(out / "checkpoint")})
-        cfg = cfg.model_copy(update={"mqtt": mqtt, "link": link, "service": service_cfg})
-        stale = checkpoint_path(cfg)
-        if stale.exists():
-            # A demo flies a fresh room: a map left by an earlier run (maybe another seed) must
-            # not be restored into it.
-            log.info("removing the previous demo's map checkpoint %s", stale)
-            stale.unlink()
-        result.files["config"] = write_effective_config(cfg, out)
+        cfg = flight_config(cfg, out, f"udpin://127.0.0.1:{link_port}", broker_port)
         world = SimWorld(cfg, autopilot_port=0, remote_ports=(link_port, mavsdk_port))
-        if cfg.planner.geofence_xy_m is None:
-            # The mission author knows the room's walls (not its furniture): the room is the
-            # geofence, so no leg is planned out of a doorway through unmapped space.
-            x0, y0 = world.placement.room_to_map_xy((0.0, 0.0))
-            x1, y1 = world.placement.room_to_map_xy((world.room.width_m, world.room.depth_m))
-            cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(
-                update={"geofence_xy_m": (x0, y0, x1, y1)})})
-            result.files["config"] = write_effective_config(cfg, out)
+        cfg = with_room_geofence(cfg, world.placement)
+        result.files["config"] = write_effective_config(cfg, out)
         async with world:
             placement = world.placement
             # Planning on the true map takes a few hundred ms: off the loop the mock flies on.
             wps_room = await asyncio.to_thread(crossing_waypoints_room, placement, cfg)
             wps_map = [placement.room_to_map_xy(w) for w in wps_room]
-            acceptance = 0.3
-            await upload_mission_mavsdk(mavsdk_port, wps_map, cfg.planner.flight_altitude_m, acceptance)
+            await upload_crossing(f"udpin://127.0.0.1:{mavsdk_port}", wps_map, cfg.planner.flight_altitude_m)
             service = CompanionService(
                 cfg, world.frame_source(), out_dir=out, fly_mission=True,
                 object_classes={o.object_id: o.class_name for o in placement.room.objects},
@@ -346,11 +317,8 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
                 report = await service.run(stop)
                 stop.set()
     result.report = report
-    assert service.smap is not None
-    colours = {c.name: c.color_rgb for c in cfg.classes}
-    result.files.update({f"map_{k}": v for k, v in export_all(out / "map", service.smap, colours).items()})
     path_map = np.array(flown) if flown else np.zeros((0, 3))
-    result.files["picture"] = _write_picture(out / "map_with_path.png", service, placement, path_map, wps_map)
+    result.files.update(export_flight(out, service, placement, path_map, wps_map))
     result.summary = _summary(cfg, placement, report, path_map, wps_map, stamps, service, time.monotonic() - t_start)
     # The gap the autopilot saw, open ones included (the stream to it stopped after a failsafe).
     result.summary["setpoint_gaps"] = setpoint_gap_stats_ms(stamps, world.autopilot.offboard_gap_max_s)
@@ -365,11 +333,7 @@ async def run_e2e(cfg: CompanionConfig, out_dir: str | Path, *, use_broker: bool
         name: world.autopilot.messages_received[name]
         for name in ("SET_POSITION_TARGET_LOCAL_NED", "OBSTACLE_DISTANCE", "TIMESYNC")}
     result.summary["map_restored"] = service.restored
-    path = out / "summary.json"
-    result.files["summary"] = path
-    result.summary["files"] = {k: str(p.relative_to(out)) if p.is_relative_to(out) else str(p)
-                               for k, p in sorted(result.files.items())}
-    path.write_text(json.dumps(result.summary, indent=2) + "\n", encoding="utf-8")
+    write_summary(out, result.summary, result.files)
     return result
 
 
@@ -418,77 +382,6 @@ def _summary(cfg: CompanionConfig, placement: SimPlacement, report: ServiceRepor
         "checkpoints": report.checkpoints,
         "elapsed_s": round(elapsed_s, 1),
     }
-
-
-def _write_picture(path: Path, service: CompanionService, placement: SimPlacement,
-                   path_map: NDArray[np.float64], wps_map: list[tuple[float, float]]) -> Path:
-    """The semantic map picture (objects) with the flown path, true footprints and waypoints."""
-    assert service.smap is not None
-    smap = service.smap
-    img = render_picture(smap, {c.name: c.color_rgb for c in service.cfg.classes})
-    h = img.shape[0]
-    # A second panel in the room's own extent: the room, true footprints, mapped objects, path.
-    room = placement.room
-    pad = 0.5
-    px_per_m = 80
-    W = int((room.width_m + 2 * pad) * px_per_m)
-    H = int((room.depth_m + 2 * pad) * px_per_m)
-    panel = np.full((H, W, 3), 255, np.uint8)
-
-    def to_px(xy_map: NDArray[np.floating]) -> NDArray[np.int32]:
-        xy = np.asarray(xy_map, np.float64).reshape(-1, 2) + np.array(placement.offset_xy_m)
-        return np.column_stack([(xy[:, 0] + pad) * px_per_m, H - (xy[:, 1] + pad) * px_per_m]).round().astype(np.int32)
-
-    def room_px(xy_room: NDArray[np.floating]) -> NDArray[np.int32]:
-        return to_px(np.asarray(xy_room, np.float64).reshape(-1, 2) - np.array(placement.offset_xy_m))
-
-    cv2.rectangle(panel, tuple(room_px(np.array([0.0, 0.0]))[0]),
-                  tuple(room_px(np.array([room.width_m, room.depth_m]))[0]), (0, 0, 0), 2)
-    colours = {c.name: c.color_rgb for c in service.cfg.classes}
-    # The room as laid out: clutter solid grey, true footprints tinted pale by class (tucked
-    # chairs overlap their table), and a thin line from each arranged piece to its partner.
-    for o in room.clutter:
-        for part in o.parts:
-            cv2.fillPoly(panel, [room_px(part.corners_xy_m())], (185, 185, 185), cv2.LINE_AA)
-    tint = panel.copy()
-    for o in room.objects:
-        col = colours.get(o.class_name, (150, 150, 150))
-        pale = tuple(int(255 - 0.35 * (255 - v)) for v in (col[2], col[1], col[0]))
-        cv2.fillPoly(tint, [room_px(o.footprint_xy_m())], pale, cv2.LINE_AA)
-    panel = np.minimum(panel, tint)
-    for o in room.objects:
-        cv2.polylines(panel, [room_px(o.footprint_xy_m())], True, (150, 150, 150), 1, cv2.LINE_AA)
-    by_id = {o.object_id: o for o in room.objects}
-    for rel in room.relations:
-        if rel.b_id in by_id and rel.a_id in by_id:
-            a, b = (room_px(np.array(by_id[i].center_xy_m))[0] for i in (rel.a_id, rel.b_id))
-            cv2.line(panel, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), (120, 120, 120), 1, cv2.LINE_AA)
-    for fp in smap.objects:
-        col = colours.get(fp.class_name, (200, 0, 200))
-        poly = to_px(np.asarray(fp.polygon_xy_m))
-        cv2.polylines(panel, [poly], True, (int(col[2]), int(col[1]), int(col[0])), 2, cv2.LINE_AA)
-        c = poly.mean(axis=0).astype(int)
-        cv2.putText(panel, f"{fp.class_name} #{fp.object_id}", (int(c[0]) - 30, int(c[1])),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    if len(path_map) >= 2:
-        cv2.polylines(panel, [to_px(path_map[:, :2])], False, (0, 140, 255), 2, cv2.LINE_AA)
-    for i, wp in enumerate([(0.0, 0.0), *wps_map]):
-        q = to_px(np.array(wp))[0]
-        cv2.circle(panel, (int(q[0]), int(q[1])), 6, (0, 0, 255), 2)
-        cv2.putText(panel, "start" if i == 0 else f"wp{i}", (int(q[0]) + 8, int(q[1]) - 8),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 255), 1, cv2.LINE_AA)
-    cv2.putText(panel, "pale: true footprints (lines join groups), solid grey: clutter, colour: mapped objects, "
-                "orange: flown path", (8, 18),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    # Side by side with the map picture (same height).
-    ph = h
-    pw = int(W * ph / H)
-    panel = cv2.resize(panel, (pw, ph), interpolation=cv2.INTER_AREA)
-    both = np.hstack([img, np.full((h, 8, 3), 255, np.uint8), panel])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), both):
-        raise SimulationError(f"{path}: cannot write picture")
-    return path
 
 
 def read_flight_log(path: Path) -> list[dict[str, str]]:

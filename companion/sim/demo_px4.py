@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import tempfile
 import time
@@ -25,22 +24,19 @@ import numpy as np
 
 from companion.config import CompanionConfig, write_effective_config
 from companion.errors import LinkError
-from companion.mavsdk_client import MavsdkClient
-from companion.missions import MissionPlan, Waypoint
 from companion.px4 import FlightMode
 from companion.service.app import CompanionService, ServiceReport
-from companion.service.checkpoint import checkpoint_path
-from companion.sim.demo_e2e import (
-    _summary,
-    _write_picture,
-    crossing_waypoints_room,
-    feasible_seed,
-    local_broker,
+from companion.sim.demo_e2e import _summary, crossing_waypoints_room, feasible_seed, local_broker
+from companion.sim.demo_flight import (
+    export_flight,
+    flight_config,
+    upload_crossing,
+    with_room_geofence,
+    write_summary,
 )
 from companion.sim.px4_probes import engage_check
 from companion.sim.px4_sitl import Px4Sitl, Px4SitlError
 from companion.sim.px4_world import FlightTimeline, Px4World, vehicle_start_map_xy
-from semmap.export import export_all
 
 log = logging.getLogger(__name__)
 
@@ -66,14 +62,6 @@ class Px4Flight:
     timeline: FlightTimeline = field(default_factory=FlightTimeline)
 
 
-async def upload_crossing(gcs_url: str, waypoints_map_xy: list[tuple[float, float]], altitude_m: float) -> None:
-    """Upload the demo's waypoints (map frame, at ``altitude_m``) with MAVSDK on ``gcs_url``."""
-    plan = MissionPlan(tuple(Waypoint(xyz_map_m=(x, y, altitude_m), acceptance_radius_m=0.3)
-                             for x, y in waypoints_map_xy), None, "demo crossing")
-    async with MavsdkClient(gcs_url, connect_timeout_s=30.0) as client:
-        await client.upload_mission(plan.resolved(await client.home(timeout_s=20.0)))
-
-
 async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | None = None,
                   link_url: str | None = None, gcs_url: str = DEFAULT_GCS_URL, use_broker: bool = True,
                   timeout_s: float = 240.0) -> Px4Flight:
@@ -91,29 +79,17 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
     with contextlib.ExitStack() as tmp_stack:
         workdir = Path(tmp_stack.enter_context(tempfile.TemporaryDirectory(prefix="companion-px4-demo-")))
         broker = tmp_stack.enter_context(local_broker(workdir)) if use_broker else None
-        mqtt = cfg.mqtt.model_copy(update={"enabled": broker is not None,
-                                           "port": broker.port if broker is not None else 1883})
-        service_cfg = cfg.service.model_copy(update={"output_dir": str(out), "map_dir": str(out / "checkpoint")})
-        cfg = cfg.model_copy(update={"mqtt": mqtt, "service": service_cfg,
-                                     "link": cfg.link.model_copy(update={"url": link_url})})
-        with contextlib.suppress(FileNotFoundError):
-            # A demo flies a fresh room: an earlier run's map must not be restored into it.
-            checkpoint_path(cfg).unlink()
+        cfg = flight_config(cfg, out, link_url, broker.port if broker is not None else None)
         start = await vehicle_start_map_xy(cfg.link)
         world = Px4World(cfg, start, target_system=cfg.link.target_system,
                          target_component=cfg.link.target_component)
         placement = world.placement
         flight.timeline = world.timeline
-        if cfg.planner.geofence_xy_m is None:
-            # The mission author knows the room's walls (not its furniture): the room is the geofence.
-            x0, y0 = placement.room_to_map_xy((0.0, 0.0))
-            x1, y1 = placement.room_to_map_xy((placement.room.width_m, placement.room.depth_m))
-            cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(
-                update={"geofence_xy_m": (x0, y0, x1, y1)})})
+        cfg = with_room_geofence(cfg, placement)
         flight.files["config"] = write_effective_config(cfg, out)
         wps_room = await asyncio.to_thread(crossing_waypoints_room, placement, cfg)
         wps_map = [placement.room_to_map_xy(w) for w in wps_room]
-        await upload_crossing(gcs_url, wps_map, cfg.planner.flight_altitude_m)
+        await upload_crossing(gcs_url, wps_map, cfg.planner.flight_altitude_m, connect_timeout_s=30.0)
         log.info("PX4 demo: room seed %d placed around the vehicle at (%.2f, %.2f) m; %d waypoints uploaded",
                  placement.room.seed, start[0], start[1], len(wps_map))
         service = CompanionService(cfg, world.frame_source(), out_dir=out, fly_mission=True,
@@ -156,11 +132,8 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
             report = await service.run(stop)
             stop.set()
     flight.report = report
-    assert service.smap is not None
-    colours = {c.name: c.color_rgb for c in cfg.classes}
-    flight.files.update({f"map_{k}": v for k, v in export_all(out / "map", service.smap, colours).items()})
     path_map = world.path_map_m
-    flight.files["picture"] = _write_picture(out / "map_with_path.png", service, placement, path_map, wps_map)
+    flight.files.update(export_flight(out, service, placement, path_map, wps_map))
     s = _summary(cfg, placement, report, path_map, wps_map, [], service, time.monotonic() - t_start)
     s.pop("setpoint_gaps")
     s.pop("setpoints_received")
@@ -184,10 +157,7 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
                                                                 r"[Ff]ailsafe|[Oo]ffboard|mode")[-60:]
         flight.files["px4_log"] = _copy_log(sitl, out)
     flight.summary = s
-    path = out / "summary.json"
-    flight.files["summary"] = path
-    s["files"] = {k: str(p.relative_to(out)) if p.is_relative_to(out) else str(p) for k, p in sorted(flight.files.items())}
-    path.write_text(json.dumps(s, indent=2) + "\n", encoding="utf-8")
+    write_summary(out, s, flight.files)
     return flight
 
 

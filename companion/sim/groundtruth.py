@@ -23,6 +23,7 @@ from semmap.costmap import (
     VerticalBand,
 )
 from semmap.grid import GridSpec, rasterize_polygon
+from semmap.layers import paint_objects
 
 
 def room_grid_spec(room: Room, resolution_m: float = 0.05, pad_m: float = 0.5) -> GridSpec:
@@ -72,22 +73,21 @@ def object_footprints(
 
 def semantic_costmap(
     room: Room, spec: GridSpec, band: VerticalBand, class_names: list[str] | None = None,
+    margins_m: Mapping[str, float] | None = None,
 ) -> Costmap:
-    """The ideal semantic costmap at a band: walls, slice hits and whole footprints of objects
-    that block the band are lethal; the interior is free; outside the walls is unknown."""
+    """The ideal semantic costmap at a band: walls and slice hits are lethal, the interior is
+    free, outside the walls is unknown; the objects are costed by the map's own layers (the
+    whole footprint of every object that blocks the band is lethal, with its class margin
+    from ``margins_m`` around it)."""
     cost = np.full(spec.shape_rc, NO_INFORMATION, dtype=np.uint8)
     cost[interior_mask(room, spec)] = FREE_SPACE
-    lethal = occupancy_at_band(room, spec, band)
+    cost[occupancy_at_band(room, spec, band)] = LETHAL_OBSTACLE
     class_index = np.full(spec.shape_rc, -1, dtype=np.int16)
-    fps = object_footprints(room)
+    fps = object_footprints(room, margins_m)
     for fp in fps:
-        if fp.blocks(band):
-            m = fp.mask(spec)
-            lethal |= m
-            if class_names and fp.class_name in class_names:
-                class_index[m] = class_names.index(fp.class_name)
-    cost[lethal] = LETHAL_OBSTACLE
-    return Costmap(spec, cost, band, class_index=class_index, objects=tuple(fps))
+        if fp.blocks(band) and class_names and fp.class_name in class_names:
+            class_index[fp.mask(spec)] = class_names.index(fp.class_name)
+    return paint_objects(Costmap(spec, cost, band, class_index=class_index), fps, band)
 
 
 def metric_costmap(room: Room, spec: GridSpec, altitude_m: float, slice_half_m: float = 0.05) -> Costmap:

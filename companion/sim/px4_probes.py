@@ -172,7 +172,7 @@ async def probe_offboard_loss(sitl: Px4Sitl, cfg: CompanionConfig, workdir: Path
     group) is killed. PX4 must leave OFFBOARD within ``COM_OF_LOSS_T`` (plus the heartbeat's
     lag), stay within 1 m of where the setpoints stopped, land and disarm."""
     from companion.sim.demo_e2e import crossing_waypoints_room, feasible_seed
-    from companion.sim.demo_px4 import upload_crossing
+    from companion.sim.demo_flight import upload_crossing
     from companion.sim.px4_world import Px4World, vehicle_start_map_xy
 
     name = "offboard_loss"
@@ -185,7 +185,7 @@ async def probe_offboard_loss(sitl: Px4Sitl, cfg: CompanionConfig, workdir: Path
     world = Px4World(cfg, await vehicle_start_map_xy(link_cfg))
     wps_room = await asyncio.to_thread(crossing_waypoints_room, world.placement, cfg)
     await upload_crossing(sitl.gcs_url, [world.placement.room_to_map_xy(w) for w in wps_room],
-                          cfg.planner.flight_altitude_m)
+                          cfg.planner.flight_altitude_m, connect_timeout_s=30.0)
     await hold_on_ground(sitl)
     conf = workdir / "offboard-loss.yaml"
     conf.write_text(yaml.safe_dump({

@@ -26,10 +26,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semmap.config import SlamConfig
+from semmap.scan import BandScan
 from semmap.slam.pose2d import Pose2, compose, inverse, relative, transform_xy
 from semmap.slam.pose_graph import Edge, optimize
 from semmap.slam.refine import refine_pose
-from semmap.slam.scan2d import LevelScan
 from semmap.slam.submaps import Submap
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,7 @@ class Node:
     local_pose: Pose2
     global_pose: Pose2
     points_xy_m: NDArray[np.float64]
-    scan: LevelScan
+    scan: BandScan
     submaps: tuple[int, ...]
 
 
@@ -94,7 +94,7 @@ class GlobalSlam:
             return compose(self.global_from_local, local_pose)
 
     def add_node(self, stamp_s: float, local_pose: Pose2, points_xy_m: NDArray[np.float64],
-                 scan: LevelScan, submap_indices: tuple[int, ...]) -> Node:
+                 scan: BandScan, submap_indices: tuple[int, ...]) -> Node:
         """Append a node with its intra-submap and consecutive-node constraints; queue it for
         loop closure when due (never blocks: a full queue drops it)."""
         cfg = self.cfg

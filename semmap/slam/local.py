@@ -1,6 +1,6 @@
 """Local SLAM: odometry prediction, scan-to-submap matching, motion filter, submaps.
 
-For each scan (gravity-aligned body frame, :class:`~semmap.slam.scan2d.LevelScan`):
+For each scan (gravity-aligned body frame, :class:`~semmap.scan.BandScan`):
 
 1. predict the pose from the previous estimate and the autopilot's odometry increment,
    corrected for the odometry's systematic errors (heading drift rate, distance scale)
@@ -32,10 +32,10 @@ from numpy.typing import NDArray
 
 from semmap.config import SlamConfig
 from semmap.occupancy import ProbabilityTables
+from semmap.scan import BandScan
 from semmap.slam.correlative import real_time_correlative_match
 from semmap.slam.pose2d import Pose2, compose, relative, wrap
 from semmap.slam.refine import refine_pose
-from semmap.slam.scan2d import LevelScan
 from semmap.slam.submaps import ActiveSubmaps, Submap
 
 log = logging.getLogger(__name__)
@@ -234,7 +234,7 @@ class LocalSlam:
         dt = 0.0 if stamp_s is None or self._last_stamp_s is None else float(stamp_s) - self._last_stamp_s
         return compose(self._last_pose, self.calibration.correct(relative(self._last_odom, odometry_pose), dt))
 
-    def add_scan(self, stamp_s: float, scan: LevelScan, odometry_pose: Pose2) -> LocalResult:
+    def add_scan(self, stamp_s: float, scan: BandScan, odometry_pose: Pose2) -> LocalResult:
         """Estimate the pose of one scan; ``odometry_pose`` (3,) is the autopilot's (x, y, yaw)
         in its own (drifting) frame at the scan's time."""
         cfg = self.cfg

@@ -1,4 +1,5 @@
-"""2D rigid poses ``(x_m, y_m, yaw_rad)`` as (3,) float64 arrays: compose, invert, apply.
+"""2D rigid poses ``(x_m, y_m, yaw_rad)`` as (3,) float64 arrays: compose, invert, apply to
+points and scans.
 
 ``compose(a, b)`` is ``a (+) b`` (b expressed in a's frame), the SE(2) analogue of
 ``T_a @ T_b``; ``relative(a, b) = inverse(a) (+) b`` is b seen from a.
@@ -6,12 +7,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 from numpy.typing import NDArray
 
 from semmap.frames import wrap_angle_rad as wrap
+from semmap.scan import BandScan
 
 Pose2 = NDArray[np.float64]  # (3,) x_m, y_m, yaw_rad
 
@@ -43,6 +46,14 @@ def transform_xy(pose: Pose2, xy_m: NDArray[np.floating]) -> NDArray[np.float64]
     p = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
     c, s = math.cos(pose[2]), math.sin(pose[2])
     return np.stack([pose[0] + c * p[:, 0] - s * p[:, 1], pose[1] + s * p[:, 0] + c * p[:, 1]], axis=1)
+
+
+def transform_scan(pose: Pose2, scan: BandScan) -> BandScan:
+    """The scan's rays in the frame where its sensor frame sits at ``pose``."""
+    return dataclasses.replace(
+        scan, origin_xy_m=transform_xy(pose, scan.origin_xy_m)[0], near_xy_m=transform_xy(pose, scan.near_xy_m),
+        far_xy_m=transform_xy(pose, scan.far_xy_m), hit_xy_m=transform_xy(pose, scan.hit_xy_m),
+    )
 
 
 def matrix3(pose: Pose2) -> NDArray[np.float64]:

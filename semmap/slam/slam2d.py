@@ -28,10 +28,18 @@ from semmap.config import SlamConfig
 from semmap.frames import pose_from_xyz_rpy
 from semmap.grid import GridSpec
 from semmap.occupancy import ProbabilityGrid, ProbabilityTables
+from semmap.scan import BandScan
 from semmap.slam.global_ import GlobalSlam
 from semmap.slam.local import LocalSlam, SlamStatus, voxel_filter_xy
-from semmap.slam.pose2d import Pose2, compose, interpolate, inverse, matrix4, relative
-from semmap.slam.scan2d import LevelScan
+from semmap.slam.pose2d import (
+    Pose2,
+    compose,
+    interpolate,
+    inverse,
+    matrix4,
+    relative,
+    transform_scan,
+)
 
 log = logging.getLogger(__name__)
 
@@ -139,18 +147,15 @@ class Slam2D:
         """``callback(generation)`` after the global optimisation moved poses (worker thread)."""
         self.global_.add_listener(callback)
 
-    def add_scan(self, stamp_s: float, scan: LevelScan | NDArray[np.floating],
+    def add_scan(self, stamp_s: float, scan: BandScan | NDArray[np.floating],
                  odometry_pose: Pose2 | tuple[float, float, float]) -> SlamPose:
         """Estimate the map pose of one scan.
 
-        ``scan``: a :class:`LevelScan` or (N, 2) hit points, both in the gravity-aligned
+        ``scan``: a :class:`~semmap.scan.BandScan` or (N, 2) hit points, both in the gravity-aligned
         body-centred frame (metres). ``odometry_pose``: the autopilot's (x_m, y_m, yaw_rad)
         in its local ENU frame at the scan's time. Never waits for loop closure."""
         odom = np.asarray(odometry_pose, dtype=np.float64).reshape(3)
-        ls = scan if isinstance(scan, LevelScan) else LevelScan.from_points(np.asarray(scan))
-        if self.cfg.mode == "odometry":
-            return SlamPose(stamp_s, odom.copy(), SlamStatus.ODOMETRY, odom.copy(), self.generation,
-                            False, "odometry mode", 0.0, 0.0)
+        ls = scan if isinstance(scan, BandScan) else BandScan.from_points(np.asarray(scan), stamp_s=stamp_s)
         res = self.local.add_scan(stamp_s, ls, odom)
         self._count(stamp_s, res.status, res.reason)
         if res.inserted:
@@ -264,6 +269,6 @@ class Slam2D:
             nodes = list(self.global_.nodes)
             poses = [n.global_pose.copy() for n in nodes]
         for n, p in zip(nodes, poses, strict=True):
-            r = n.scan.transformed(p)
+            r = transform_scan(p, n.scan)
             grid.insert_scan(r.origin_xy_m, r.near_xy_m, r.far_xy_m, r.hit_xy_m, r.is_hit, r.valid)
         return grid

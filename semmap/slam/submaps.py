@@ -20,9 +20,9 @@ import numpy as np
 from semmap.errors import MapError
 from semmap.grid import GridSpec
 from semmap.occupancy import ProbabilityGrid, ProbabilityTables
+from semmap.scan import BandScan
 from semmap.slam.correlative import BranchAndBoundMatcher, MatchGrid
-from semmap.slam.pose2d import Pose2, pose2, relative
-from semmap.slam.scan2d import LevelScan
+from semmap.slam.pose2d import Pose2, pose2, relative, transform_scan
 
 
 class Submap:
@@ -46,11 +46,11 @@ class Submap:
         self._bbs: BranchAndBoundMatcher | None = None
         self._lock = threading.Lock()
 
-    def insert(self, scan: LevelScan, pose_local: Pose2) -> None:
+    def insert(self, scan: BandScan, pose_local: Pose2) -> None:
         """Insert a scan whose body sits at ``pose_local`` (local SLAM frame)."""
         if self.finished:
             raise MapError(f"submap {self.index} is finished; it takes no more scans")
-        rays = scan.transformed(relative(self.local_pose, pose_local))
+        rays = transform_scan(relative(self.local_pose, pose_local), scan)
         self.grid.insert_scan(rays.origin_xy_m, rays.near_xy_m, rays.far_xy_m, rays.hit_xy_m,
                               rays.is_hit, rays.valid)
         self._hits.append(rays.hits_xy_m)
@@ -102,7 +102,7 @@ class ActiveSubmaps:
         """The older active submap (the scan matcher's target), None before the first scan."""
         return self.active[0] if self.active else None
 
-    def insert(self, scan: LevelScan, pose_local: Pose2) -> tuple[list[Submap], list[Submap]]:
+    def insert(self, scan: BandScan, pose_local: Pose2) -> tuple[list[Submap], list[Submap]]:
         """Insert into the active submaps, starting/finishing submaps as needed. Returns
         ``(inserted_into, newly_finished)``."""
         if not self.active:

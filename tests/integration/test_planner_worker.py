@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from planner.config import PlannerConfig
-from planner.cspace import band_costmap
 from planner.types import PlanStatus
 from planner.worker import PlanningService
 from semmap.costmap import FREE_SPACE, LETHAL_OBSTACLE, Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import PlanningError
 from semmap.grid import GridSpec
+from semmap.layers import paint_objects
 
 SPEC = GridSpec(0.05, (0.0, 0.0), (60, 120))
 #: Length-only objective with plain RRT*: on an open map the straight first path is optimal, so
@@ -32,7 +32,7 @@ def base() -> Costmap:
 
 def with_chair() -> Costmap:
     poly = np.array([[2.7, 1.1], [3.3, 1.1], [3.3, 1.9], [2.7, 1.9]])
-    return band_costmap(base(), [ObjectFootprint(1, "chair", poly, 0.0, 0.9)], BAND)
+    return paint_objects(base(), [ObjectFootprint(1, "chair", poly, 0.0, 0.9)], BAND)
 
 
 @pytest.fixture(scope="module")

@@ -35,8 +35,8 @@ from companion.sim.demo_e2e import (
     free_udp_port,
     local_broker,
     run_e2e,
-    upload_mission_mavsdk,
 )
+from companion.sim.demo_flight import upload_crossing
 from companion.sim.sim_world import SimWorld
 
 #: A closed-loop flight: the full suite runs it, `make check` does not.
@@ -120,7 +120,7 @@ def test_mission_start_pause_resume_abort_over_mqtt(tmp_path: Path) -> None:
             world = SimWorld(c, autopilot_port=0, remote_ports=(link_port, mavsdk_port))
             async with world:
                 wps = [world.placement.room_to_map_xy(w) for w in crossing_waypoints_room(world.placement, c)]
-                await upload_mission_mavsdk(mavsdk_port, wps, c.planner.flight_altitude_m, 0.3)
+                await upload_crossing(f"udpin://127.0.0.1:{mavsdk_port}", wps, c.planner.flight_altitude_m)
                 svc = CompanionService(c, world.frame_source(), land_after_mission=False,
                                        object_classes={o.object_id: o.class_name for o in world.room.objects})
                 stop = asyncio.Event()

@@ -11,6 +11,7 @@ from pydantic import ValidationError
 from companion.cli import main
 from companion.config import CompanionConfig, config_from_dict, dump_config, load_config
 from companion.errors import ConfigError
+from semmap.costmap import VerticalBand
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -150,6 +151,25 @@ def test_slam_mode_is_refused_naming_service_localization(given: dict[str, objec
     # One switch chooses whether SLAM poses the map; a second one could contradict it.
     with pytest.raises(ConfigError, match=r"<t>: slam: mode is not a key here.*service\.localization"):
         config_from_dict(given, "<t>")
+
+
+@pytest.mark.parametrize("given", [{"map": {"margin_decay_m": 0.3}}, {"planner": {"clearance_decay_m": 0.15}}])
+def test_old_decay_keys_are_refused_naming_the_one_decay(given: dict[str, object]) -> None:
+    # One decay shapes the map's margins and the planner's proximity cost; the map owns it.
+    (section, keys), = given.items()
+    key = next(iter(keys))  # type: ignore[call-overload]
+    with pytest.raises(ConfigError, match=rf"<t>: {section}: {key} is not a key here.*map\.clearance_decay_m"):
+        config_from_dict(given, "<t>")
+
+
+def test_the_one_decay_reaches_the_planners_costmap() -> None:
+    from semmap.semantic_map import SemanticMap, SemanticMapSettings
+
+    cfg = config_from_dict({"map": {"clearance_decay_m": 0.4}})
+    band = VerticalBand(0.4, 0.8)
+    smap = SemanticMap(SemanticMapSettings.from_config(cfg.map, cfg.classes, band))
+    assert smap.costmap(band).clearance_decay_m == 0.4
+    assert smap.metric_costmap(band).clearance_decay_m == 0.4
 
 
 def test_the_effective_config_names_one_localization_switch() -> None:

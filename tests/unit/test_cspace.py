@@ -1,4 +1,5 @@
-"""Configuration space: the altitude rule, inflation, conservative clearance, window updates."""
+"""Configuration space: the map-costed objects (altitude rule, margins), the vehicle radius,
+conservative clearance, window updates."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planner.cspace import CSpaceParams, band_costmap, build_cspace, update_cspace
+from planner.cspace import CSpaceParams, build_cspace, update_cspace
 from semmap.costmap import (
     FREE_SPACE,
     LETHAL_OBSTACLE,
@@ -17,6 +18,7 @@ from semmap.costmap import (
     VerticalBand,
 )
 from semmap.grid import GridSpec
+from semmap.layers import cost_decay, paint_objects
 
 SPEC = GridSpec(0.05, (0.0, 0.0), (80, 100))  # 5 m x 4 m
 
@@ -39,30 +41,33 @@ def desk() -> ObjectFootprint:
 
 def test_coffee_table_does_not_block_at_1_5_m() -> None:
     band = VerticalBand.for_altitude(1.5, 0.15, 0.1)
-    cm = band_costmap(empty_costmap(band), [coffee_table()], band)
+    cm = paint_objects(empty_costmap(band), [coffee_table()], band)
     assert not cm.lethal.any()
 
 
 def test_desk_blocks_its_whole_footprint_at_0_5_m() -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
     fp = desk()
-    cm = band_costmap(empty_costmap(band), [fp], band)
+    cm = paint_objects(empty_costmap(band), [fp], band)
     inside = fp.mask(SPEC)
     assert cm.lethal[inside].all()
     # The space between the legs (the centre of the footprint) is blocked too.
     assert bool(cm.lethal[SPEC.cell_of(np.array([[2.7, 1.85]]))[0][0], SPEC.cell_of(np.array([[2.7, 1.85]]))[0][1]])
 
 
-def test_low_existence_objects_are_left_out() -> None:
+def test_unconfirmed_objects_are_a_soft_cost_not_an_obstacle() -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
     fp = ObjectFootprint(3, "desk", rect(2.0, 1.5, 3.4, 2.2), 0.0, 0.75, existence=0.2)
-    cm = band_costmap(empty_costmap(band), [fp], band, min_existence=0.5)
+    cm = paint_objects(empty_costmap(band), [fp], band, existence_confirm=0.5)
     assert not cm.lethal.any()
+    cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25))
+    centre = np.array([[2.7, 1.85]])
+    assert cs.is_free(centre)[0] and cs.cost_at(centre)[0] == pytest.approx(0.2, abs=0.01)
 
 
 def test_free_respects_radius_conservatively() -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
-    cm = band_costmap(empty_costmap(band), [desk()], band)
+    cm = paint_objects(empty_costmap(band), [desk()], band)
     cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.3))
     # Points closer than the radius to the desk's edge (x = 2.0) are never free.
     assert not cs.is_free(np.array([[1.75, 1.8]]))[0]
@@ -78,7 +83,7 @@ def test_free_respects_radius_conservatively() -> None:
 def test_clearance_is_a_lower_bound_on_true_distance(x: float, y: float) -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
     x0, y0, x1, y1 = 2.0, 1.5, 3.4, 2.2
-    cm = band_costmap(empty_costmap(band), [ObjectFootprint(1, "desk", rect(x0, y0, x1, y1), 0.0, 0.75)], band)
+    cm = paint_objects(empty_costmap(band), [ObjectFootprint(1, "desk", rect(x0, y0, x1, y1), 0.0, 0.75)], band)
     cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.3))
     clr = float(cs.clearance_at(np.array([[x, y]]))[0])
     true = float(np.hypot(max(x0 - x, 0.0, x - x1), max(y0 - y, 0.0, y - y1)))
@@ -87,7 +92,7 @@ def test_clearance_is_a_lower_bound_on_true_distance(x: float, y: float) -> None
 
 def test_segment_through_obstacle_is_not_free() -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
-    cm = band_costmap(empty_costmap(band), [desk()], band)
+    cm = paint_objects(empty_costmap(band), [desk()], band)
     cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25))
     assert not cs.segment_free((0.5, 1.85), (4.5, 1.85))
     assert cs.segment_free((0.5, 0.6), (4.5, 0.6))
@@ -96,9 +101,9 @@ def test_segment_through_obstacle_is_not_free() -> None:
 
 def test_object_margin_grows_blocked_area() -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
-    plain = band_costmap(empty_costmap(band), [desk()], band)
+    plain = paint_objects(empty_costmap(band), [desk()], band)
     fp = ObjectFootprint(2, "desk", rect(2.0, 1.5, 3.4, 2.2), 0.0, 0.75, margin_m=0.3)
-    with_margin = band_costmap(empty_costmap(band), [fp], band)
+    with_margin = paint_objects(empty_costmap(band), [fp], band)
     a = build_cspace(plain, CSpaceParams(vehicle_radius_m=0.2))
     b = build_cspace(with_margin, CSpaceParams(vehicle_radius_m=0.2))
     assert b.blocked.sum() > a.blocked.sum()
@@ -129,10 +134,10 @@ def test_geofence_blocks_outside() -> None:
 @given(st.floats(0.5, 4.0), st.floats(0.5, 3.0), st.floats(0.1, 0.8), st.floats(0.1, 0.8))
 def test_window_update_equals_full_rebuild(x: float, y: float, w: float, h: float) -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
-    params = CSpaceParams(vehicle_radius_m=0.25, clearance_decay_m=0.15)
-    before = band_costmap(empty_costmap(band), [desk()], band)
+    params = CSpaceParams(vehicle_radius_m=0.25)
+    before = paint_objects(empty_costmap(band), [desk()], band)
     new_obj = ObjectFootprint(9, "chair", rect(x, y, x + w, y + h), 0.0, 0.9)
-    after = band_costmap(empty_costmap(band), [desk(), new_obj], band)
+    after = paint_objects(empty_costmap(band), [desk(), new_obj], band)
     cs0 = build_cspace(before, params, version=1)
     updated, window = update_cspace(cs0, after, version=2)
     full = build_cspace(after, params, version=2)
@@ -145,7 +150,7 @@ def test_window_update_equals_full_rebuild(x: float, y: float, w: float, h: floa
 
 def test_update_without_change_keeps_fields() -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
-    cm = band_costmap(empty_costmap(band), [desk()], band)
+    cm = paint_objects(empty_costmap(band), [desk()], band)
     cs0 = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25))
     cs1, window = update_cspace(cs0, cm, version=5)
     assert window is None and cs1.version == 5 and cs1.free is cs0.free
@@ -166,7 +171,7 @@ def test_inscribed_cells_are_blocked_and_soft_costs_scale() -> None:
     cost = np.zeros(SPEC.shape_rc, dtype=np.uint8)
     cost[40, 20] = INSCRIBED_INFLATED_OBSTACLE
     cost[40, 80] = MAX_NON_OBSTACLE
-    cs = build_cspace(Costmap(SPEC, cost, band), CSpaceParams(vehicle_radius_m=0.1, clearance_decay_m=0.05))
+    cs = build_cspace(Costmap(SPEC, cost, band, clearance_decay_m=0.05), CSpaceParams(vehicle_radius_m=0.1))
     assert cs.blocked[40, 20] and not cs.free[40, 20]
     assert not cs.blocked[40, 80] and cs.free[40, 80] and cs.cost[40, 80] == pytest.approx(1.0)
 
@@ -178,7 +183,42 @@ def test_object_margin_equals_distance_to_footprint(x: float, y: float, size: fl
 
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
     fp = ObjectFootprint(1, "chair", rect(x, y, x + size, y + size * 0.7), 0.0, 0.9, margin_m=margin)
-    cm = band_costmap(empty_costmap(band), [fp], band)
+    cm = paint_objects(empty_costmap(band), [fp], band)
     cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.2))
     dist = ndimage.distance_transform_edt(~cm.lethal, sampling=SPEC.resolution_m)
-    np.testing.assert_array_equal(cs.blocked, dist <= margin)
+    # A cell exactly at the margin (rounding either way) is blocked: the safe side.
+    np.testing.assert_array_equal(cs.blocked, dist <= margin + 1e-9)
+
+
+def test_the_planner_adds_no_object_cost_of_its_own() -> None:
+    # The map's layers are the one owner of object cost: a footprint the costmap shows
+    # lethal without a painted margin gets no margin from the planner.
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    fp = ObjectFootprint(2, "desk", rect(2.0, 1.5, 3.4, 2.2), 0.0, 0.75, margin_m=0.3)
+    cost = np.full(SPEC.shape_rc, FREE_SPACE, dtype=np.uint8)
+    cost[fp.mask(SPEC)] = LETHAL_OBSTACLE
+    cs = build_cspace(Costmap(SPEC, cost, band, objects=(fp,)), CSpaceParams(vehicle_radius_m=0.2))
+    np.testing.assert_array_equal(cs.blocked, cost == LETHAL_OBSTACLE)
+
+
+@pytest.mark.parametrize("decay_m", [0.05, 0.15, 0.4])
+def test_proximity_cost_decays_with_the_costmaps_decay(decay_m: float) -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cm = paint_objects(Costmap(SPEC, np.zeros(SPEC.shape_rc, np.uint8), band, clearance_decay_m=decay_m),
+                       [desk()], band)
+    cs = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.2))
+    assert cs.clearance_decay_m == decay_m
+    p = np.array([[1.2, 1.85]])  # 0.8 m left of the desk
+    beyond = float(cs.clearance_at(p)[0]) - cs.free_threshold_m
+    assert cs.cost_at(p)[0] == pytest.approx(float(cost_decay(beyond, decay_m)), rel=1e-5)
+
+
+def test_a_new_decay_rebuilds_the_whole_space() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cm = paint_objects(empty_costmap(band), [desk()], band)
+    cs0 = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25))
+    slower = paint_objects(Costmap(SPEC, cm.cost * 0, band, clearance_decay_m=0.4), [desk()], band)
+    cs1, window = update_cspace(cs0, slower, version=1)
+    full = build_cspace(slower, CSpaceParams(vehicle_radius_m=0.25), version=1)
+    assert window == (0, SPEC.rows, 0, SPEC.cols)
+    np.testing.assert_allclose(cs1.cost, full.cost)

@@ -10,6 +10,7 @@ from semmap.costmap import (
     INSCRIBED_INFLATED_OBSTACLE,
     LETHAL_OBSTACLE,
     NO_INFORMATION,
+    Costmap,
     ObjectFootprint,
     VerticalBand,
 )
@@ -21,6 +22,7 @@ from semmap.layers import (
     combine_maximum,
     combine_overwrite,
     existence_cost,
+    paint_objects,
 )
 from semmap.occupancy import Bounds, ProbabilityGrid
 
@@ -64,7 +66,7 @@ def test_unconfirmed_object_costs_by_existence() -> None:
 
 
 def test_margin_cost_decays_with_distance() -> None:
-    lc = stack(margin_decay_m=0.3)
+    lc = stack(clearance_decay_m=0.3)
     lc.update_objects([coffee_table(margin_m=0.2)], stamp_s=1.0)
     band = band_at(0.4)
     xs = [2.1, 2.3, 2.45, 2.6, 2.8, 3.0]  # right of the table edge at x = 2.0
@@ -188,3 +190,17 @@ def test_sub_cell_footprint_refinements_do_not_redraw() -> None:
     assert np.allclose(lc.costmap(band_at(0.4)).objects[0].polygon_xy_m, TABLE + 0.005)
     moved = ObjectFootprint(1, "coffee_table", TABLE + 0.03, 0.0, 0.45, existence=0.9, margin_m=0.2)
     assert not lc.update_objects([moved], stamp_s=3.0).is_empty
+
+
+@pytest.mark.parametrize("altitude_m", [0.4, 1.5])
+def test_paint_objects_costs_objects_as_the_layer_stack_does(altitude_m: float) -> None:
+    # One owner: a costmap from elsewhere gets exactly the map's footprint, margin and decay.
+    lc = stack(clearance_decay_m=0.2)
+    objects = [coffee_table(existence=0.9), ObjectFootprint(2, "desk", TABLE + 1.2, 0.0, 0.75, existence=0.4, margin_m=0.1)]
+    lc.update_objects(objects, stamp_s=1.0)
+    band = band_at(altitude_m)
+    layered = lc.costmap(band)
+    unknown = Costmap(lc.spec, np.full(lc.spec.shape_rc, NO_INFORMATION, np.uint8), band, clearance_decay_m=0.2)
+    painted = paint_objects(unknown, objects, band, existence_confirm=0.6)
+    np.testing.assert_array_equal(painted.cost, layered.cost)
+    assert painted.clearance_decay_m == layered.clearance_decay_m == 0.2

@@ -9,11 +9,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planner.cspace import CSpaceParams, band_costmap, build_cspace
+from planner.cspace import CSpaceParams, build_cspace
 from planner.ompl_backend import PLANNERS, informed_bounds, ompl_solve
 from semmap.costmap import FREE_SPACE, Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import PlanningError
 from semmap.grid import GridSpec
+from semmap.layers import paint_objects
 
 SPEC = GridSpec(0.05, (0.0, 0.0), (60, 100))
 BAND = VerticalBand.for_altitude(0.5, 0.15, 0.1)
@@ -22,7 +23,7 @@ BAND = VerticalBand.for_altitude(0.5, 0.15, 0.1)
 def _cspace():
     wall = np.array([[2.3, 0.0], [2.7, 0.0], [2.7, 2.2], [2.3, 2.2]])
     base = Costmap(SPEC, np.full(SPEC.shape_rc, FREE_SPACE, np.uint8), BAND)
-    cm = band_costmap(base, [ObjectFootprint(1, "desk", wall, 0.0, 0.75)], BAND)
+    cm = paint_objects(base, [ObjectFootprint(1, "desk", wall, 0.0, 0.75)], BAND)
     return build_cspace(cm, CSpaceParams(vehicle_radius_m=0.2))
 
 

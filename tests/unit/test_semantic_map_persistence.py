@@ -187,3 +187,9 @@ def test_a_damaged_saved_object_map_keeps_its_objects_until_seen(tmp_path: Path)
 def test_object_map_classes_must_match() -> None:
     with pytest.raises(MapError, match="classes"):
         SemanticMap(settings(), ObjectMap(default_classes()))
+
+
+def test_settings_saved_with_the_old_decay_key_still_load() -> None:
+    d = settings(clearance_decay_m=0.3).to_dict()
+    d["margin_decay_m"] = d.pop("clearance_decay_m")
+    assert SemanticMapSettings.from_dict(json.loads(json.dumps(d))).clearance_decay_m == 0.3

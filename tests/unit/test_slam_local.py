@@ -10,7 +10,8 @@ from _slam_world import cast, room_world, yaw_sweep_path
 
 from companion.sim.odometry import OdometryDriftModel
 from semmap.config import SlamConfig
-from semmap.slam import LevelScan, Slam2D, SlamStatus
+from semmap.scan import BandScan
+from semmap.slam import Slam2D, SlamStatus
 from semmap.slam.local import OdometryCalibration
 from semmap.slam.pose2d import matrix4, pose2, relative
 
@@ -22,7 +23,7 @@ def _fly(slam: Slam2D, n: int, drift: OdometryDriftModel, rate_hz: float = 5.0) 
     for i, p in enumerate(truth):
         t = i / rate_hz
         o = drift.update(t, p)
-        e = slam.add_scan(t, LevelScan.from_points(cast(room_world(), p, noise_m=0.005, rng=rng)), o)
+        e = slam.add_scan(t, BandScan.from_points(cast(room_world(), p, noise_m=0.005, rng=rng)), o)
         odom.append(o)
         est.append(e.pose_map)
     return truth, np.array(odom), np.array(est)
@@ -58,17 +59,10 @@ def test_slam_closes_the_loop_in_the_background_and_beats_drifting_odometry() ->
     assert _ate(final[:, 1:], truth) < 0.05
 
 
-def test_odometry_mode_passes_the_autopilot_pose_through() -> None:
-    with Slam2D(SlamConfig(mode="odometry"), background=False) as slam:
-        est = slam.add_scan(0.0, np.array([[1.0, 0.0], [1.0, 0.5]]), (1.0, 2.0, 0.3))
-    assert est.status is SlamStatus.ODOMETRY
-    np.testing.assert_allclose(est.pose_map, [1.0, 2.0, 0.3])
-
-
 def test_too_few_points_is_reported_not_diverged() -> None:
     with Slam2D(SlamConfig(), background=False) as slam:
         p = pose2(3.0, 2.0, 0.0)
-        slam.add_scan(0.0, LevelScan.from_points(cast(room_world(), p)), p)
+        slam.add_scan(0.0, BandScan.from_points(cast(room_world(), p)), p)
         est = slam.add_scan(0.1, np.array([[2.0, 0.0], [2.0, 0.1]]), pose2(3.05, 2.0, 0.0))
     assert est.status is SlamStatus.DEGENERATE_FALLBACK_ODOMETRY
     assert "scan points" in est.reason
@@ -83,12 +77,12 @@ def test_a_first_scan_without_obstacles_does_not_leave_the_next_ones_on_the_odom
     truth = pose2(3.0, 2.0, 0.3)
     rng = np.random.default_rng(2)
     with Slam2D(SlamConfig(), background=False) as slam:
-        slam.add_scan(0.0, LevelScan.from_points(np.zeros((0, 2))), truth)
+        slam.add_scan(0.0, BandScan.from_points(np.zeros((0, 2))), truth)
         statuses = []
         for i in range(1, 29):
             t = i / 15.0
             odom = truth + np.array([0.0, 0.0, math.radians(2.0) * t])
-            est = slam.add_scan(t, LevelScan.from_points(cast(room_world(), truth, noise_m=0.005, rng=rng)), odom)
+            est = slam.add_scan(t, BandScan.from_points(cast(room_world(), truth, noise_m=0.005, rng=rng)), odom)
             statuses.append(est.status)
     assert statuses[0] is SlamStatus.DEGENERATE_FALLBACK_ODOMETRY  # used at the prediction
     assert all(s is SlamStatus.OK for s in statuses[1:])

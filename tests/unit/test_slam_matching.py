@@ -14,12 +14,12 @@ from semmap.config import SlamConfig
 from semmap.errors import MapError
 from semmap.grid import GridSpec
 from semmap.occupancy import ProbabilityGrid
+from semmap.scan import BandScan
 from semmap.slam.correlative import BranchAndBoundMatcher, MatchGrid, real_time_correlative_match
 from semmap.slam.local import LocalSlam, SlamStatus, constrained_translation
-from semmap.slam.pose2d import compose, inverse, pose2, relative, transform_xy, wrap
+from semmap.slam.pose2d import compose, inverse, pose2, relative, transform_scan, transform_xy, wrap
 from semmap.slam.pose_graph import Edge, optimize
 from semmap.slam.refine import refine_pose
-from semmap.slam.scan2d import LevelScan
 
 finite = st.floats(-50.0, 50.0, allow_nan=False)
 angle = st.floats(-math.pi, math.pi, allow_nan=False)
@@ -38,6 +38,19 @@ def test_pose2_compose_inverse_relative(x1: float, y1: float, a1: float, x2: flo
     np.testing.assert_allclose(transform_xy(compose(a, b), pts), transform_xy(a, transform_xy(b, pts)), atol=1e-8)
 
 
+def test_transform_scan_moves_every_ray_and_keeps_the_rest() -> None:
+    scan = BandScan.from_points(np.array([[1.0, 0.0], [1.0, 0.5], [2.0, -1.0]]), stamp_s=3.5)
+    p = pose2(2.0, -1.0, 0.7)
+    moved = transform_scan(p, scan)
+    np.testing.assert_allclose(moved.origin_xy_m, transform_xy(p, scan.origin_xy_m)[0])
+    for name in ("near_xy_m", "far_xy_m", "hit_xy_m"):
+        np.testing.assert_allclose(getattr(moved, name), transform_xy(p, getattr(scan, name)))
+    assert moved.stamp_s == 3.5 and moved.band == scan.band
+    np.testing.assert_array_equal(moved.is_hit, scan.is_hit)
+    np.testing.assert_array_equal(moved.valid, scan.valid)
+    np.testing.assert_allclose(moved.hits_xy_m, transform_xy(p, scan.hits_xy_m))
+
+
 def _hits(poses: list[np.ndarray], world: list) -> np.ndarray:
     return np.concatenate([transform_xy(p, cast(world, p, fov_deg=360.0, n_rays=720)) for p in poses])
 
@@ -53,7 +66,7 @@ def test_probability_likelihood_field_peaks_on_occupied_cells() -> None:
     spec = GridSpec.covering(-1.0, -1.0, 9.0, 7.0, 0.05)
     grid = ProbabilityGrid(spec)
     p = pose2(2.0, 1.5, 0.3)
-    r = LevelScan.from_points(cast(room_world(), p, fov_deg=360.0, n_rays=720)).transformed(p)
+    r = transform_scan(p, BandScan.from_points(cast(room_world(), p, fov_deg=360.0, n_rays=720)))
     for _ in range(3):
         grid.insert_scan(r.origin_xy_m, r.near_xy_m, r.far_xy_m, r.hit_xy_m, r.is_hit, r.valid)
     field = MatchGrid.likelihood_field(grid, 0.05)
@@ -102,7 +115,7 @@ def test_corridor_takes_only_the_along_corridor_direction_from_odometry() -> Non
         odom = pose2(0.1 * i * 1.03, 1.0 + (0.05 if i >= 5 else 0.0), 0.0)
         # Looking along the corridor at a slant: both walls, nothing across.
         pts = cast(world, compose(truth, pose2(0, 0, 0.0)), fov_deg=80.0, max_range_m=6.0)
-        res = local.add_scan(0.1 * i, LevelScan.from_points(pts), odom)
+        res = local.add_scan(0.1 * i, BandScan.from_points(pts), odom)
         if i > 2:
             assert res.status is SlamStatus.PARTIAL_ODOMETRY, res.reason
             assert "unconstrained" in res.reason
@@ -121,7 +134,7 @@ def test_one_wall_in_view_is_matched_across_it() -> None:
     for i in range(16):
         truth = pose2(0.05 * i, 0.0, math.pi / 2)  # facing the wall at y = 2
         odom = pose2(0.05 * i * 1.05, 0.0, math.pi / 2)  # reads 5 % long along the wall
-        res = local.add_scan(0.2 * i, LevelScan.from_points(cast(wall, truth, fov_deg=60.0)), odom)
+        res = local.add_scan(0.2 * i, BandScan.from_points(cast(wall, truth, fov_deg=60.0)), odom)
         statuses.append(res.status)
         if i > 2:
             assert res.pose_local[0] == pytest.approx(res.prediction_local[0], abs=0.01)  # along: odometry
