@@ -47,12 +47,13 @@ QUALITY_FULL_VOXELS = 60
 #: does not agree with the class).
 QUALITY_NO_TOP_WEIGHT = 0.7
 
-#: Kept cells this close (metres) are one group: gaps of a sparse sampling, not between objects.
-GROUP_LINK_M = 0.15
+#: Kept cells this close (metres) are one group: the parts of one piece of furniture seen apart
+#: (a chair's backrest and front legs, its seat hidden between them) are never farther apart.
+GROUP_LINK_M = 0.4
 #: A group apart is also part of the object when it holds this share of the heaviest group's
 #: weight (a part every view sees a little of).
 GROUP_MIN_SHARE = 0.025
-#: Cells are grouped on this coarser grid (metres; a third of the link).
+#: Cells are grouped on this coarser grid (metres; far below the link).
 GROUP_CELL_M = 0.05
 
 #: Cell size of the evidence, metres.
@@ -116,8 +117,8 @@ class FootprintEvidence:
     def footprint(self, frac: float, shape: Literal["rectangle", "hull"]) -> NDArray[np.float64] | None:
         """The footprint polygon (M, 2) from the cells holding at least ``frac`` of the
         90th-percentile cell's weight, less groups of them lying apart with neither a cell
-        that reaches it nor ``GROUP_MIN_SHARE`` of the weight (module doc), as their convex hull or bounding rectangle; None without
-        evidence."""
+        that reaches it nor ``GROUP_MIN_SHARE`` of the weight (module doc), as their convex
+        hull or bounding rectangle; None without evidence."""
         if len(self.weights) == 0:
             return None
         k90 = int(0.9 * (len(self.weights) - 1))
