@@ -53,8 +53,9 @@ GROUP_LINK_M = 0.4
 #: A group apart is also part of the object when it holds this share of the heaviest group's
 #: weight (a part every view sees a little of).
 GROUP_MIN_SHARE = 0.025
-#: Cells are grouped on this coarser grid (metres; far below the link).
-GROUP_CELL_M = 0.05
+#: Cells are grouped on this coarser grid (metres; a quarter of the link, so the link holds
+#: within a cell's diagonal).
+GROUP_CELL_M = 0.1
 
 #: Cell size of the evidence, metres.
 CELL_M = 0.02
@@ -130,10 +131,9 @@ class FootprintEvidence:
         coarse = cell_centres(coarse_keys, GROUP_CELL_M)
         group = euclidean_clusters(np.column_stack([coarse, np.zeros(len(coarse))]), GROUP_LINK_M)[cell_of.reshape(-1)]
         w = self.weights[kept]
-        best = np.zeros(int(group.max()) + 1)
-        np.maximum.at(best, group, w)
+        well_seen = np.bincount(group, weights=(w >= p90).astype(np.float64)) > 0
         total = np.bincount(group, weights=w)
-        c = c[(best[group] >= p90) | (total[group] >= GROUP_MIN_SHARE * total.max())]
+        c = c[well_seen[group] | (total[group] >= GROUP_MIN_SHARE * total.max())]
         h = CELL_M / 2
         hull = convex_footprint(c)  # of centres; each cell's half-width is added back
         corners = np.concatenate([hull + [-h, -h], hull + [h, -h], hull + [h, h], hull + [-h, h]])
