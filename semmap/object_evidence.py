@@ -3,7 +3,13 @@
 Each object keeps 2 cm cells (:data:`CELL_M`) with a weight: every view adds its weight once to
 each cell holding one of the object's points. The footprint is made of the cells holding at
 least a fraction of the well-seen cells' weight (the 90th percentile), so stray noise cells do
-not grow it, reported as their convex hull or as an oriented rectangle around them.
+not grow it, reported as their convex hull or as an oriented rectangle around them. Kept cells
+lying apart (groups linked within ``GROUP_LINK_M``) count only when one of them is as well seen
+as the object's well-seen cells or they hold a share of its weight: views from afar hit each
+cell of an object only a few times, so background points that recur in two or three views (the
+wall behind a low table, joined to it by flying pixels) reach the kept weight, and two such
+cells a metre off would stretch the rectangle, and move its centre, half a metre off the
+object. A table's legs, apart from each other under a top seen edge-on, are seen by every view.
 
 The rectangle is the bounding rectangle of least *perimeter*, not of least area. The kept
 cells are often an L or a triangle rather than a full rectangle: a chair's backrest is seen by
@@ -22,6 +28,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.clustering import euclidean_clusters
 from semmap.polygons import convex_footprint, inside_convex, min_perimeter_rectangle
 
 __all__ = ["CELL_M", "FootprintEvidence", "cell_centres", "cell_keys", "view_quality"]
@@ -40,22 +47,32 @@ QUALITY_FULL_VOXELS = 60
 #: does not agree with the class).
 QUALITY_NO_TOP_WEIGHT = 0.7
 
+#: Kept cells this close (metres) are one group: the parts of one piece of furniture seen apart
+#: (a chair's backrest and front legs, its seat hidden between them) are never farther apart.
+GROUP_LINK_M = 0.4
+#: A group apart is also part of the object when it holds this share of the heaviest group's
+#: weight (a part every view sees a little of).
+GROUP_MIN_SHARE = 0.025
+#: Cells are grouped on this coarser grid (metres; a quarter of the link, so the link holds
+#: within a cell's diagonal).
+GROUP_CELL_M = 0.1
+
 #: Cell size of the evidence, metres.
 CELL_M = 0.02
 _KEY_SHIFT = np.int64(1 << 31)
 
 
-def cell_keys(xy_m: NDArray[np.float64]) -> NDArray[np.int64]:
-    """(N,) integer keys of the cells holding map-plane points (N, 2)."""
-    ij = np.floor(xy_m / CELL_M).astype(np.int64) + _KEY_SHIFT // 2
+def cell_keys(xy_m: NDArray[np.float64], cell_m: float = CELL_M) -> NDArray[np.int64]:
+    """(N,) integer keys of the cells (side ``cell_m``) holding map-plane points (N, 2)."""
+    ij = np.floor(xy_m / cell_m).astype(np.int64) + _KEY_SHIFT // 2
     return ij[:, 0] * _KEY_SHIFT + ij[:, 1]
 
 
-def cell_centres(keys: NDArray[np.int64]) -> NDArray[np.float64]:
-    """(N, 2) map-plane centres of the cells with keys (N,)."""
+def cell_centres(keys: NDArray[np.int64], cell_m: float = CELL_M) -> NDArray[np.float64]:
+    """(N, 2) map-plane centres of the cells (side ``cell_m``) with keys (N,)."""
     i = keys // _KEY_SHIFT - _KEY_SHIFT // 2
     j = keys % _KEY_SHIFT - _KEY_SHIFT // 2
-    return (np.stack([i, j], axis=1).astype(np.float64) + 0.5) * CELL_M
+    return (np.stack([i, j], axis=1).astype(np.float64) + 0.5) * cell_m
 
 
 @dataclass
@@ -100,13 +117,23 @@ class FootprintEvidence:
 
     def footprint(self, frac: float, shape: Literal["rectangle", "hull"]) -> NDArray[np.float64] | None:
         """The footprint polygon (M, 2) from the cells holding at least ``frac`` of the
-        90th-percentile cell's weight, as their convex hull or bounding rectangle; None
-        without evidence."""
+        90th-percentile cell's weight, less groups of them lying apart with neither a cell
+        that reaches it nor ``GROUP_MIN_SHARE`` of the weight (module doc), as their convex
+        hull or bounding rectangle; None without evidence."""
         if len(self.weights) == 0:
             return None
         k90 = int(0.9 * (len(self.weights) - 1))
         p90 = float(np.partition(self.weights, k90)[k90])
-        c = cell_centres(self.keys[self.weights >= frac * p90])
+        kept = self.weights >= frac * p90
+        c = cell_centres(self.keys[kept])
+        # Grouped on coarser cells: the link is far above a cell, and large objects hold thousands.
+        coarse_keys, cell_of = np.unique(cell_keys(c, GROUP_CELL_M), return_inverse=True)
+        coarse = cell_centres(coarse_keys, GROUP_CELL_M)
+        group = euclidean_clusters(np.column_stack([coarse, np.zeros(len(coarse))]), GROUP_LINK_M)[cell_of.reshape(-1)]
+        w = self.weights[kept]
+        well_seen = np.bincount(group, weights=(w >= p90).astype(np.float64)) > 0
+        total = np.bincount(group, weights=w)
+        c = c[well_seen[group] | (total[group] >= GROUP_MIN_SHARE * total.max())]
         h = CELL_M / 2
         hull = convex_footprint(c)  # of centres; each cell's half-width is added back
         corners = np.concatenate([hull + [-h, -h], hull + [h, -h], hull + [h, h], hull + [-h, h]])

@@ -12,7 +12,7 @@ from semmap.config import MapConfig, default_classes
 from semmap.geometry import ObjectObservation
 from semmap.object_evidence import CELL_M, FootprintEvidence
 from semmap.objects import ObjectMap
-from semmap.polygons import min_perimeter_rectangle, polygon_area_m2
+from semmap.polygons import convex_footprint, min_perimeter_rectangle, polygon_area_m2
 
 
 def _rotate(xy: np.ndarray, yaw_rad: float) -> np.ndarray:
@@ -83,3 +83,64 @@ def test_views_beyond_the_footprint_range_alone_do_not_confirm_an_object() -> No
         m.update([_obs(0.1 * i, cfg.footprint_max_range_m + 1.5)], 0.1 * i)
     m.update([_obs(0.4, cfg.footprint_max_range_m - 1.0)], 0.4)
     assert m.objects()[0].confirmed
+
+
+def _sparse_views_of_a_table(rng: np.random.Generator, n_views: int, centre_xy: tuple[float, float],
+                             size_m: tuple[float, float], yaw_rad: float) -> list[np.ndarray]:
+    """Views of a table top as a low-resolution camera at 3 m samples it: each view a few
+    dozen of its points (3 cm voxels, jittered), so most 2 cm cells are hit by a few views."""
+    views = []
+    for _ in range(n_views):
+        n = int(rng.integers(50, 150))
+        local = (rng.random((n, 2)) - 0.5) * np.asarray(size_m)
+        views.append(_rotate(local, yaw_rad) + np.asarray(centre_xy))
+    return views
+
+
+def test_stray_cells_seen_twice_far_from_an_object_do_not_stretch_its_footprint() -> None:
+    # A coffee table's views at range sometimes hold the wall behind it (joined to the top by
+    # flying pixels); wall points recur in a few views from one place, so their cells reach
+    # the kept weight of the table's sparsely hit cells.
+    rng = np.random.default_rng(5)
+    centre, size, yaw = (-3.46, 0.45), (0.82, 0.51), 0.957
+    ev = FootprintEvidence()
+    wall = np.column_stack([np.full(12, -5.05), np.linspace(0.3, 0.9, 12)])
+    for i, view in enumerate(_sparse_views_of_a_table(rng, 25, centre, size, yaw)):
+        ev.add_view(np.vstack([view, wall]) if i in (10, 13, 17) else view, 1.0)
+    fp = ev.footprint(0.65, "rectangle")
+    assert fp is not None
+    assert np.linalg.norm(fp.mean(axis=0) - np.asarray(centre)) < 0.05
+    assert polygon_area_m2(fp) < 1.3 * size[0] * size[1]
+
+
+def test_two_well_seen_parts_of_one_object_both_stay_in_its_footprint() -> None:
+    # The two ends of a long table, each seen by many views from its own side, the middle by
+    # few: both ends are the table.
+    ev = FootprintEvidence()
+    gx, gy = np.meshgrid(np.arange(0.0, 0.5, 0.01), np.arange(0.0, 0.8, 0.01))
+    end = np.column_stack([gx.ravel(), gy.ravel()])
+    for _ in range(10):
+        ev.add_view(end, 1.0)
+        ev.add_view(end + [1.5, 0.0], 0.8)
+    fp = ev.footprint(0.65, "rectangle")
+    assert fp is not None
+    assert fp.min(axis=0) == pytest.approx([0.0, 0.0], abs=CELL_M)
+    assert fp.max(axis=0) == pytest.approx([2.0, 0.8], abs=CELL_M)
+
+
+def test_a_coffee_table_keeps_its_class_and_place_when_a_few_views_hold_the_wall_behind_it() -> None:
+    # Its footprint stretched to the wall is a sofa's size: the class prior then named it a
+    # sofa, centred half a metre behind the table.
+    rng = np.random.default_rng(7)
+    centre, size, yaw = (-3.46, 0.45), (0.82, 0.51), 0.957
+    wall = np.column_stack([np.full(12, -5.05), np.linspace(0.3, 0.9, 12)])
+    m = ObjectMap(default_classes(), MapConfig())
+    for i, view in enumerate(_sparse_views_of_a_table(rng, 25, centre, size, yaw)):
+        pts = np.vstack([view, wall]) if i in (10, 13, 17) else view
+        c = pts.mean(axis=0)
+        m.update([ObjectObservation(1, "coffee_table", 0.9, 0.1 * i, (c[0], c[1], 0.3), convex_footprint(pts),
+                                    0.0, 0.48, 400, len(pts), 3.3, top_height_m=0.47, points_xy_m=pts,
+                                    camera_xy_m=(-0.3, 0.0))], 0.1 * i)
+    (o,) = m.objects()
+    assert o.class_name == "coffee_table"
+    assert np.linalg.norm(o.footprint_center_xy_m - np.asarray(centre)) < 0.05
