@@ -163,31 +163,17 @@ class Planner:
         start = _xy(start_xy_m, "start")
         goal = _xy(goal_xy_m, "goal")
         requested = (float(goal[0]), float(goal[1]))
-        cs = self.cspace
         version = self._version
 
         def fail(status: PlanStatus, reason: str) -> PlanResult:
             log.info("no path (%s): %s", status.value, reason)
             return PlanResult.failure(status, reason, time.perf_counter() - t0, version)
 
-        if not self._inside(start):
-            return fail(PlanStatus.START_OUTSIDE_MAP,
-                        f"start ({start[0]:.2f}, {start[1]:.2f}) m is outside the map/geofence {self._extent_text()}")
-        if not bool(cs.is_free(start.reshape(1, 2))[0]):
-            clr = float(cs.clearance_at(start.reshape(1, 2))[0])
-            return fail(PlanStatus.START_BLOCKED,
-                        f"start ({start[0]:.2f}, {start[1]:.2f}) m is blocked: clearance {clr:.2f} m < "
-                        f"vehicle radius {cfg.vehicle_radius_m:.2f} m")
+        start_problem = self._start_problem(start)
+        if start_problem is not None:
+            return fail(*start_problem)
         snapped = False
-        goal_problem: tuple[PlanStatus, str] | None = None
-        if not self._inside(goal):
-            goal_problem = (PlanStatus.GOAL_OUTSIDE_MAP,
-                            f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m is outside the map/geofence {self._extent_text()}")
-        elif not bool(cs.is_free(goal.reshape(1, 2))[0]):
-            clr = float(cs.clearance_at(goal.reshape(1, 2))[0])
-            goal_problem = (PlanStatus.GOAL_BLOCKED,
-                            f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m is blocked: clearance {clr:.2f} m < "
-                            f"vehicle radius {cfg.vehicle_radius_m:.2f} m")
+        goal_problem = self._goal_problem(goal)
         if goal_problem is not None:
             if not snap:
                 return fail(*goal_problem)
@@ -197,61 +183,28 @@ class Planner:
             log.info("goal (%.2f, %.2f) snapped to (%.2f, %.2f)", goal[0], goal[1], new_goal[0], new_goal[1])
             goal, snapped = new_goal, True
 
-        # First path: grid search, coarse then full resolution.
         t_search = time.perf_counter()
-        path: NDArray[np.float64] | None = None
-        factors = sorted({self._coarse_factor(), 1}, reverse=True)
-        used_factor = 1
-        for f in factors:
-            outcome = self._graph(f).search(start, goal)
-            if outcome.path_xy_m is not None and cs.path_free(outcome.path_xy_m):
-                path, used_factor = outcome.path_xy_m, f
-                break
-        if path is None:
+        first = self._first_path(start, goal)
+        if first is None:
             if snap and not snapped:
-                new_goal = self._snap(start, goal)
-                if new_goal is not None and float(np.linalg.norm(new_goal - goal)) > 1e-9:
-                    res = self.plan(start, new_goal, max(0.0, budget - (time.perf_counter() - t0)),
-                                    snap_goal=False, refine=refine)
-                    if res.ok:
-                        return dataclasses.replace(
-                            res, snapped_goal=True, planning_time_s=time.perf_counter() - t0,
-                            requested_goal_xy_m=requested,
-                            reason="goal unreachable; snapped to the nearest reachable free point",
-                        )
+                res = self._plan_to_snapped_goal(start, goal, budget, t0, refine, requested)
+                if res is not None:
                     return res
             return fail(PlanStatus.DISCONNECTED,
                         f"no free path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, {goal[1]:.2f}) m "
                         f"for a vehicle of radius {cfg.vehicle_radius_m:.2f} m at {cfg.flight_altitude_m:.2f} m "
                         "altitude: they are in separate free regions")
+        path, used_factor = first
         t_first = time.perf_counter()
-
-        # Any-angle post-processing; a coarse first path is also compared with the
-        # full-resolution one (the coarse grid can close a narrow gap and force a detour).
-        w = cfg.cost_weight
-        best = self._polish(path)
-        best_cost = cs.path_cost(best, w)
-        source = f"grid:{used_factor}"
-        if used_factor > 1 and budget - (time.perf_counter() - t0) > 0.0:
-            fine = self._graph(1).search(start, goal).path_xy_m
-            if fine is not None and cs.path_free(fine):
-                fine = self._polish(fine)
-                c = cs.path_cost(fine, w)
-                if c < best_cost - 1e-9:
-                    best, best_cost, source = fine, c, "grid:1"
+        best, best_cost, source = self._polished_best(path, used_factor, start, goal, budget, t0)
         t_smooth = time.perf_counter()
-
         ompl_improved = 0.0
         remaining = budget - (t_smooth - t0)
         if use_ompl and remaining > 0.01:
-            cand = ompl_solve(cs, start, goal, cfg.algorithm, remaining, w, cost_bound=best_cost)
-            if cand is not None:
-                cand = self._polish(cand)
-                if cs.path_free(cand):
-                    c = cs.path_cost(cand, w)
-                    if c < best_cost - 1e-6:
-                        best, best_cost, source = cand, c, f"ompl:{cfg.algorithm}"
-                        ompl_improved = 1.0
+            better = self._ompl_improvement(start, goal, remaining, best_cost)
+            if better is not None:
+                best, best_cost = better
+                source, ompl_improved = f"ompl:{cfg.algorithm}", 1.0
         t_end = time.perf_counter()
         return PlanResult(
             status=PlanStatus.OK,
@@ -267,6 +220,88 @@ class Planner:
                 "first_length_m": path_length_m(path),
             },
         )
+
+    def _start_problem(self, start: NDArray[np.float64]) -> tuple[PlanStatus, str] | None:
+        """Why the vehicle cannot start at ``start`` (status, reason), or None if it can."""
+        if not self._inside(start):
+            return (PlanStatus.START_OUTSIDE_MAP,
+                    f"start ({start[0]:.2f}, {start[1]:.2f}) m is outside the map/geofence {self._extent_text()}")
+        return self._blocked_problem(start, "start", PlanStatus.START_BLOCKED)
+
+    def _goal_problem(self, goal: NDArray[np.float64]) -> tuple[PlanStatus, str] | None:
+        """Why the vehicle cannot stop at ``goal`` (status, reason), or None if it can."""
+        if not self._inside(goal):
+            return (PlanStatus.GOAL_OUTSIDE_MAP,
+                    f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m is outside the map/geofence {self._extent_text()}")
+        return self._blocked_problem(goal, "goal", PlanStatus.GOAL_BLOCKED)
+
+    def _blocked_problem(self, xy: NDArray[np.float64], name: str,
+                         status: PlanStatus) -> tuple[PlanStatus, str] | None:
+        cs = self.cspace
+        if bool(cs.is_free(xy.reshape(1, 2))[0]):
+            return None
+        clr = float(cs.clearance_at(xy.reshape(1, 2))[0])
+        return (status, f"{name} ({xy[0]:.2f}, {xy[1]:.2f}) m is blocked: clearance {clr:.2f} m < "
+                        f"vehicle radius {self.config.vehicle_radius_m:.2f} m")
+
+    def _first_path(self, start: NDArray[np.float64],
+                    goal: NDArray[np.float64]) -> tuple[NDArray[np.float64], int] | None:
+        """The first free grid path and the graph factor that gave it: coarse, then full
+        resolution; None when the grid proves start and goal disconnected."""
+        for f in sorted({self._coarse_factor(), 1}, reverse=True):
+            outcome = self._graph(f).search(start, goal)
+            if outcome.path_xy_m is not None and self.cspace.path_free(outcome.path_xy_m):
+                return outcome.path_xy_m, f
+        return None
+
+    def _plan_to_snapped_goal(self, start: NDArray[np.float64], goal: NDArray[np.float64], budget: float,
+                              t0: float, refine: bool | None,
+                              requested: tuple[float, float]) -> PlanResult | None:
+        """Plan to the nearest free point reachable from ``start`` for an unreachable goal
+        with the rest of the budget; None when there is no such point apart from ``goal``."""
+        new_goal = self._snap(start, goal)
+        if new_goal is None or float(np.linalg.norm(new_goal - goal)) <= 1e-9:
+            return None
+        res = self.plan(start, new_goal, max(0.0, budget - (time.perf_counter() - t0)),
+                        snap_goal=False, refine=refine)
+        if not res.ok:
+            return res
+        return dataclasses.replace(
+            res, snapped_goal=True, planning_time_s=time.perf_counter() - t0,
+            requested_goal_xy_m=requested,
+            reason="goal unreachable; snapped to the nearest reachable free point",
+        )
+
+    def _polished_best(self, path: NDArray[np.float64], used_factor: int, start: NDArray[np.float64],
+                       goal: NDArray[np.float64], budget: float,
+                       t0: float) -> tuple[NDArray[np.float64], float, str]:
+        """The polished first path, or the polished full-resolution one if it costs less:
+        the coarse grid can close a narrow gap and force a detour. Returns (path, cost, source)."""
+        cs, w = self.cspace, self.config.cost_weight
+        best = self._polish(path)
+        best_cost = cs.path_cost(best, w)
+        source = f"grid:{used_factor}"
+        if used_factor > 1 and budget - (time.perf_counter() - t0) > 0.0:
+            fine = self._graph(1).search(start, goal).path_xy_m
+            if fine is not None and cs.path_free(fine):
+                fine = self._polish(fine)
+                c = cs.path_cost(fine, w)
+                if c < best_cost - 1e-9:
+                    best, best_cost, source = fine, c, "grid:1"
+        return best, best_cost, source
+
+    def _ompl_improvement(self, start: NDArray[np.float64], goal: NDArray[np.float64], remaining_s: float,
+                          best_cost: float) -> tuple[NDArray[np.float64], float] | None:
+        """A polished, free OMPL path that costs less than ``best_cost`` (path, cost), or None."""
+        cs, cfg = self.cspace, self.config
+        cand = ompl_solve(cs, start, goal, cfg.algorithm, remaining_s, cfg.cost_weight, cost_bound=best_cost)
+        if cand is None:
+            return None
+        cand = self._polish(cand)
+        if not cs.path_free(cand):
+            return None
+        c = cs.path_cost(cand, cfg.cost_weight)
+        return (cand, c) if c < best_cost - 1e-6 else None
 
     def replan(
         self,
