@@ -263,16 +263,11 @@ def _linkage_labels(
     in raster (x, y, z) order of each component's first cell.
 
     Cells have side ``eps_m / sqrt(3)`` (shrunk by ``_CELL_SHRINK``), so each is a clique;
-    the union-find runs over cells, and two cells at most two apart on every axis (the
-    raster-later ones: ``columns`` (13, 3) holds the forward (di, dj) columns of cells along
-    z and the first dk searched in each) join when any pair of their points is within
-    ``eps_m`` - checked only while they are still apart, stopping at the first such pair.
-    Points are sorted by cell key with two counting sorts (z index, then the (x, y) column)
-    when the compressed grid has at most ``max_cells_per_point`` columns per point (plus a
-    few thousand), and each column's cells are found through a table over the columns; else
-    by a merge sort and a hash of the occupied columns. Within a column cells come by
-    increasing z index, so each neighbour column is scanned with a forward-only pointer. Returns an empty array when the cell
-    keys would overflow int64.
+    the union-find runs over cells (:func:`_link_cells`). Points are sorted by cell key with
+    counting sorts and columns found through a table when the compressed grid has at most
+    ``max_cells_per_point`` columns per point (plus a few thousand), else by a merge sort
+    and a hash of the occupied columns. Returns an empty array when the cell keys would
+    overflow int64.
     """
     n = pts_t.shape[1]
     cell_m = eps_m / math.sqrt(3.0) * _CELL_SHRINK
@@ -282,36 +277,59 @@ def _linkage_labels(
         return np.empty(0, np.int64)
     n_cols = s0 * s1
     dense = n_cols <= max_cells_per_point * n + 4096
-    # order: the points sorted by cell key (stable).
-    if dense:
-        cnt = np.zeros(s2 + 1, np.int64)
-        for p in range(n):
-            cnt[ijk[2, p] + 1] += 1
-        for k in range(s2):
-            cnt[k + 1] += cnt[k]
-        by_k = np.empty(n, np.int64)
-        for p in range(n):
-            by_k[cnt[ijk[2, p]]] = p
-            cnt[ijk[2, p]] += 1
-        cnt2 = np.zeros(n_cols + 1, np.int64)
-        for p in range(n):
-            cnt2[ijk[0, p] * s1 + ijk[1, p] + 1] += 1
-        for q in range(n_cols):
-            cnt2[q + 1] += cnt2[q]
-        order = np.empty(n, np.int64)
-        for r in range(n):
-            p = by_k[r]
-            q = ijk[0, p] * s1 + ijk[1, p]
-            order[cnt2[q]] = p
-            cnt2[q] += 1
-    else:
+    order = _cell_order(ijk, s1, s2, n_cols, dense)
+    cell_start, cell_col, cell_k, x, y, z, m = _cells_in_order(pts_t, ijk, order, s1)
+    col_start, col_table, hash_key, hash_val = _column_index(cell_col, m, n_cols, dense)
+    parent = _link_cells(cell_start, cell_col, cell_k, x, y, z, m, s0, s1, columns, eps_m * eps_m,
+                         col_start, col_table, hash_key, hash_val, dense)
+    return _component_labels(parent, cell_start, order, m)
+
+
+@numba.njit(cache=True)
+def _cell_order(
+    ijk: NDArray[np.int64], s1: int, s2: int, n_cols: int, dense: bool
+) -> NDArray[np.int64]:
+    """The point indices sorted (stably) by cell key: two counting sorts (z index, then the
+    (x, y) column) when ``dense``, else a merge sort of the keys."""
+    n = ijk.shape[1]
+    if not dense:
         keys = np.empty(n, np.int64)
         for p in range(n):
             keys[p] = (ijk[0, p] * s1 + ijk[1, p]) * s2 + ijk[2, p]
-        order = np.argsort(keys, kind="mergesort")
-    # Cells: runs of equal (column, z index) in ``order``, in key order; cell c holds the
-    # points order[cell_start[c]:cell_start[c + 1]] and lies in column cell_col[c] at z
-    # index cell_k[c]. Coordinates are copied in that order, so a cell's are contiguous.
+        return np.argsort(keys, kind="mergesort")
+    cnt = np.zeros(s2 + 1, np.int64)
+    for p in range(n):
+        cnt[ijk[2, p] + 1] += 1
+    for k in range(s2):
+        cnt[k + 1] += cnt[k]
+    by_k = np.empty(n, np.int64)
+    for p in range(n):
+        by_k[cnt[ijk[2, p]]] = p
+        cnt[ijk[2, p]] += 1
+    cnt2 = np.zeros(n_cols + 1, np.int64)
+    for p in range(n):
+        cnt2[ijk[0, p] * s1 + ijk[1, p] + 1] += 1
+    for q in range(n_cols):
+        cnt2[q + 1] += cnt2[q]
+    order = np.empty(n, np.int64)
+    for r in range(n):
+        p = by_k[r]
+        q = ijk[0, p] * s1 + ijk[1, p]
+        order[cnt2[q]] = p
+        cnt2[q] += 1
+    return order
+
+
+@numba.njit(cache=True)
+def _cells_in_order(
+    pts_t: NDArray[np.float64], ijk: NDArray[np.int64], order: NDArray[np.int64], s1: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64],
+           NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int]:
+    """The cells as runs of equal (column, z index) in ``order``, in key order: cell c holds
+    the points order[cell_start[c]:cell_start[c + 1]] and lies in column cell_col[c] at z
+    index cell_k[c]. Returns those three, the coordinates x, y, z copied in that order (so a
+    cell's are contiguous) and the number of cells m."""
+    n = order.shape[0]
     cell_start = np.empty(n + 1, np.int64)
     cell_col = np.empty(n, np.int64)
     cell_k = np.empty(n, np.int64)
@@ -331,8 +349,16 @@ def _linkage_labels(
             last_col, last_k = q, k
         x[r], y[r], z[r] = pts_t[0, p], pts_t[1, p], pts_t[2, p]
     cell_start[m] = n
-    # Each occupied column's cells, contiguous and by z index: cells col_start[u] to
-    # col_start[u + 1] of column number u, found by a table over the columns or a hash.
+    return cell_start, cell_col, cell_k, x, y, z, m
+
+
+@numba.njit(cache=True)
+def _column_index(
+    cell_col: NDArray[np.int64], m: int, n_cols: int, dense: bool
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Each occupied column's cells, contiguous and by z index: cells col_start[u] to
+    col_start[u + 1] of column number u, found by a table over the columns when ``dense``,
+    else by a hash. Returns (col_start, col_table, hash_key, hash_val)."""
     col_start = np.empty(m + 1, np.int64)
     col_table = np.full(n_cols if dense else 0, -1, np.int64)
     size = 1
@@ -350,7 +376,20 @@ def _linkage_labels(
                 _hash_put(hash_key, hash_val, cell_col[c], n_u)
             n_u += 1
     col_start[n_u] = m
-    eps2 = eps_m * eps_m
+    return col_start, col_table, hash_key, hash_val
+
+
+@numba.njit(cache=True)
+def _link_cells(
+    cell_start: NDArray[np.int64], cell_col: NDArray[np.int64], cell_k: NDArray[np.int64],
+    x: NDArray[np.float64], y: NDArray[np.float64], z: NDArray[np.float64], m: int, s0: int, s1: int,
+    columns: NDArray[np.int64], eps2: float, col_start: NDArray[np.int64], col_table: NDArray[np.int64],
+    hash_key: NDArray[np.int64], hash_val: NDArray[np.int64], dense: bool,
+) -> NDArray[np.int64]:
+    """Union-find forest (m,) over the cells: two cells at most two apart on every axis (the
+    raster-later ones: ``columns`` (13, 3) holds the forward (di, dj) columns and the first
+    dk searched in each) join when any pair of their points is within sqrt(``eps2``) -
+    checked only while they are still apart. A root is its component's first cell."""
     parent = np.arange(m)
     n_col = columns.shape[0]
     # Per neighbour column: the next candidate cell and the column's end. Within one column
@@ -362,16 +401,7 @@ def _linkage_labels(
         q, k0 = cell_col[c], cell_k[c]
         if q != cur_q:
             cur_q = q
-            i, j = q // s1, q % s1
-            for o in range(n_col):
-                ii, jj = i + columns[o, 0], j + columns[o, 1]
-                ptr[o], pend[o] = 0, 0
-                if ii >= s0 or jj < 0 or jj >= s1:
-                    continue
-                qq = ii * s1 + jj
-                u = col_table[qq] if dense else _hash_get(hash_key, hash_val, qq)
-                if u >= 0:
-                    ptr[o], pend[o] = col_start[u], col_start[u + 1]
+            _neighbour_columns(q, s0, s1, columns, col_start, col_table, hash_key, hash_val, dense, ptr, pend)
         rc = _find(parent, c)  # kept current below: only this loop's unions move it
         for o in range(n_col):
             # The column's cells with z index in [k0 + first dk, k0 + 2].
@@ -382,25 +412,58 @@ def _linkage_labels(
             ptr[o] = h
             while h < end and cell_k[h] <= k0 + 2:
                 rh = _find(parent, h)
-                if rc != rh:
-                    linked = False
-                    for a in range(cell_start[c], cell_start[c + 1]):
-                        xa, ya, za = x[a], y[a], z[a]
-                        for b in range(cell_start[h], cell_start[h + 1]):
-                            dx, dy, dz = x[b] - xa, y[b] - ya, z[b] - za
-                            if dx * dx + dy * dy + dz * dz <= eps2:
-                                linked = True
-                                break
-                        if linked:
-                            break
-                    if linked:
-                        # The root is the component's first cell in key order.
-                        if rc < rh:
-                            parent[rh] = rc
-                        else:
-                            parent[rc] = rh
-                            rc = rh
+                if rc != rh and _cells_within(cell_start, x, y, z, c, h, eps2):
+                    if rc < rh:
+                        parent[rh] = rc
+                    else:
+                        parent[rc] = rh
+                        rc = rh
                 h += 1
+    return parent
+
+
+@numba.njit(cache=True)
+def _neighbour_columns(
+    q: int, s0: int, s1: int, columns: NDArray[np.int64], col_start: NDArray[np.int64],
+    col_table: NDArray[np.int64], hash_key: NDArray[np.int64], hash_val: NDArray[np.int64], dense: bool,
+    ptr: NDArray[np.int64], pend: NDArray[np.int64],
+) -> None:
+    """Set ``ptr``/``pend`` to the cell range of each forward neighbour column of column
+    ``q`` (empty where it is outside the grid or unoccupied)."""
+    i, j = q // s1, q % s1
+    for o in range(columns.shape[0]):
+        ii, jj = i + columns[o, 0], j + columns[o, 1]
+        ptr[o], pend[o] = 0, 0
+        if ii >= s0 or jj < 0 or jj >= s1:
+            continue
+        qq = ii * s1 + jj
+        u = col_table[qq] if dense else _hash_get(hash_key, hash_val, qq)
+        if u >= 0:
+            ptr[o], pend[o] = col_start[u], col_start[u + 1]
+
+
+@numba.njit(cache=True)
+def _cells_within(
+    cell_start: NDArray[np.int64], x: NDArray[np.float64], y: NDArray[np.float64], z: NDArray[np.float64],
+    c: int, h: int, eps2: float,
+) -> bool:
+    """True when some point of cell ``c`` and some point of cell ``h`` are within
+    sqrt(``eps2``); stops at the first such pair."""
+    for a in range(cell_start[c], cell_start[c + 1]):
+        xa, ya, za = x[a], y[a], z[a]
+        for b in range(cell_start[h], cell_start[h + 1]):
+            dx, dy, dz = x[b] - xa, y[b] - ya, z[b] - za
+            if dx * dx + dy * dy + dz * dz <= eps2:
+                return True
+    return False
+
+
+@numba.njit(cache=True)
+def _component_labels(
+    parent: NDArray[np.int64], cell_start: NDArray[np.int64], order: NDArray[np.int64], m: int
+) -> NDArray[np.int64]:
+    """Each point's component number, in order of the components' first cells."""
+    n = order.shape[0]
     comp = np.full(m, -1, np.int64)
     n_comp = 0
     out = np.empty(n, np.int64)
