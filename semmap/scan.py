@@ -190,26 +190,11 @@ def extract_band_scan(
     nearest point alone is biased towards the sensor. Free space ends ``free_sigma`` noise
     sigmas (``tol / 3``) before the obstacle, or at the nearest point if that is farther.
     """
-    d = np.asarray(depth_m)
-    if d.ndim != 2:
-        raise FrameError(f"depth image must be (H, W), got shape {d.shape}")
+    d, T = _checked_frame(depth_m, intrinsics, T_map_camera)
     H, W = d.shape
-    if (W, H) != (intrinsics.width_px, intrinsics.height_px):
-        raise FrameError(
-            f"depth image is {W}x{H} but intrinsics are for {intrinsics.width_px}x{intrinsics.height_px}"
-        )
-    T = np.asarray(T_map_camera, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise FrameError(f"T_map_camera must be a finite (4, 4) transform, got shape {T.shape}")
     s = max(1, int(stride_px))
     sc = max(1, int(column_stride_px)) if column_stride_px is not None else s
-    sub = d[::s, ::sc].astype(np.float32, copy=False)  # (h, w)
-    valid = valid_depth_mask(sub, min_depth_m, max_depth_m)
-    if recover_px:
-        sub, valid = recover_skipped(d, sub, valid, s, sc, min_depth_m, max_depth_m)
-    dep = np.where(valid, sub, np.float32(0.0))
-    if fill_px > 0:
-        dep, valid = fill_dropouts(dep, valid, max(1, int(round(fill_px / s))))
+    dep, valid = _subsampled_filled_depth(d, s, sc, min_depth_m, max_depth_m, fill_px, recover_px)
     us = np.arange(0, W, sc, dtype=np.float32)
     vs = np.arange(0, H, s, dtype=np.float32)
     xn = (us - np.float32(intrinsics.cx_px)) / np.float32(intrinsics.fx_px)  # (w,)
@@ -232,6 +217,41 @@ def extract_band_scan(
         hit_z_m=hit_z,
     )
 
+
+
+def _checked_frame(
+    depth_m: NDArray[np.floating], intrinsics: CameraIntrinsics, T_map_camera: NDArray[np.float64]
+) -> tuple[NDArray[np.floating], NDArray[np.float64]]:
+    """The depth image and the pose as arrays, or a :class:`FrameError` naming what is wrong."""
+    d = np.asarray(depth_m)
+    if d.ndim != 2:
+        raise FrameError(f"depth image must be (H, W), got shape {d.shape}")
+    H, W = d.shape
+    if (W, H) != (intrinsics.width_px, intrinsics.height_px):
+        raise FrameError(
+            f"depth image is {W}x{H} but intrinsics are for {intrinsics.width_px}x{intrinsics.height_px}"
+        )
+    T = np.asarray(T_map_camera, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise FrameError(f"T_map_camera must be a finite (4, 4) transform, got shape {T.shape}")
+    return d, T
+
+
+def _subsampled_filled_depth(
+    d: NDArray[np.floating], s: int, sc: int, min_depth_m: float, max_depth_m: float,
+    fill_px: int, recover_px: bool,
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """The (h, w) depth at every ``s``-th row and ``sc``-th column (0 where invalid) and its
+    validity, with skipped pixels recovered and dropouts filled as :func:`extract_band_scan`
+    describes."""
+    sub = d[::s, ::sc].astype(np.float32, copy=False)  # (h, w)
+    valid = valid_depth_mask(sub, min_depth_m, max_depth_m)
+    if recover_px:
+        sub, valid = recover_skipped(d, sub, valid, s, sc, min_depth_m, max_depth_m)
+    dep = np.where(valid, sub, np.float32(0.0))
+    if fill_px > 0:
+        dep, valid = fill_dropouts(dep, valid, max(1, int(round(fill_px / s))))
+    return dep, valid
 
 @numba.njit(cache=True)
 def _f32(x: Any) -> Any:
@@ -260,9 +280,7 @@ def _scan_columns(
     """
     h, w = dep.shape
     f = _f32
-    inf32 = np.float32(np.inf)
     z0, z1, tz32 = f(band_lo), f(band_hi), f(tz)
-    flat_eps = np.float32(1e-6)
     rt, rtp = f(range_tol), f(range_tol_per_m2)
     # Per pixel of one column: offsets from the sensor, height, range, band crossing.
     ox = np.empty(h, np.float32)
@@ -277,8 +295,53 @@ def _scan_columns(
     second_row = np.zeros(w, np.int64)
     r1 = np.empty(w, np.float32)
     r2 = np.empty(w, np.float32)
-    # Pass 1: each column's nearest and second-nearest in-band point (their ranges are
-    # needed by the neighbouring columns).
+    # Pass 1 over all columns first: the neighbouring columns' nearest ranges are needed.
+    _nearest_in_band(dep, valid, xn, yn, R, tz32, z0, z1, hit_rng, first_row, second_row, r1, r2)
+    for c in range(w):
+        any_cross = _column_rays(dep, valid, xn, yn, R, c, tz32, z0, z1, sensor_in_band,
+                                 ox, oy, zc, rng, s_lo, s_hi, crosses)
+        q1 = r1[c]
+        confirmed = _nearest_confirmed(r1, r2, c, rt, rtp, min_support)
+        r_near = q1 if confirmed else r2[c]
+        hit = math.isfinite(r_near)
+        hit_row = first_row[c] if confirmed else second_row[c]
+        r_near_f = r_near if hit else np.float32(0.0)
+        tol = f(rt + f(rtp * f(r_near_f * r_near_f)))
+        r_hit = _cluster_mean_range(hit_rng, c, r_near_f, f(r_near_f + f(cluster_tol * tol))) if hit else 0.0
+        blocked = math.isfinite(q1)
+        exit_row, near_row, med_row = _free_ends_and_hit_rows(hit_rng, c, rng, s_lo, s_hi, crosses, r_hit)
+        far_row = first_row[c] if blocked else exit_row
+        r_first = rng[first_row[c]]
+        r_free = max(np.float64(q1), r_hit - f(f(free_sigma * tol) / 3.0)) if hit else np.float64(q1)
+        far_s = r_free / r_first if blocked else np.float64(s_hi[far_row])
+        if not math.isfinite(far_s):
+            far_s = 0.0
+        near_s = np.float32(0.0) if sensor_in_band else s_lo[near_row]
+        ray_valid[c] = any_cross or blocked
+        far[c, 0] = tx + np.float64(ox[far_row]) * far_s
+        far[c, 1] = ty + np.float64(oy[far_row]) * far_s
+        scale = r_hit / np.float64(rng[med_row]) if hit else 1.0
+        if not math.isfinite(scale):
+            scale = 1.0
+        hit_xy[c, 0] = tx + np.float64(ox[med_row]) * scale
+        hit_xy[c, 1] = ty + np.float64(oy[med_row]) * scale
+        near[c, 0] = tx + np.float64(f(ox[near_row] * near_s))
+        near[c, 1] = ty + np.float64(f(oy[near_row] * near_s))
+        is_hit[c] = hit
+        hit_z[c] = np.float64(zc[hit_row]) if hit else np.nan
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _nearest_in_band(
+    dep: NDArray[np.float32], valid: NDArray[np.bool_], xn: NDArray[np.float32], yn: NDArray[np.float32],
+    R: NDArray[np.float32], tz32: np.float32, z0: np.float32, z1: np.float32, hit_rng: NDArray[np.float32],
+    first_row: NDArray[np.int64], second_row: NDArray[np.int64], r1: NDArray[np.float32], r2: NDArray[np.float32],
+) -> None:
+    """Writes each pixel's horizontal range if in the band (else inf) to ``hit_rng`` (w, h),
+    and each column's nearest and second-nearest in-band rows and ranges."""
+    h, w = dep.shape
+    f = _f32
+    inf32 = np.float32(np.inf)
     for c in range(w):
         a0, a1, a2 = f(R[0, 0] * xn[c]), f(R[1, 0] * xn[c]), f(R[2, 0] * xn[c])
         best, best_r = 0, inf32
@@ -302,82 +365,96 @@ def _scan_columns(
             if v < best2_r:
                 best2, best2_r = r, v
         second_row[c], r2[c] = best2, best2_r
-    for c in range(w):
-        a0, a1, a2 = f(R[0, 0] * xn[c]), f(R[1, 0] * xn[c]), f(R[2, 0] * xn[c])
-        any_cross = False
-        for r in range(h):
-            d = dep[r, c]
-            x = f(d * f(f(a0 + f(R[0, 1] * yn[r])) + R[0, 2]))
-            y = f(d * f(f(a1 + f(R[1, 1] * yn[r])) + R[1, 2]))
-            oz = f(d * f(f(a2 + f(R[2, 1] * yn[r])) + R[2, 2]))
-            ox[r], oy[r], zc[r] = x, y, f(oz + tz32)
-            rng[r] = f(math.sqrt(f(f(x * x) + f(y * y))))
-            if abs(oz) < flat_eps:
-                lo, hi = (0.0, 1.0) if sensor_in_band else (1.0, 0.0)
-            else:
-                sa = f(f(z0 - tz32) / oz)
-                sb = f(f(z1 - tz32) / oz)
-                lo = min(max(min(sa, sb), 0.0), 1.0)
-                hi = min(max(max(sa, sb), 0.0), 1.0)
-            s_lo[r], s_hi[r] = lo, hi
-            crosses[r] = valid[r, c] and s_hi[r] > s_lo[r]
-            any_cross = any_cross or crosses[r]
-        # A column's nearest in-band point counts if enough points back it up within the
-        # range tolerance: its next point or the neighbouring columns' nearest.
-        q1 = r1[c]
-        tol1 = f(rt + f(rtp * f(q1 * q1)))
-        left = r1[c - 1] if c > 0 else inf32
-        right = r1[c + 1] if c + 1 < w else inf32
-        support = 0
-        for o in (r2[c], left, right):
-            if abs(f(o - q1)) <= tol1:
-                support += 1
-        confirmed = support >= min_support
-        r_near = q1 if confirmed else r2[c]
-        hit = math.isfinite(r_near)
-        hit_row = first_row[c] if confirmed else second_row[c]
-        r_near_f = r_near if hit else np.float32(0.0)
-        tol = f(rt + f(rtp * f(r_near_f * r_near_f)))
-        upper = f(r_near_f + f(cluster_tol * tol))
-        acc = np.float32(0.0)
-        n_in = 0
-        for r in range(h):
-            v = hit_rng[c, r]
-            if v >= r_near_f and v <= upper:
-                acc = f(acc + v)
-                n_in += 1
-        # (numpy divided the float32 sum by an int64 count: float64 from here on.)
-        r_hit = np.float64(acc) / max(n_in, 1) if hit else 0.0
-        blocked = math.isfinite(q1)
-        exit_row, exit_v = 0, np.float32(-np.inf)
-        near_row, near_v = 0, inf32
-        med_row, med_v = 0, np.inf
-        for r in range(h):
-            fr = f(s_hi[r] * rng[r]) if crosses[r] else np.float32(-1.0)
-            if fr > exit_v:
-                exit_row, exit_v = r, fr
-            nr = f(s_lo[r] * rng[r]) if crosses[r] else inf32
-            if nr < near_v:
-                near_row, near_v = r, nr
-            md = abs(np.float64(hit_rng[c, r]) - r_hit)
-            if md < med_v:
-                med_row, med_v = r, md
-        far_row = first_row[c] if blocked else exit_row
-        r_first = rng[first_row[c]]
-        r_free = max(np.float64(q1), r_hit - f(f(free_sigma * tol) / 3.0)) if hit else np.float64(q1)
-        far_s = r_free / r_first if blocked else np.float64(s_hi[far_row])
-        if not math.isfinite(far_s):
-            far_s = 0.0
-        near_s = np.float32(0.0) if sensor_in_band else s_lo[near_row]
-        ray_valid[c] = any_cross or blocked
-        far[c, 0] = tx + np.float64(ox[far_row]) * far_s
-        far[c, 1] = ty + np.float64(oy[far_row]) * far_s
-        scale = r_hit / np.float64(rng[med_row]) if hit else 1.0
-        if not math.isfinite(scale):
-            scale = 1.0
-        hit_xy[c, 0] = tx + np.float64(ox[med_row]) * scale
-        hit_xy[c, 1] = ty + np.float64(oy[med_row]) * scale
-        near[c, 0] = tx + np.float64(f(ox[near_row] * near_s))
-        near[c, 1] = ty + np.float64(f(oy[near_row] * near_s))
-        is_hit[c] = hit
-        hit_z[c] = np.float64(zc[hit_row]) if hit else np.nan
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _column_rays(
+    dep: NDArray[np.float32], valid: NDArray[np.bool_], xn: NDArray[np.float32], yn: NDArray[np.float32],
+    R: NDArray[np.float32], c: int, tz32: np.float32, z0: np.float32, z1: np.float32, sensor_in_band: bool,
+    ox: NDArray[np.float32], oy: NDArray[np.float32], zc: NDArray[np.float32], rng: NDArray[np.float32],
+    s_lo: NDArray[np.float32], s_hi: NDArray[np.float32], crosses: NDArray[np.bool_],
+) -> bool:
+    """Fills, per pixel of column ``c``: offsets from the sensor, height, horizontal range, the
+    ray's fractions [s_lo, s_hi] inside the band and whether a valid ray crosses it; returns
+    whether any does."""
+    f = _f32
+    flat_eps = np.float32(1e-6)
+    a0, a1, a2 = f(R[0, 0] * xn[c]), f(R[1, 0] * xn[c]), f(R[2, 0] * xn[c])
+    any_cross = False
+    for r in range(dep.shape[0]):
+        d = dep[r, c]
+        x = f(d * f(f(a0 + f(R[0, 1] * yn[r])) + R[0, 2]))
+        y = f(d * f(f(a1 + f(R[1, 1] * yn[r])) + R[1, 2]))
+        oz = f(d * f(f(a2 + f(R[2, 1] * yn[r])) + R[2, 2]))
+        ox[r], oy[r], zc[r] = x, y, f(oz + tz32)
+        rng[r] = f(math.sqrt(f(f(x * x) + f(y * y))))
+        if abs(oz) < flat_eps:
+            lo, hi = (0.0, 1.0) if sensor_in_band else (1.0, 0.0)
+        else:
+            sa = f(f(z0 - tz32) / oz)
+            sb = f(f(z1 - tz32) / oz)
+            lo = min(max(min(sa, sb), 0.0), 1.0)
+            hi = min(max(max(sa, sb), 0.0), 1.0)
+        s_lo[r], s_hi[r] = lo, hi
+        crosses[r] = valid[r, c] and s_hi[r] > s_lo[r]
+        any_cross = any_cross or crosses[r]
+    return any_cross
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _nearest_confirmed(
+    r1: NDArray[np.float32], r2: NDArray[np.float32], c: int, rt: np.float32, rtp: np.float32, min_support: int,
+) -> bool:
+    """Whether column ``c``'s nearest in-band point counts: enough points back it up within
+    the range tolerance (its next point or the neighbouring columns' nearest)."""
+    f = _f32
+    inf32 = np.float32(np.inf)
+    q1 = r1[c]
+    tol1 = f(rt + f(rtp * f(q1 * q1)))
+    left = r1[c - 1] if c > 0 else inf32
+    right = r1[c + 1] if c + 1 < r1.shape[0] else inf32
+    support = 0
+    for o in (r2[c], left, right):
+        if abs(f(o - q1)) <= tol1:
+            support += 1
+    return support >= min_support
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _cluster_mean_range(hit_rng: NDArray[np.float32], c: int, lower: np.float32, upper: np.float32) -> float:
+    """Mean in-band range of column ``c`` over [lower, upper], the nearest cluster."""
+    f = _f32
+    acc = np.float32(0.0)
+    n_in = 0
+    for r in range(hit_rng.shape[1]):
+        v = hit_rng[c, r]
+        if v >= lower and v <= upper:
+            acc = f(acc + v)
+            n_in += 1
+    # (numpy divided the float32 sum by an int64 count: float64 from here on.)
+    return np.float64(acc) / max(n_in, 1)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _free_ends_and_hit_rows(
+    hit_rng: NDArray[np.float32], c: int, rng: NDArray[np.float32], s_lo: NDArray[np.float32],
+    s_hi: NDArray[np.float32], crosses: NDArray[np.bool_], r_hit: float,
+) -> tuple[int, int, int]:
+    """Rows of column ``c`` whose rays leave the band farthest and enter it nearest, and the
+    row whose in-band range is closest to ``r_hit``."""
+    f = _f32
+    inf32 = np.float32(np.inf)
+    exit_row, exit_v = 0, np.float32(-np.inf)
+    near_row, near_v = 0, inf32
+    med_row, med_v = 0, np.inf
+    for r in range(rng.shape[0]):
+        fr = f(s_hi[r] * rng[r]) if crosses[r] else np.float32(-1.0)
+        if fr > exit_v:
+            exit_row, exit_v = r, fr
+        nr = f(s_lo[r] * rng[r]) if crosses[r] else inf32
+        if nr < near_v:
+            near_row, near_v = r, nr
+        md = abs(np.float64(hit_rng[c, r]) - r_hit)
+        if md < med_v:
+            med_row, med_v = r, md
+    return exit_row, near_row, med_row
