@@ -95,6 +95,41 @@ def _static_dim(dim: Any) -> int | None:
     return dim if isinstance(dim, int) and dim > 0 else None
 
 
+def _load_session(
+    path: Path, providers: list[str], intra_op_threads: int, graph_optimization: str,
+    trt_fp16: bool, trt_cache_dir: str | None,
+) -> ort.InferenceSession:
+    """An ONNX Runtime session for the model at ``path`` on ``providers``, one inter-op
+    thread, or a :class:`PerceptionError` naming the file."""
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(intra_op_threads)
+    so.inter_op_num_threads = 1
+    so.graph_optimization_level = _GRAPH_OPT[graph_optimization]
+    so.log_severity_level = 3
+    try:
+        return ort.InferenceSession(
+            str(path), sess_options=so, providers=_provider_entries(providers, trt_fp16, trt_cache_dir),
+        )
+    # ONNX Runtime's pybind exceptions (InvalidProtobuf, Fail, NoSuchFile, ...) derive
+    # straight from Exception, so this boundary has to catch that.
+    except Exception as exc:
+        raise PerceptionError(f"detector model {path}: ONNX Runtime cannot load it: {exc}") from exc
+
+
+def _class_thresholds(
+    semantic_classes: list[str], score_threshold: float, class_score_thresholds: Mapping[str, float] | None
+) -> NDArray[np.float32]:
+    """(S,) score threshold per semantic class: its own if given, else ``score_threshold``."""
+    thresholds = dict(class_score_thresholds or {})
+    unknown = sorted(set(thresholds) - set(semantic_classes))
+    if unknown:
+        raise PerceptionError(
+            f"detector.class_score_thresholds has unknown classes {unknown} "
+            f"(classes: {semantic_classes})"
+        )
+    return np.array([thresholds.get(n, score_threshold) for n in semantic_classes], dtype=np.float32)
+
+
 class OnnxDetector:
     """A YOLOv8- or YOLOX-head detector behind ONNX Runtime, reporting our semantic classes."""
 
@@ -132,24 +167,34 @@ class OnnxDetector:
                 f"graph_optimization must be one of {sorted(_GRAPH_OPT)} (got {graph_optimization!r})"
             )
         self.providers = select_providers(providers)
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = int(intra_op_threads)
-        so.inter_op_num_threads = 1
-        so.graph_optimization_level = _GRAPH_OPT[graph_optimization]
-        so.log_severity_level = 3
-        try:
-            self._session = ort.InferenceSession(
-                str(path), sess_options=so,
-                providers=_provider_entries(self.providers, trt_fp16, trt_cache_dir),
-            )
-        # ONNX Runtime's pybind exceptions (InvalidProtobuf, Fail, NoSuchFile, ...) derive
-        # straight from Exception, so this boundary has to catch that.
-        except Exception as exc:
-            raise PerceptionError(f"detector model {path}: ONNX Runtime cannot load it: {exc}") from exc
+        self._session = _load_session(path, self.providers, intra_op_threads, graph_optimization,
+                                      trt_fp16, trt_cache_dir)
         log.info("detector %s on %s", path.name, ", ".join(self._session.get_providers()))
+        self._adopt_input(input_size_px)
+        names = list(model_class_names) if model_class_names is not None else self._metadata_names()
+        self.head, n_cls = self._recognise_head(head, names)
+        if not names:
+            # No names anywhere: class ids as strings, so a class map keyed by id still works.
+            names = [str(i) for i in range(n_cls)]
+        self.class_map = ClassMap(names, semantic_classes, class_map)
+        self.semantic_classes = list(semantic_classes)
+        self._yolox = YoloxDecoder(self.input_hw_px, yolox_predecoded) if self.head == "yolox" else None
+        #: (S,) score threshold per semantic class.
+        self._thresholds = _class_thresholds(self.semantic_classes, score_threshold, class_score_thresholds)
+        self._score_floor = float(self._thresholds.min())
+        self.nms_iou = float(nms_iou)
+        self.max_detections = int(max_detections)
+        log.info(
+            "detector %s: %s head, %dx%d input, %d model classes, %d mapped",
+            path.name, self.head, self.input_hw_px[1], self.input_hw_px[0], n_cls,
+            int(self.class_map.wanted_mask.sum()),
+        )
 
+    def _adopt_input(self, input_size_px: int) -> None:
+        """Check the model's single [1, 3, H, W] float input and take its name, dtype and size
+        (``input_size_px`` square when the size is dynamic), and the first output's name."""
+        path = self.model_path
         inputs = self._session.get_inputs()
-        outputs = self._session.get_outputs()
         if len(inputs) != 1:
             raise PerceptionError(f"detector model {path}: expected 1 input, it has {len(inputs)}")
         shape = list(inputs[0].shape)
@@ -179,44 +224,18 @@ class OnnxDetector:
                 f"is not a multiple of 32 (the largest stride)"
             )
         self._input_name = inputs[0].name
-        self._output_name = outputs[0].name
+        self._output_name = self._session.get_outputs()[0].name
 
-        names = list(model_class_names) if model_class_names is not None else self._metadata_names()
+    def _recognise_head(self, head: str, names: list[str] | None) -> tuple[HeadKind, int]:
+        """The head kind (``head``, or recognised when ``auto``) and the model's class count,
+        checked against a warm-up inference's output shape."""
         out_shape = self._probe_output_shape()
-        self.head: HeadKind
         if head == "auto":
-            self.head, n_cls = recognise_head(out_shape, self.input_hw_px, len(names) if names else None)
-        elif head in ("yolov8", "yolox"):
-            self.head = head  # type: ignore[assignment]
-            n_cls = check_head(self.head, out_shape, len(names) if names else None)
-        else:
-            raise PerceptionError(f"detector.head must be auto, yolov8 or yolox (got {head!r})")
-        if not names:
-            # No names anywhere: class ids as strings, so a class map keyed by id still works.
-            names = [str(i) for i in range(n_cls)]
-        self.class_map = ClassMap(names, semantic_classes, class_map)
-        self.semantic_classes = list(semantic_classes)
-        self._yolox = YoloxDecoder(self.input_hw_px, yolox_predecoded) if self.head == "yolox" else None
-
-        thresholds = dict(class_score_thresholds or {})
-        unknown = sorted(set(thresholds) - set(self.semantic_classes))
-        if unknown:
-            raise PerceptionError(
-                f"detector.class_score_thresholds has unknown classes {unknown} "
-                f"(classes: {self.semantic_classes})"
-            )
-        #: (S,) score threshold per semantic class.
-        self._thresholds = np.array(
-            [thresholds.get(n, score_threshold) for n in self.semantic_classes], dtype=np.float32
-        )
-        self._score_floor = float(self._thresholds.min())
-        self.nms_iou = float(nms_iou)
-        self.max_detections = int(max_detections)
-        log.info(
-            "detector %s: %s head, %dx%d input, %d model classes, %d mapped",
-            path.name, self.head, self.input_hw_px[1], self.input_hw_px[0], n_cls,
-            int(self.class_map.wanted_mask.sum()),
-        )
+            return recognise_head(out_shape, self.input_hw_px, len(names) if names else None)
+        if head in ("yolov8", "yolox"):
+            kind: HeadKind = head  # type: ignore[assignment]
+            return kind, check_head(kind, out_shape, len(names) if names else None)
+        raise PerceptionError(f"detector.head must be auto, yolov8 or yolox (got {head!r})")
 
     @classmethod
     def from_config(
