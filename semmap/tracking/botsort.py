@@ -109,6 +109,11 @@ class _STrack:
                      self.class_name, frame_id - self.start_frame)
 
 
+#: (track, measured xyxy box, score, embedding or None): applied in one batch after the three
+#: matching stages, which only read the predicted states.
+_Update = tuple[_STrack, NDArray[np.float64], float, NDArray[np.float32] | None]
+
+
 def _track_boxes(tracks: Sequence[_STrack]) -> NDArray[np.float64]:
     """(M, 4) xyxy boxes of the tracks' current states."""
     if not tracks:
@@ -261,6 +266,29 @@ class BoTSORT:
         """
         self.frame_id += 1
         fid = self.frame_id
+        all_dets = self._frame_detections(detections, image_rgb)
+        scores = all_dets.scores
+        high = all_dets.take(np.flatnonzero(scores >= self.track_high_thresh))
+        low = all_dets.take(np.flatnonzero((scores > self.track_low_thresh) & (scores < self.track_high_thresh)))
+
+        unconfirmed = [t for t in self._tracked if not t.is_activated]
+        confirmed = [t for t in self._tracked if t.is_activated]
+        pool = confirmed + self._lost
+
+        self._predict(pool)
+        self.last_warp = self._camera_motion(image_rgb, all_dets.boxes, warp)
+        if not np.array_equal(self.last_warp, IDENTITY):
+            self._warp(pool + unconfirmed, self.last_warp)
+
+        updates, refound, r_tracked, new_dets = self._associate(pool, unconfirmed, high, low)
+        self._apply_updates(updates, fid)
+        new_tracks = self._start(new_dets, fid)
+        self._rebuild_lists(refound, r_tracked, new_tracks, fid)
+        return [t.to_track(fid) for t in self._tracked if t.is_activated and t.frame_id == fid]
+
+    def _frame_detections(self, detections: Sequence[Detection], image_rgb: NDArray[np.uint8] | None) -> _Dets:
+        """This frame's detections as arrays, degenerate boxes dropped, with their unit
+        appearance embeddings when the appearance hook is on."""
         boxes = np.array([d.xyxy_px for d in detections], dtype=np.float64).reshape(-1, 4)
         # A degenerate box would give the Kalman filter a zero (singular) noise model.
         valid = np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] - boxes[:, 0] >= MIN_BOX_PX) & (
@@ -277,15 +305,12 @@ class BoTSORT:
                 raise FrameError("tracker has an appearance encoder but update() got no image")
             f = np.asarray(self.appearance(image_rgb, boxes), dtype=np.float32).reshape(len(boxes), -1)
             feats = f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
-        all_dets = _Dets(boxes, scores, classes, feats)
-        high = all_dets.take(np.flatnonzero(scores >= self.track_high_thresh))
-        low = all_dets.take(np.flatnonzero((scores > self.track_low_thresh) & (scores < self.track_high_thresh)))
+        return _Dets(boxes, scores, classes, feats)
 
-        unconfirmed = [t for t in self._tracked if not t.is_activated]
-        confirmed = [t for t in self._tracked if t.is_activated]
-        pool = confirmed + self._lost
-
-        self._predict(pool)
+    def _camera_motion(self, image_rgb: NDArray[np.uint8] | None, boxes: NDArray[np.float64],
+                       warp: NDArray[np.float64] | None) -> NDArray[np.float64]:
+        """The previous->current image motion as (3, 3): the given ``warp``, else CMC's
+        estimate, else the identity."""
         if warp is None:
             if self.cmc is not None:
                 if image_rgb is None:
@@ -294,13 +319,15 @@ class BoTSORT:
             else:
                 warp = IDENTITY
         warp = np.asarray(warp, dtype=np.float64)
-        self.last_warp = np.vstack([warp, [0.0, 0.0, 1.0]]) if warp.shape == (2, 3) else warp
-        if not np.array_equal(self.last_warp, IDENTITY):
-            self._warp(pool + unconfirmed, self.last_warp)
+        return np.vstack([warp, [0.0, 0.0, 1.0]]) if warp.shape == (2, 3) else warp
 
-        # (track, measured xyxy box, score, embedding or None): applied in one batch after the
-        # three stages, which only read the predicted states.
-        updates: list[tuple[_STrack, NDArray[np.float64], float, NDArray[np.float32] | None]] = []
+    def _associate(
+        self, pool: list[_STrack], unconfirmed: list[_STrack], high: _Dets, low: _Dets
+    ) -> tuple[list[_Update], list[_STrack], list[_STrack], _Dets]:
+        """BoT-SORT's three matching stages on the predicted states. Returns the updates to
+        apply in one batch, the lost tracks found again, the tracked leftovers of stage 2
+        (those unmatched now LOST) and the high detections nobody matched."""
+        updates: list[_Update] = []
         refound: list[_STrack] = []
 
         # Stage 1: confirmed + lost vs high-score detections.
@@ -327,13 +354,12 @@ class BoTSORT:
             updates.append((unconfirmed[ti], rest.boxes[di], float(rest.scores[di]), None if rest.feats is None else rest.feats[di]))
         for i in u_unconf:
             unconfirmed[i].state = TrackState.REMOVED
+        return updates, refound, r_tracked, rest.take(u_new)
 
-        self._apply_updates(updates, fid)
-
-        # New tracks from confident unmatched detections.
-        new_tracks = self._start(rest.take(u_new), fid)
-
-        # Lifecycle: lost tracks run out; lists rebuilt.
+    def _rebuild_lists(self, refound: list[_STrack], r_tracked: list[_STrack], new_tracks: list[_STrack],
+                       fid: int) -> None:
+        """Tracked and lost lists after the matching: lost tracks out of time dropped,
+        duplicates between the two removed."""
         tracked = [t for t in self._tracked if t.state == TrackState.TRACKED]
         tracked_ids = {t.track_id for t in tracked}
         tracked += [t for t in refound if t.track_id not in tracked_ids]
@@ -342,7 +368,6 @@ class BoTSORT:
         lost += [t for t in r_tracked if t.state == TrackState.LOST]
         lost = [t for t in lost if fid - t.frame_id <= self.max_time_lost]
         self._tracked, self._lost = self._remove_duplicates(tracked, lost)
-        return [t.to_track(fid) for t in self._tracked if t.is_activated and t.frame_id == fid]
 
     # --- helpers -----------------------------------------------------------------------
 
@@ -373,7 +398,7 @@ class BoTSORT:
 
     @staticmethod
     def _apply_updates(
-        updates: list[tuple[_STrack, NDArray[np.float64], float, NDArray[np.float32] | None]], fid: int
+        updates: list[_Update], fid: int
     ) -> None:
         if not updates:
             return
