@@ -23,6 +23,7 @@ frame (ENU: 0 = +x east, counter-clockwise positive).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -228,12 +229,7 @@ def time_parametrize(
     ``limits.final_approach_m`` of the path are flown at ``limits.final_approach_speed_m_s``
     at most (a vertex is added where that stretch begins).
     """
-    p = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
-    if len(p) == 0 or not np.all(np.isfinite(p)):
-        raise PlanningError(f"path must be a non-empty (K, 2) array of finite metres, got shape {p.shape}")
-    keep = np.ones(len(p), dtype=bool)
-    keep[1:] = np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-6
-    p, approach_from = _split_for_approach(p[keep], limits.final_approach_m)
+    p, approach_from = _split_for_approach(_distinct_vertices(path_xy_m), limits.final_approach_m)
     seg = np.diff(p, axis=0)
     L = np.linalg.norm(seg, axis=1)
     n = len(L)
@@ -243,20 +239,7 @@ def time_parametrize(
     # Per segment: the speed limit, lowered on the final approach.
     seg_vmax = np.full(n, vmax)
     seg_vmax[approach_from:] = min(vmax, limits.final_approach_speed_m_s)
-
-    v = np.full(n + 1, vmax)
-    v[approach_from:] = np.minimum(v[approach_from:], min(vmax, limits.final_approach_speed_m_s))
-    v[0] = min(vmax, max(0.0, float(initial_speed_m_s))) if n else 0.0
-    v[-1] = 0.0
-    for k in range(1, n):
-        cos_t = float(np.clip(np.dot(u[k - 1], u[k]), -1.0, 1.0))
-        half = 0.5 * math.acos(cos_t)
-        if half > 1e-9:
-            v[k] = min(v[k], limits.corner_speed_jump_m_s / (2.0 * math.sin(half)))
-    for k in range(n):
-        v[k + 1] = min(v[k + 1], math.sqrt(v[k] ** 2 + 2.0 * a * L[k]))
-    for k in range(n - 1, -1, -1):
-        v[k] = min(v[k], math.sqrt(v[k + 1] ** 2 + 2.0 * a * L[k]))
+    v = _vertex_speeds(u, L, approach_from, limits, initial_speed_m_s)
 
     # Yaw at the start; from rest, wait for the first turn to face (nearly) along the path.
     omega = limits.max_yaw_rate_rad_s
@@ -274,26 +257,70 @@ def time_parametrize(
         phase[k] = (ta, tc, tb)
         t0[k] = t
         t += ta + tc + tb
-    motion_end = t
-
-    # Yaw turns, each centred yaw_lead_m before its corner, never overlapping the previous one.
     s_start = np.concatenate([[0.0], np.cumsum(L)])  # (n + 1,) arc length at each vertex
 
     def time_at(arc_m: float) -> float:
         j = int(np.clip(np.searchsorted(s_start, arc_m, side="right") - 1, 0, max(n - 1, 0)))
         return float(t0[j]) + _time_into_segment(arc_m - float(s_start[j]), float(v[j]), float(peak[j]), phase[j], a)
 
+    return Trajectory(
+        waypoints_xy_m=p, altitude_m=float(altitude_m), limits=limits, seg_t0_s=t0, seg_len_m=L,
+        seg_dir=u, vertex_speed_m_s=v, seg_peak_m_s=peak, seg_phase_s=phase,
+        yaw_turns=_yaw_turns(heading, s_start, time_at, yaw0, limits), initial_yaw_rad=yaw0,
+        motion_end_s=t,
+    )
+
+
+def _distinct_vertices(path_xy_m: NDArray[np.floating]) -> NDArray[np.float64]:
+    """The (K, 2) path without repeated vertices, or a :class:`PlanningError` for an empty
+    or non-finite one."""
+    p = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
+    if len(p) == 0 or not np.all(np.isfinite(p)):
+        raise PlanningError(f"path must be a non-empty (K, 2) array of finite metres, got shape {p.shape}")
+    keep = np.ones(len(p), dtype=bool)
+    keep[1:] = np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-6
+    return p[keep]
+
+
+def _vertex_speeds(u: NDArray[np.float64], L: NDArray[np.float64], approach_from: int,
+                   limits: TrajectoryLimits, initial_speed_m_s: float) -> NDArray[np.float64]:
+    """(n + 1,) speed at each vertex: the speed limits, the corner limits, and what the
+    acceleration allows forwards from the start and backwards from the stop at the end."""
+    n = len(L)
+    vmax, a = limits.max_speed_m_s, limits.max_accel_m_s2
+    v = np.full(n + 1, vmax)
+    v[approach_from:] = np.minimum(v[approach_from:], min(vmax, limits.final_approach_speed_m_s))
+    v[0] = min(vmax, max(0.0, float(initial_speed_m_s))) if n else 0.0
+    v[-1] = 0.0
+    for k in range(1, n):
+        cos_t = float(np.clip(np.dot(u[k - 1], u[k]), -1.0, 1.0))
+        half = 0.5 * math.acos(cos_t)
+        if half > 1e-9:
+            v[k] = min(v[k], limits.corner_speed_jump_m_s / (2.0 * math.sin(half)))
+    for k in range(n):
+        v[k + 1] = min(v[k + 1], math.sqrt(v[k] ** 2 + 2.0 * a * L[k]))
+    for k in range(n - 1, -1, -1):
+        v[k] = min(v[k], math.sqrt(v[k + 1] ** 2 + 2.0 * a * L[k]))
+    return v
+
+
+def _yaw_turns(heading: NDArray[np.float64], s_start: NDArray[np.float64], time_at: Callable[[float], float],
+               yaw0: float, limits: TrajectoryLimits) -> NDArray[np.float64]:
+    """(T, 4) yaw turns (start s, end s, from rad, to rad) at the yaw rate limit: one to the
+    first heading at t = 0, then one per corner centred ``yaw_lead_m`` before it (``time_at``
+    maps arc length to time), never overlapping the previous one."""
+    omega = limits.max_yaw_rate_rad_s
     turns: list[tuple[float, float, float, float]] = []
     current = yaw0
     free_at = 0.0
-    if n:
+    if len(heading):
         delta = wrap_angle_rad(float(heading[0]) - current)
         if abs(delta) > 1e-9:
             d = abs(delta) / omega
             turns.append((0.0, d, current, current + delta))
             current += delta
             free_at = d
-    for k in range(1, n):
+    for k in range(1, len(heading)):
         delta = wrap_angle_rad(float(heading[k]) - wrap_angle_rad(current))
         if abs(delta) <= 1e-9:
             continue
@@ -303,9 +330,4 @@ def time_parametrize(
         turns.append((start, start + d, current, current + delta))
         current += delta
         free_at = start + d
-    return Trajectory(
-        waypoints_xy_m=p, altitude_m=float(altitude_m), limits=limits, seg_t0_s=t0, seg_len_m=L,
-        seg_dir=u, vertex_speed_m_s=v, seg_peak_m_s=peak, seg_phase_s=phase,
-        yaw_turns=np.array(turns, dtype=np.float64).reshape(-1, 4), initial_yaw_rad=yaw0,
-        motion_end_s=motion_end,
-    )
+    return np.array(turns, dtype=np.float64).reshape(-1, 4)
