@@ -277,7 +277,7 @@ class TrackerConfig(StageConfig):
     #: Maximum (1 - IoU) cost (score-fused) accepted in the first association stage.
     #: BoT-SORT uses 0.8 for pedestrians; static furniture seen by a turning drone changes its
     #: visible extent abruptly (occlusion, image-border truncation) and keeps its id better
-    #: at 0.9 (bench/tracking.py: 0.9 -> 0.3 switches per 100 frames on simulated flights).
+    #: at 0.9 (``bench/tracking.py`` flies both).
     match_thresh: float = Field(default=0.9, gt=0.0, le=1.0)
     #: Pairs with (1 - IoU) above this cannot match on appearance alone.
     proximity_thresh: float = Field(default=0.5, gt=0.0, le=1.0)
