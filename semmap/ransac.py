@@ -97,12 +97,32 @@ def _best_hypothesis(
     random draw, compiled: a hundred hypotheses on a few hundred points, where numpy's
     per-call cost exceeded the arithmetic.
     """
-    n_pts = P.shape[0]
     n_hyp = idx.shape[0]
     normals = np.empty((n_hyp + 1, 3))
     offsets = np.empty(n_hyp + 1)
     valid = np.zeros(n_hyp + 1, np.bool_)
-    for h in range(n_hyp):
+    _triple_planes(P, idx, u, use_up, min_cos, normals, offsets, valid)
+    if use_up:
+        h_best = _densest_height(P, u, distance_m)
+        normals[n_hyp, 0], normals[n_hyp, 1], normals[n_hyp, 2] = u[0], u[1], u[2]
+        q0, q1, q2 = h_best * u[0], h_best * u[1], h_best * u[2]  # the plane's point on the up axis
+        offsets[n_hyp] = -(u[0] * q0 + u[1] * q1 + u[2] * q2)
+        valid[n_hyp] = True
+    best = _most_votes(P, normals, offsets, valid, distance_m, stride)
+    if best < 0:
+        return False, 0.0
+    out_normal[0], out_normal[1], out_normal[2] = normals[best, 0], normals[best, 1], normals[best, 2]
+    return True, offsets[best]
+
+
+@numba.njit(cache=True)
+def _triple_planes(
+    P: NDArray[np.float64], idx: NDArray[np.int64], u: NDArray[np.float64], use_up: bool, min_cos: float,
+    normals: NDArray[np.float64], offsets: NDArray[np.float64], valid: NDArray[np.bool_],
+) -> None:
+    """Writes each drawn triple's plane (unit normal, offset) and marks it valid unless it is
+    degenerate or, with ``use_up``, tilted beyond ``min_cos`` from ``u`` (normal towards ``u``)."""
+    for h in range(idx.shape[0]):
         i0, i1, i2 = idx[h, 0], idx[h, 1], idx[h, 2]
         ax, ay, az = P[i1, 0] - P[i0, 0], P[i1, 1] - P[i0, 1], P[i1, 2] - P[i0, 2]
         bx, by, bz = P[i2, 0] - P[i0, 0], P[i2, 1] - P[i0, 1], P[i2, 2] - P[i0, 2]
@@ -120,33 +140,45 @@ def _best_hypothesis(
         normals[h, 0], normals[h, 1], normals[h, 2] = nx, ny, nz
         offsets[h] = -(nx * P[i0, 0] + ny * P[i0, 1] + nz * P[i0, 2])
         valid[h] = True
-    if use_up:
-        hs = np.empty(n_pts)
-        for j in range(n_pts):
-            hs[j] = P[j, 0] * u[0] + P[j, 1] * u[1] + P[j, 2] * u[2]
-        hs.sort()
-        best_support, h_best = -1, 0.0
-        lo_j, hi_j = 0, 0
-        for j in range(n_pts):
-            while hs[lo_j] < hs[j] - distance_m:
-                lo_j += 1
-            while hi_j < n_pts and hs[hi_j] <= hs[j] + distance_m:
-                hi_j += 1
-            if hi_j - lo_j > best_support:
-                best_support, h_best = hi_j - lo_j, hs[j]
-        normals[n_hyp, 0], normals[n_hyp, 1], normals[n_hyp, 2] = u[0], u[1], u[2]
-        q0, q1, q2 = h_best * u[0], h_best * u[1], h_best * u[2]  # the plane's point on the up axis
-        offsets[n_hyp] = -(u[0] * q0 + u[1] * q1 + u[2] * q2)
-        valid[n_hyp] = True
+
+
+@numba.njit(cache=True)
+def _densest_height(P: NDArray[np.float64], u: NDArray[np.float64], distance_m: float) -> float:
+    """The point height along ``u`` with the most points within ``distance_m`` of it (the
+    first such), by a window sweep on the sorted heights."""
+    n_pts = P.shape[0]
+    hs = np.empty(n_pts)
+    for j in range(n_pts):
+        hs[j] = P[j, 0] * u[0] + P[j, 1] * u[1] + P[j, 2] * u[2]
+    hs.sort()
+    best_support, h_best = -1, 0.0
+    lo_j, hi_j = 0, 0
+    for j in range(n_pts):
+        while hs[lo_j] < hs[j] - distance_m:
+            lo_j += 1
+        while hi_j < n_pts and hs[hi_j] <= hs[j] + distance_m:
+            hi_j += 1
+        if hi_j - lo_j > best_support:
+            best_support, h_best = hi_j - lo_j, hs[j]
+    return h_best
+
+
+@numba.njit(cache=True)
+def _most_votes(
+    P: NDArray[np.float64], normals: NDArray[np.float64], offsets: NDArray[np.float64], valid: NDArray[np.bool_],
+    distance_m: float, stride: int,
+) -> int:
+    """The first valid hypothesis with the most points of ``P[::stride]`` within
+    ``distance_m`` (float32 distances), or -1 when none is valid."""
     d32 = np.float32(distance_m)
     best, best_count = -1, -1
-    for h in range(n_hyp + 1):
+    for h in range(normals.shape[0]):
         if not valid[h]:
             continue
         n0, n1, n2 = np.float32(normals[h, 0]), np.float32(normals[h, 1]), np.float32(normals[h, 2])
         o = np.float32(offsets[h])
         count = 0
-        for j in range(0, n_pts, stride):
+        for j in range(0, P.shape[0], stride):
             # float32 arithmetic as numpy's float32 block had it (numba computes float32
             # products and sums in float64; each step is rounded back).
             dist = np.float32(np.float32(n0 * np.float32(P[j, 0])) + np.float32(n1 * np.float32(P[j, 1])))
@@ -155,10 +187,7 @@ def _best_hypothesis(
                 count += 1
         if count > best_count:
             best, best_count = h, count
-    if best < 0:
-        return False, 0.0
-    out_normal[0], out_normal[1], out_normal[2] = normals[best, 0], normals[best, 1], normals[best, 2]
-    return True, offsets[best]
+    return best
 
 
 def fit_plane(
