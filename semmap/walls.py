@@ -82,43 +82,10 @@ def _fit_wall(
     ``max_behind`` of all points beyond it, and seen at least ``min_facing`` (cosine) face-on.
     """
     n_all = xy.shape[0]
-    best, best_support = -1, -1
-    best_nx, best_ny, best_off = 0.0, 0.0, 0.0
-    for hyp in range(pairs.shape[0]):
-        i, j = pairs[hyp, 0], pairs[hyp, 1]
-        dx, dy = xy[j, 0] - xy[i, 0], xy[j, 1] - xy[i, 1]
-        length = math.hypot(dx, dy)
-        if length <= 0.05:
-            continue
-        nx, ny = -dy / length, dx / length
-        off = -(nx * xy[i, 0] + ny * xy[i, 1])
-        support = 0
-        for k in range(n_all):
-            if remaining[k] and abs(xy[k, 0] * nx + xy[k, 1] * ny + off) <= tol[k]:
-                support += 1
-        if support > best_support:
-            best, best_support = hyp, support
-            best_nx, best_ny, best_off = nx, ny, off
+    best, best_support, best_nx, best_ny, best_off = _most_supported_line(xy, tol, remaining, pairs)
     if best < 0 or best_support < min_support:
         return False, 0.0, 0.0, 0.0
-    # Least squares on the winner's points: centroid, then the scatter's major axis.
-    sx, sy, m = 0.0, 0.0, 0
-    for k in range(n_all):
-        if remaining[k] and abs(xy[k, 0] * best_nx + xy[k, 1] * best_ny + best_off) <= tol[k]:
-            sx += xy[k, 0]
-            sy += xy[k, 1]
-            m += 1
-    cx, cy = sx / m, sy / m
-    sxx, sxy, syy = 0.0, 0.0, 0.0
-    for k in range(n_all):
-        if remaining[k] and abs(xy[k, 0] * best_nx + xy[k, 1] * best_ny + best_off) <= tol[k]:
-            ex, ey = xy[k, 0] - cx, xy[k, 1] - cy
-            sxx += ex * ex
-            sxy += ex * ey
-            syy += ey * ey
-    theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
-    nx, ny = -math.sin(theta), math.cos(theta)
-    off = -(nx * cx + ny * cy)
+    cx, cy, nx, ny, off = _refit_line(xy, tol, remaining, best_nx, best_ny, best_off)
     if nx * cam_x + ny * cam_y + off < 0:
         nx, ny, off = -nx, -ny, -off
     n_in, n_behind = 0, 0
@@ -138,6 +105,58 @@ def _fit_wall(
         return False, 0.0, 0.0, 0.0  # seen edge-on: a strip of something along the line of sight
     return True, nx, ny, off
 
+
+@numba.njit(cache=True)
+def _most_supported_line(
+    xy: NDArray[np.float64], tol: NDArray[np.float64], remaining: NDArray[np.bool_], pairs: NDArray[np.int64],
+) -> tuple[int, int, float, float, float]:
+    """The pair hypothesis with the most ``remaining`` points within their tolerance (first
+    of equals): ``(index, support, normal x, normal y, offset)``, index -1 when none."""
+    best, best_support = -1, -1
+    best_nx, best_ny, best_off = 0.0, 0.0, 0.0
+    for hyp in range(pairs.shape[0]):
+        i, j = pairs[hyp, 0], pairs[hyp, 1]
+        dx, dy = xy[j, 0] - xy[i, 0], xy[j, 1] - xy[i, 1]
+        length = math.hypot(dx, dy)
+        if length <= 0.05:
+            continue
+        nx, ny = -dy / length, dx / length
+        off = -(nx * xy[i, 0] + ny * xy[i, 1])
+        support = 0
+        for k in range(xy.shape[0]):
+            if remaining[k] and abs(xy[k, 0] * nx + xy[k, 1] * ny + off) <= tol[k]:
+                support += 1
+        if support > best_support:
+            best, best_support = hyp, support
+            best_nx, best_ny, best_off = nx, ny, off
+    return best, best_support, best_nx, best_ny, best_off
+
+
+@numba.njit(cache=True)
+def _refit_line(
+    xy: NDArray[np.float64], tol: NDArray[np.float64], remaining: NDArray[np.bool_],
+    nx: float, ny: float, off: float,
+) -> tuple[float, float, float, float, float]:
+    """Least squares on the line's ``remaining`` points (centroid, then the scatter's major
+    axis): ``(centroid x, centroid y, normal x, normal y, offset)``."""
+    n_all = xy.shape[0]
+    sx, sy, m = 0.0, 0.0, 0
+    for k in range(n_all):
+        if remaining[k] and abs(xy[k, 0] * nx + xy[k, 1] * ny + off) <= tol[k]:
+            sx += xy[k, 0]
+            sy += xy[k, 1]
+            m += 1
+    cx, cy = sx / m, sy / m
+    sxx, sxy, syy = 0.0, 0.0, 0.0
+    for k in range(n_all):
+        if remaining[k] and abs(xy[k, 0] * nx + xy[k, 1] * ny + off) <= tol[k]:
+            ex, ey = xy[k, 0] - cx, xy[k, 1] - cy
+            sxx += ex * ex
+            sxy += ex * ey
+            syy += ey * ey
+    theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+    rnx, rny = -math.sin(theta), math.cos(theta)
+    return cx, cy, rnx, rny, -(rnx * cx + rny * cy)
 
 def background_walls(
     ring_xy_m: NDArray[np.float64], ring_range_m: NDArray[np.float64], camera_xy_m: NDArray[np.float64],
