@@ -123,6 +123,47 @@ def _to_array(path: Any) -> NDArray[np.float64]:
     return np.array([[path.getState(i)[0], path.getState(i)[1]] for i in range(n)], dtype=np.float64)
 
 
+def _grid_space(cs: CSpace, box: tuple[float, float, float, float]) -> tuple[Any, Any, GridMotionValidator]:
+    """The 2D state space over ``box`` (x0, y0, x1, y1) and its space information, states
+    and motions checked against the free grid; and the motion validator (keep it alive)."""
+    x0, y0, x1, y1 = box
+    space = ob.RealVectorStateSpace(2)
+    bounds = ob.RealVectorBounds(2)
+    bounds.setLow(0, x0)
+    bounds.setHigh(0, x1)
+    bounds.setLow(1, y0)
+    bounds.setHigh(1, y1)
+    space.setBounds(bounds)
+    si = ob.SpaceInformation(space)
+    free = cs.free.ravel()
+    ox, oy = cs.spec.origin_xy_m
+    res = cs.spec.resolution_m
+    rows, cols = cs.spec.shape_rc
+
+    def valid(s: Any) -> bool:
+        c = int((s[0] - ox) / res)
+        r = int((s[1] - oy) / res)
+        return 0 <= r < rows and 0 <= c < cols and bool(free[r * cols + c])
+
+    si.setStateValidityChecker(valid)
+    validator = GridMotionValidator(si, cs)
+    si.setMotionValidator(validator)
+    si.setup()
+    return space, si, validator
+
+
+def _objective(si: Any, cs: CSpace, cost_weight: float, cost_bound: float | None) -> Any:
+    """Length + map cost (plain length at weight 0), satisfied below a finite ``cost_bound``."""
+    objective: Any
+    if cost_weight > 0.0:
+        objective = MapCostObjective(si, cs, cost_weight)
+    else:
+        objective = ob.PathLengthOptimizationObjective(si)
+    if cost_bound is not None and math.isfinite(cost_bound):
+        objective.setCostThreshold(ob.Cost(float(cost_bound)))
+    return objective
+
+
 def ompl_solve(
     cs: CSpace,
     start_xy_m: NDArray[np.floating],
@@ -145,31 +186,11 @@ def ompl_solve(
     if time_limit_s <= 0.0:
         return None
     ou.setLogLevel(ou.LOG_ERROR)
-    space = ob.RealVectorStateSpace(2)
-    x0, y0, x1, y1 = informed_bounds(cs, start_xy_m, goal_xy_m, cost_bound)
-    if x1 - x0 <= cs.spec.resolution_m or y1 - y0 <= cs.spec.resolution_m:
+    box = informed_bounds(cs, start_xy_m, goal_xy_m, cost_bound)
+    if box[2] - box[0] <= cs.spec.resolution_m or box[3] - box[1] <= cs.spec.resolution_m:
         return None
-    bounds = ob.RealVectorBounds(2)
-    bounds.setLow(0, x0)
-    bounds.setHigh(0, x1)
-    bounds.setLow(1, y0)
-    bounds.setHigh(1, y1)
-    space.setBounds(bounds)
-    si = ob.SpaceInformation(space)
-    free = cs.free.ravel()
-    ox, oy = cs.spec.origin_xy_m
-    res = cs.spec.resolution_m
-    rows, cols = cs.spec.shape_rc
-
-    def valid(s: Any) -> bool:
-        c = int((s[0] - ox) / res)
-        r = int((s[1] - oy) / res)
-        return 0 <= r < rows and 0 <= c < cols and bool(free[r * cols + c])
-
-    si.setStateValidityChecker(valid)
-    validator = GridMotionValidator(si, cs)
-    si.setMotionValidator(validator)
-    si.setup()
+    # The validator stays referenced until the solve ends: OMPL calls back into it.
+    space, si, validator = _grid_space(cs, box)
     start = space.allocState()
     goal = space.allocState()
     start[0], start[1] = float(start_xy_m[0]), float(start_xy_m[1])
@@ -178,13 +199,7 @@ def ompl_solve(
         return None
     pdef = ob.ProblemDefinition(si)
     pdef.setStartAndGoalStates(start, goal)
-    objective: Any
-    if cost_weight > 0.0:
-        objective = MapCostObjective(si, cs, cost_weight)
-    else:
-        objective = ob.PathLengthOptimizationObjective(si)
-    if cost_bound is not None and math.isfinite(cost_bound):
-        objective.setCostThreshold(ob.Cost(float(cost_bound)))
+    objective = _objective(si, cs, cost_weight, cost_bound)
     pdef.setOptimizationObjective(objective)
     planner = getattr(og, PLANNERS[algorithm])(si)
     planner.setProblemDefinition(pdef)
