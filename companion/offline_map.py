@@ -195,17 +195,7 @@ def build_offline_map(
     if n_total == 0:
         raise DataError(f"{sequence}: the recording has no frames")
 
-    detections: dict[str, list[Detection]] | None = None
-    detector: Detector | None = None
-    if opts.detections_path is not None:
-        # A detections file was already thresholded by whoever wrote it, unless the config says.
-        detections = load_detections_file(Path(opts.detections_path), class_names, cfg.detector.class_map,
-                                          cfg.detector.score_threshold or 0.0)
-    elif cfg.detector.kind == "oracle":
-        raise ConfigError("detector.kind 'oracle' needs the simulator; for a recording give "
-                          "--detections FILE or configure detector.kind: onnx")
-    else:
-        detector = detector_from_config(cfg.detector, class_names, real_camera=True)
+    detections, detector = _detection_input(cfg, opts, class_names)
 
     T_map_world = (estimate_map_alignment(source, depth_range, opts.floor_sample_frames)
                    if opts.align_floor else np.eye(4))
@@ -219,6 +209,41 @@ def build_offline_map(
     # Keyframes (camera steps beyond what BoT-SORT follows) are associated in 3D by the object map.
     tracker = step_aware_tracker(cfg.tracker) if opts.use_tracker else OneTrackPerBox()
     pipeline = MappingPipeline(smap, cfg.classes, cfg.geometry, tracker, detector, depth_range_m=depth_range)
+    used, skipped = _register_frames(source, n_total, T_map_world, detections, pipeline, progress)
+    source.close()
+    if used == 0:
+        raise DataError(f"{sequence}: no usable frame (all unreadable or without pose)")
+    colours = {c.name: c.color_rgb for c in cfg.classes}
+    files = export_all(out, smap, colours, opts.geo_origin_lat_lon_deg)
+    files["config"] = write_effective_config(cfg, out)
+    log.info("mapped %d frames (%d skipped): %d objects, grid %dx%d", used, skipped, len(smap.objects),
+             *smap.spec.shape_rc)
+    if isinstance(tracker, StepAwareTracker) and tracker.steps:
+        log.info("%d of %d frames followed a camera step too large to track in the image: associated in 3D",
+                 tracker.steps, used)
+    return OfflineMapResult(smap, omap, T_map_world, used, skipped, files)
+
+
+def _detection_input(
+    cfg: CompanionConfig, opts: OfflineMapOptions, class_names: list[str],
+) -> tuple[dict[str, list[Detection]] | None, Detector | None]:
+    """The recording's detections file (per image name), or else the configured detector."""
+    if opts.detections_path is not None:
+        # A detections file was already thresholded by whoever wrote it, unless the config says.
+        return load_detections_file(Path(opts.detections_path), class_names, cfg.detector.class_map,
+                                    cfg.detector.score_threshold or 0.0), None
+    if cfg.detector.kind == "oracle":
+        raise ConfigError("detector.kind 'oracle' needs the simulator; for a recording give "
+                          "--detections FILE or configure detector.kind: onnx")
+    return None, detector_from_config(cfg.detector, class_names, real_camera=True)
+
+
+def _register_frames(
+    source: RecordedFrameSource, n_total: int, T_map_world: NDArray[np.float64],
+    detections: dict[str, list[Detection]] | None, pipeline: MappingPipeline, progress: Progress | None,
+) -> tuple[int, int]:
+    """Feed the first ``n_total`` posed, readable frames to ``pipeline`` in the map frame;
+    returns (used, skipped)."""
     entries = source.entries
     used = skipped = 0
     for i in range(n_total):
@@ -238,19 +263,7 @@ def build_offline_map(
         used += 1
         if progress is not None:
             progress(i + 1, n_total)
-    source.close()
-    if used == 0:
-        raise DataError(f"{sequence}: no usable frame (all unreadable or without pose)")
-    colours = {c.name: c.color_rgb for c in cfg.classes}
-    files = export_all(out, smap, colours, opts.geo_origin_lat_lon_deg)
-    files["config"] = write_effective_config(cfg, out)
-    log.info("mapped %d frames (%d skipped): %d objects, grid %dx%d", used, skipped, len(smap.objects),
-             *smap.spec.shape_rc)
-    if isinstance(tracker, StepAwareTracker) and tracker.steps:
-        log.info("%d of %d frames followed a camera step too large to track in the image: associated in 3D",
-                 tracker.steps, used)
-    return OfflineMapResult(smap, omap, T_map_world, used, skipped, files)
-
+    return used, skipped
 
 def parse_lat_lon(text: str) -> tuple[float, float]:
     """``"LAT,LON"`` in degrees -> (lat, lon); raises :class:`ConfigError` when malformed."""
