@@ -185,35 +185,20 @@ class MissionRunner(TakeoffSteps):
             goal_blocked = result.status is PlanStatus.GOAL_BLOCKED
             rep.plans += 1
             rep.plan_ms.append(1e3 * result.planning_time_s)
-            if result.status is PlanStatus.START_BLOCKED:
-                esc = await asyncio.to_thread(self.planning.escape_point, costmap, self._version_of(costmap), start)
-                if esc is not None and np.linalg.norm(esc - start) < 1.0:
-                    log.info("leg %d: too close to an obstacle; backing off %.2f m first", leg.seq,
-                             float(np.linalg.norm(esc - start)))
-                    await self._follow(time_parametrize(np.vstack([start, esc]), leg.altitude_m, self.limits,
-                                                        initial_yaw_rad=self._yaw_enu()),
-                                       Leg(leg.seq, (float(esc[0]), float(esc[1])), leg.altitude_m, 0.1),
-                                       check=False)
-                    continue
-            if not result.ok:
-                rep.failed_plans += 1
-                log.warning("leg %d: no path (%s: %s); holding", leg.seq, result.status.value, result.reason)
-                if rep.failed_plans >= self.max_failed_plans:
-                    break
-                self.hold_at(pos[:2], leg.altitude_m)
-                await asyncio.sleep(RETRY_HOLD_S)
+            if result.status is PlanStatus.START_BLOCKED and await self._back_off(leg, start, costmap):
                 continue
+            if not result.ok:
+                if await self._hold_after_failed_plan(leg, rep, result, pos):
+                    continue
+                break
             if self.on_path is not None:
                 self.on_path(result.path_xy_m)
             traj = time_parametrize(result.path_xy_m, leg.altitude_m, self.limits,
                                     initial_yaw_rad=self._yaw_enu())
             target = leg
             if result.snapped_goal and result.goal_xy_m is not None:
-                log.warning("leg %d: waypoint blocked on the map; flying to the nearest free point (%.2f, %.2f) m",
-                            leg.seq, *result.goal_xy_m)
-                target = Leg(leg.seq, result.goal_xy_m, leg.altitude_m, leg.acceptance_m)
+                target = self._snapped_target(leg, result.goal_xy_m, rep)
                 goal = np.array(result.goal_xy_m)
-                rep.snapped_goal = True
             capture_s = self.capture_time(costmap) if self.capture_time is not None else None
             outcome = await self._follow(traj, target, capture_mono_s=capture_s, rep=rep)
             if outcome == "reached":
@@ -234,6 +219,40 @@ class MissionRunner(TakeoffSteps):
         log.info("leg %d: %s after %.1f s (%d plans, %d re-plans on a changed map)", leg.seq,
                  "reached" if rep.reached else "NOT reached", rep.duration_s, rep.plans, rep.replans_invalid)
         return rep
+
+    async def _back_off(self, leg: Leg, start: NDArray[np.float64], costmap: Costmap) -> bool:
+        """Fly to the nearest point the vehicle fits when it is less than a metre away; False
+        when there is none that near (the leg then holds like any failed plan)."""
+        esc = await asyncio.to_thread(self.planning.escape_point, costmap, self._version_of(costmap), start)
+        if esc is None or np.linalg.norm(esc - start) >= 1.0:
+            return False
+        log.info("leg %d: too close to an obstacle; backing off %.2f m first", leg.seq,
+                 float(np.linalg.norm(esc - start)))
+        await self._follow(time_parametrize(np.vstack([start, esc]), leg.altitude_m, self.limits,
+                                            initial_yaw_rad=self._yaw_enu()),
+                           Leg(leg.seq, (float(esc[0]), float(esc[1])), leg.altitude_m, 0.1),
+                           check=False)
+        return True
+
+    async def _hold_after_failed_plan(self, leg: Leg, rep: LegReport, result: PlanResult,
+                                      pos: NDArray[np.float64]) -> bool:
+        """Count a failed plan and hold where the vehicle is before the next try; False when
+        the leg has used up its failed plans (no hold)."""
+        rep.failed_plans += 1
+        log.warning("leg %d: no path (%s: %s); holding", leg.seq, result.status.value, result.reason)
+        if rep.failed_plans >= self.max_failed_plans:
+            return False
+        self.hold_at(pos[:2], leg.altitude_m)
+        await asyncio.sleep(RETRY_HOLD_S)
+        return True
+
+    @staticmethod
+    def _snapped_target(leg: Leg, goal_xy_m: tuple[float, float], rep: LegReport) -> Leg:
+        """The leg to the nearest free point the planner moved a blocked waypoint to."""
+        log.warning("leg %d: waypoint blocked on the map; flying to the nearest free point (%.2f, %.2f) m",
+                    leg.seq, *goal_xy_m)
+        rep.snapped_goal = True
+        return Leg(leg.seq, goal_xy_m, leg.altitude_m, leg.acceptance_m)
 
     def _yaw_enu(self) -> float | None:
         yaw_ned = self.vehicle.snapshot().yaw_ned_rad
