@@ -52,6 +52,7 @@ from companion.service.perception_worker import (
 )
 from companion.service.position_source import ServiceLocalization
 from companion.service.status import StatusPublisher
+from companion.service.vision_loss import VisionLossGuard
 from companion.sources.base import FrameSource
 from companion.sources.poses import SharedPoseHistory, TelemetryPosedSource, TelemetryPoseRecorder
 from companion.systemd_notify import SystemdNotifier, Watchdog
@@ -235,23 +236,7 @@ class CompanionService:
             self.notifier.ready("active")
             log.info("service active")
             try:
-                async with asyncio.TaskGroup() as tg:
-                    loops = [tg.create_task(status.run(watchdog), name="status"),
-                             tg.create_task(missions.command_loop(), name="ground-commands")]
-                    if guard is not None:
-                        loops.append(tg.create_task(guard.run(), name="vision-loss"))
-                    if self.fly_mission:
-                        missions.start_mission(tg)
-                    if self.on_active is not None:
-                        res = self.on_active(self)
-                        if asyncio.iscoroutine(res):
-                            loops.append(tg.create_task(res, name="on-active"))
-                    await stop.wait()
-                    self.state = "stopping"
-                    self.notifier.stopping("stopping")
-                    await self.deactivate()
-                    for t in loops:
-                        t.cancel()
+                await self._serve_until_stopped(stop, status, watchdog, guard)
             finally:
                 self.state = "stopped"
                 self.report.flight_log_rows = flight_log.rows
@@ -260,6 +245,36 @@ class CompanionService:
                     self.report.legs = list(self.runner.reports)
                     self.report.plan_ms = [ms for r in self.runner.reports for ms in r.plan_ms]
         # The perception process has stopped and saved the map: its final state.
+        self._record_perception(perception)
+        log.info("service stopped")
+        return self.report
+
+    async def _serve_until_stopped(self, stop: asyncio.Event, status: StatusPublisher, watchdog: Watchdog,
+                                   guard: VisionLossGuard | None) -> None:
+        """Run the status and ground-command loops (the vision-loss guard, the mission and the
+        ``on_active`` hook when there are) until ``stop``; then deactivate and end them."""
+        missions = self.missions
+        async with asyncio.TaskGroup() as tg:
+            loops = [tg.create_task(status.run(watchdog), name="status"),
+                     tg.create_task(missions.command_loop(), name="ground-commands")]
+            if guard is not None:
+                loops.append(tg.create_task(guard.run(), name="vision-loss"))
+            if self.fly_mission:
+                missions.start_mission(tg)
+            if self.on_active is not None:
+                res = self.on_active(self)
+                if asyncio.iscoroutine(res):
+                    loops.append(tg.create_task(res, name="on-active"))
+            await stop.wait()
+            self.state = "stopping"
+            self.notifier.stopping("stopping")
+            await self.deactivate()
+            for t in loops:
+                t.cancel()
+
+    def _record_perception(self, perception: PerceptionProcess) -> None:
+        """Copy the stopped perception process's counters, timings and final map, and the
+        latencies and localization summary, into the report."""
         counts = perception.counters()
         self.report.frames_processed = counts["processed"]
         self.report.frames_failed = counts["failed"]
@@ -269,11 +284,9 @@ class CompanionService:
         if perception.latest is not None:
             self.report.stage_timings = perception.latest.timings_summary
         self.report.latency = self.latency_summary()
-        self.report.localization = loc.summary()
+        self.report.localization = self.localization.summary()
         if perception.final_map is not None:
             self.smap = perception.final_map
-        log.info("service stopped")
-        return self.report
 
     def _pose_fresh(self) -> bool:
         """The planner's setpoints may be flown: PX4's position is fresh and, when PX4 flies
