@@ -172,16 +172,9 @@ class Planner:
         start_problem = self._start_problem(start)
         if start_problem is not None:
             return fail(*start_problem)
-        snapped = False
-        goal_problem = self._goal_problem(goal)
-        if goal_problem is not None:
-            if not snap:
-                return fail(*goal_problem)
-            new_goal = self._snap(start, goal)
-            if new_goal is None:
-                return fail(goal_problem[0], goal_problem[1] + "; no reachable free point to snap to")
-            log.info("goal (%.2f, %.2f) snapped to (%.2f, %.2f)", goal[0], goal[1], new_goal[0], new_goal[1])
-            goal, snapped = new_goal, True
+        goal, snapped, goal_failure = self._usable_goal(start, goal, snap)
+        if goal_failure is not None:
+            return fail(*goal_failure)
 
         t_search = time.perf_counter()
         first = self._first_path(start, goal)
@@ -234,6 +227,23 @@ class Planner:
             return (PlanStatus.GOAL_OUTSIDE_MAP,
                     f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m is outside the map/geofence {self._extent_text()}")
         return self._blocked_problem(goal, "goal", PlanStatus.GOAL_BLOCKED)
+
+    def _usable_goal(
+        self, start: NDArray[np.float64], goal: NDArray[np.float64], snap: bool,
+    ) -> tuple[NDArray[np.float64], bool, tuple[PlanStatus, str] | None]:
+        """(goal, snapped, failure): ``goal`` itself when the vehicle can stop there, else with
+        ``snap`` the nearest free point reachable from ``start``; failure (status, reason)
+        when neither is possible."""
+        goal_problem = self._goal_problem(goal)
+        if goal_problem is None:
+            return goal, False, None
+        if not snap:
+            return goal, False, goal_problem
+        new_goal = self._snap(start, goal)
+        if new_goal is None:
+            return goal, False, (goal_problem[0], goal_problem[1] + "; no reachable free point to snap to")
+        log.info("goal (%.2f, %.2f) snapped to (%.2f, %.2f)", goal[0], goal[1], new_goal[0], new_goal[1])
+        return new_goal, True, None
 
     def _blocked_problem(self, xy: NDArray[np.float64], name: str,
                          status: PlanStatus) -> tuple[PlanStatus, str] | None:
