@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.class_extent import MEASURED_ONLY_MARGIN_M, contradicts_class
 from semmap.class_prior import ClassPrior
 from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
@@ -116,10 +117,18 @@ class ObjectMap:
 
     def footprints(self, confirmed_only: bool = True) -> list[ObjectFootprint]:
         """Objects as costmap footprints, each with its class's margin and grown to its class's
-        least footprint (:meth:`MappedObject.to_footprint`)."""
+        least footprint (:meth:`MappedObject.to_footprint`), unless it stands taller than its
+        class allows (:func:`semmap.class_extent.contradicts_class`)."""
         by_name = {c.name: c for c in self.classes}
-        return [o.to_footprint(by_name[o.class_name].margin_m, by_name[o.class_name].min_footprint_m)
-                for o in self.objects(confirmed_only)]
+        out = []
+        for o in self.objects(confirmed_only):
+            cls = by_name[o.class_name]
+            if contradicts_class(cls, o.z_max_m):
+                # Its measured footprint blocks, with no class's margin or size.
+                out.append(o.to_footprint(MEASURED_ONLY_MARGIN_M, None))
+            else:
+                out.append(o.to_footprint(cls.margin_m, cls.min_footprint_m))
+        return out
 
     def class_probabilities(self) -> dict[int, NDArray[np.float32]]:
         """Object id -> (K,) class probabilities in ``class_names`` order (for the class layer)."""
