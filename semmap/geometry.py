@@ -19,7 +19,9 @@ The pipeline per track (one I/O-free step, :func:`observe_object`): the box's po
    spacings at the box's far range, whichever is larger: a table top seen at a grazing angle
    has rows several spacings apart and must stay one cluster. The object is the nearest
    large cluster spanning the box (:func:`_pick_cluster`): a tight box is mostly its
-   object, while a background far behind it can own more voxels than it does.
+   object, while a background far behind it can own more voxels than it does. A table's is
+   a farther candidate when the nearest shows no top of the class and the farther one a much
+   wider one (:func:`_widest_top`): chairs pulled up in front of a table span its box too.
 5. Hollow-bottom classes: RANSAC finds the seat / top plane, constrained near horizontal.
 6. Footprint: the convex hull of the projection of the object's points (top and legs alike)
    onto the map plane, so the space between the legs is inside it. Heights are true heights
@@ -44,13 +46,19 @@ from semmap.frames import Transform, invert
 from semmap.pointcloud import valid_depth_mask, window_points_map
 from semmap.polygons import convex_footprint, simplify_polygon
 from semmap.ransac import Plane, fit_plane
-from semmap.shape_prior import shape_mask
+from semmap.shape_prior import horizontal_layers, shape_mask
 from semmap.types import CameraIntrinsics, Track
 from semmap.voxels import in_sorted, voxel_keys, within_a_voxel
 from semmap.walls import in_front_of_walls
 
 #: A box this close to the image border may be cut by it (detector boxes jitter by a few px).
 _EDGE_MARGIN_PX = 8
+#: A table's farther candidate cluster wins when its top spans this many times the nearest's.
+TOP_WINS_FACTOR = 2.0
+#: ... and when its top's height fits the class's prior within this (metres).
+TOP_HEIGHT_TOLERANCE_M = 0.05
+#: Candidates whose tops are measured (the nearest first): each costs a layer search.
+_MAX_TOP_CANDIDATES = 3
 #: Rows of the per-point table in :func:`observe_object` after map x, y, z: height above
 #: the floor, camera z-depth, floor clearance at that depth, pixel u, v.
 _H, _RANGE, _CLEAR, _U = 3, 4, 5, 6
@@ -166,19 +174,20 @@ def shrink_box(
 def _pick_cluster(
     labels: NDArray[np.int64], range_m: NDArray[np.float64], uv: NDArray[np.int64],
     window: tuple[int, int, int, int], min_frac: float, min_cover: float,
-) -> int:
-    """The object's cluster (``labels`` (N,) ordered by size, ``uv`` (N, 2) pixels).
+) -> list[int]:
+    """The clusters that may be the object (``labels`` (N,) ordered by size, ``uv`` (N, 2)
+    pixels), the likeliest first.
 
     Candidates hold at least ``min_frac`` of the largest cluster's pixels. A tight box is
     spanned by its object, so candidates whose pixel extent covers less of the box than
     ``min_cover`` times the best coverage are dropped (an occluder in front spans part of the
-    box); of the rest, the one nearest the camera wins (the wall behind also spans the box,
+    box); the rest are ordered nearest the camera first (the wall behind also spans the box,
     but farther away).
     """
     counts = np.bincount(labels)
     candidates = np.nonzero(counts >= min_frac * counts.max())[0]
     if len(candidates) == 1:
-        return int(candidates[0])
+        return [int(candidates[0])]
     u0, v0, u1, v1 = window
     area = float(max(1, (u1 - u0) * (v1 - v0)))
     # Per-cluster pixel extents in one pass: sort by label, reduce each run.
@@ -201,7 +210,34 @@ def _pick_cluster(
     sr = range_m[order]
     med = np.array([float(np.median(sr[a : a + counts[c]])) for a, c in zip(starts, candidates, strict=True)])
     med[cover < min_cover * cover.max()] = np.inf
-    return int(candidates[int(np.argmin(med))])
+    order_near = np.argsort(med, kind="stable")
+    return [int(candidates[k]) for k in order_near if np.isfinite(med[k])]
+
+
+def _widest_top(vox: NDArray[np.float64], vox_label: NDArray[np.int64], heights_m: NDArray[np.float64],
+                candidates: list[int], class_cfg: ClassConfig, params: GeometryConfig) -> int:
+    """Of a table's candidate clusters (nearest first), the nearest, unless its top (its highest
+    large horizontal surface, :func:`semmap.shape_prior.horizontal_layers`) is not a top of the
+    class (``prior``: outside its height range, give or take ``TOP_HEIGHT_TOLERANCE_M``, or
+    narrower than its least width) and a farther one's top of the class spans more than
+    ``TOP_WINS_FACTOR`` times its area. Chairs in front of a table are nearer and as large,
+    but their highest surface is a row of backrests; a counter behind a coffee table is not
+    the coffee table, nor is a second desk behind a desk."""
+    prior = class_cfg.prior
+    heights_ok = prior.height_m if prior is not None else None
+    least_width_m = prior.footprint_short_m[0] if prior is not None and prior.footprint_short_m else 0.0
+    areas = []
+    for k, c in enumerate(candidates[:_MAX_TOP_CANDIDATES]):
+        members = vox_label == c
+        tops = horizontal_layers(vox[members], heights_m[members], params.voxel_size_m, params.min_plane_points,
+                                 highest_only=True)
+        at_height = bool(tops) and (heights_ok is None or heights_ok[0] - TOP_HEIGHT_TOLERANCE_M
+                                    <= tops[0].height_m <= heights_ok[1] + TOP_HEIGHT_TOLERANCE_M)
+        if k == 0 and at_height and tops[0].short_side_m >= least_width_m:
+            return candidates[0]  # the nearest shows a top of the class: it is the table
+        areas.append(tops[0].area_m2 if tops and (k == 0 or at_height) else 0.0)
+    best = int(np.argmax(areas))
+    return candidates[best] if areas[best] > TOP_WINS_FACTOR * areas[0] else candidates[0]
 
 
 def _median(values: NDArray[np.float64]) -> float:
@@ -359,8 +395,11 @@ def object_in_box(
                          np.sort(voxel_keys(same_object_as_m, params.voxel_size_m)))
         best = int(np.argmax(np.bincount(vox_label[ours], minlength=int(vox_label.max()) + 1))) if ours.any() else 0
     else:
-        best = _pick_cluster(point_label, rng_cam, tab[_U:].T.astype(np.int64), window,
-                             params.cluster_min_pixel_frac, params.cluster_min_box_cover)
+        candidates = _pick_cluster(point_label, rng_cam, tab[_U:].T.astype(np.int64), window,
+                                   params.cluster_min_pixel_frac, params.cluster_min_box_cover)
+        best = candidates[0]
+        if shape_prior and class_cfg.shape == "table" and len(candidates) > 1:
+            best = _widest_top(vox, vox_label, floor.signed_distance_m(vox), candidates, class_cfg, params)
     obj_idx = np.flatnonzero(vox_label == best)
     if shape_prior and class_cfg.shape != "free":
         # Touching furniture is one cluster: the class's shape says which part is this object.

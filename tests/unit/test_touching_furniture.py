@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from semmap.config import ClassConfig, GeometryConfig
+from semmap.config import ClassConfig, GeometryConfig, default_classes
 from semmap.frame_objects import observe_frame
-from semmap.geometry import observe_object
+from semmap.geometry import _widest_top, observe_object
 from semmap.polygons import convex_iou, polygon_area_m2
 from semmap.shape_prior import horizontal_layers, shape_mask
 from semmap.types import Track
@@ -93,3 +93,43 @@ def test_points_of_a_nearer_object_in_the_frame_are_not_the_farther_ones() -> No
     assert abs(chair.centroid_map_m[0] - 3.3) < 0.1 and polygon_area_m2(chair.footprint_xy_m) < 0.3
     desk = next(o for o in obs if o.track_id == 1)
     assert desk.z_max_m < 0.8
+
+
+# Three chairs side by side in front of the table (backs towards the camera), pulled 0.3 m
+# out: a cluster of their own, nearer than the table and as wide as its box.
+CHAIR_ROW = [((1.3, y, 0.0), (1.7, y + 0.6, 0.45)) for y in (0.0, 0.6, 1.2)] + [
+    ((1.3, y, 0.45), (1.34, y + 0.6, 0.85)) for y in (0.0, 0.6, 1.2)]
+
+
+def test_a_table_box_shows_the_table_top_not_the_chairs_in_front_of_it() -> None:
+    T = camera_pose(-0.6, 0.9, 1.6, 0.0, 30.0)
+    depth = render(TABLE + CHAIR_ROW + [FLOOR], T)
+    track = Track(1, box_of(TABLE, T), 0.8, "desk")
+    obs = observe_object(depth, K, T, track, DESK, GeometryConfig(), depth_range_m=(0.3, 8.0))
+    assert obs is not None
+    # The nearest large cluster spanning the box is the chair row; its highest surface is a
+    # row of backrests, the table's is its top.
+    assert obs.footprint_xy_m[:, 0].min() > 1.95  # on the table, none of the chairs
+    assert np.ptp(obs.footprint_xy_m[:, 1]) > 1.6  # the top's whole length
+    assert obs.top_height_m is not None and abs(obs.top_height_m - 0.75) < 0.03
+
+
+def test_a_farther_wider_top_at_another_class_height_is_not_the_tables() -> None:
+    rng = np.random.default_rng(2)
+    # The nearest cluster's highest surface is a strip (a backrest's top rail), no table top.
+    small = np.column_stack([rng.uniform(0, 1.0, 800), rng.uniform(0, 0.1, 800), rng.uniform(0.43, 0.46, 800)])
+    wide = np.column_stack([rng.uniform(1.5, 3.5, 2500), rng.uniform(0, 1.2, 2500), rng.uniform(0.97, 1.0, 2500)])
+    vox = np.concatenate([small, wide])
+    labels = np.repeat([0, 1], [len(small), len(wide)])
+    coffee = next(c for c in default_classes() if c.name == "coffee_table")
+    # A counter 1.0 m high behind a coffee table spans its box too: not the coffee table's top.
+    assert _widest_top(vox, labels, vox[:, 2], [0, 1], coffee, GeometryConfig()) == 0
+    # The same wider top at a coffee table's height is the table the box shows.
+    low = vox.copy()
+    low[len(small):, 2] -= 0.55
+    assert _widest_top(low, labels, low[:, 2], [0, 1], coffee, GeometryConfig()) == 1
+    # A nearer top of the class's height and width is the table, a wider one behind it not.
+    top = small.copy()
+    top[:, 1] *= 6.0
+    assert _widest_top(np.concatenate([top, low[len(small):]]), labels, np.concatenate([top, low[len(small):]])[:, 2],
+                       [0, 1], coffee, GeometryConfig()) == 0
