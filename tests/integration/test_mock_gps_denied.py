@@ -72,6 +72,15 @@ def _est_error_m(ap: MockAutopilot) -> float:
     return math.hypot(est[0] - true[0], est[1] - true[1])
 
 
+async def _take_off_on_vision(ap: MockAutopilot, c: RawClient) -> None:
+    """Arm once vision gives the mock a position, take off to 1.5 m and wait for its Hold."""
+    await c.wait_ready(timeout_s=8.0)
+    await ap.wait_until(lambda: ap.position_ok, 5.0, "a position from vision")
+    assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
+    assert await c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN, ap.home.alt_m + 1.5) == ACCEPTED
+    await ap.wait_until(lambda: ap.mode is FlightMode.HOLD and ap.in_air, 15.0, "take-off")
+
+
 async def test_no_vision_no_position_no_arming() -> None:
     async with gps_denied_mock() as (ap, c):
         await asyncio.sleep(3.5)  # past the mock's usual readiness delay
@@ -103,12 +112,7 @@ async def test_without_vision_the_estimate_dead_reckons_and_px4_lands() -> None:
     drift = OdometryDriftModel(scale_error=0.2, heading_drift_deg_s=5.0, seed=1)
     async with gps_denied_mock(drift) as (ap, c):
         async with vision_from_truth(ap, c):
-            await c.wait_ready(timeout_s=8.0)
-            await ap.wait_until(lambda: ap.position_ok, 5.0, "a position from vision")
-            assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
-            assert await c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN,
-                                   ap.home.alt_m + 1.5) == ACCEPTED
-            await ap.wait_until(lambda: ap.mode is FlightMode.HOLD and ap.in_air, 15.0, "take-off")
+            await _take_off_on_vision(ap, c)
             assert _est_error_m(ap) < 0.1
         # Vision stops in the air: PX4 keeps its estimate for EKF2_NOAID_TOUT (1 s here), then has
         # no position and lands.
@@ -123,12 +127,7 @@ async def test_without_vision_the_estimate_dead_reckons_and_px4_lands() -> None:
 async def test_without_a_position_px4_stops_local_position_and_drifts_as_it_descends() -> None:
     async with gps_denied_mock(MPC_LAND_SPEED=0.7) as (ap, c):
         async with vision_from_truth(ap, c):
-            await c.wait_ready(timeout_s=8.0)
-            await ap.wait_until(lambda: ap.position_ok, 5.0, "a position from vision")
-            assert await c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED
-            assert await c.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN,
-                                   ap.home.alt_m + 1.5) == ACCEPTED
-            await ap.wait_until(lambda: ap.mode is FlightMode.HOLD and ap.in_air, 15.0, "take-off")
+            await _take_off_on_vision(ap, c)
             lost_at = np.array(ap.position_ned_m[:2])
         # EKF2_NOAID_TOUT (1 s) later PX4's xy_valid is false: LOCAL_POSITION_NED stops (PX4
         # streams it only while valid) and Land, without a position, descends level and drifts.
