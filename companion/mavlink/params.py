@@ -26,20 +26,19 @@ log = logging.getLogger(__name__)
 _INT_TYPES = {mavlink.MAV_PARAM_TYPE_INT32: "<i", mavlink.MAV_PARAM_TYPE_UINT32: "<I"}
 
 
-def decode_param_value(value: float, param_type: int) -> float:
-    """The parameter's value from PARAM_VALUE's or PARAM_SET's ``param_value`` field (integer
-    types unpacked byte-wise, as PX4 packs them)."""
-    fmt = _INT_TYPES.get(int(param_type))
+def param_value(msg: mavlink.MAVLink_param_value_message) -> float:
+    """The parameter's value from a PARAM_VALUE (integers unpacked byte-wise, as PX4 packs them)."""
+    fmt = _INT_TYPES.get(int(msg.param_type))
     if fmt is None:
-        return float(value)
-    return float(struct.unpack(fmt, struct.pack("<f", float(value)))[0])
+        return float(msg.param_value)
+    return float(struct.unpack(fmt, struct.pack("<f", float(msg.param_value)))[0])
 
 
-def param_id_str(param_id: bytes | str) -> str:
-    """A MAVLink ``param_id`` (up to 16 chars, NUL padded) as a plain string."""
-    if isinstance(param_id, bytes):
-        param_id = param_id.decode("ascii", errors="replace")
-    return str(param_id).split("\x00", 1)[0]
+def param_name(msg: mavlink.MAVLink_param_value_message) -> str:
+    pid = msg.param_id
+    if isinstance(pid, bytes):
+        pid = pid.decode("ascii", errors="replace")
+    return str(pid).split("\x00", 1)[0]
 
 
 class ParamWatch:
@@ -66,10 +65,10 @@ class ParamWatch:
     def _on_param(self, msg: mavlink.MAVLink_param_value_message) -> None:
         if msg.get_srcSystem() != self.target_system:
             return
-        name = param_id_str(msg.param_id)
+        name = param_name(msg)
         if name not in self.names:
             return
-        value = decode_param_value(msg.param_value, msg.param_type)
+        value = param_value(msg)
         if not math.isfinite(value) or self.values.get(name) == value:
             return
         self.values[name] = value

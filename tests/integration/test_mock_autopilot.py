@@ -17,10 +17,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from raw_mavlink_client import RawClient
 
 from companion import px4
-from companion.mavlink.params import decode_param_value
 from companion.px4 import FlightMode
 from companion.sim.autopilot import MockAutopilot
-from companion.sim.autopilot.params import MAV_PARAM_TYPE_INT32, encode_value
+from companion.sim.autopilot.params import MAV_PARAM_TYPE_INT32, decode_value, encode_value
 
 pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(60)]
 
@@ -147,7 +146,7 @@ async def test_params_bytewise_int_and_float(link) -> None:
     c.send(c.mav.param_set_encode(1, 1, b"COM_OBL_RC_ACT", encode_value(4, MAV_PARAM_TYPE_INT32),
                                   MAV_PARAM_TYPE_INT32))
     pv = await c.recv("PARAM_VALUE", pred=lambda m: m.param_id == "COM_OBL_RC_ACT")
-    assert decode_param_value(pv.param_value, pv.param_type) == 4
+    assert decode_value(pv.param_value, pv.param_type) == 4
     assert ap.params.get("COM_OBL_RC_ACT") == 4
     # A set with the wrong type is refused: the answer carries the unchanged value.
     c.send(c.mav.param_set_encode(1, 1, b"MIS_TAKEOFF_ALT", encode_value(7, MAV_PARAM_TYPE_INT32),

@@ -11,7 +11,6 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.geo import GeoOrigin
-from companion.mavlink.params import decode_param_value
 from companion.px4 import FlightMode
 from companion.sim.autopilot import offboard
 from companion.sim.autopilot.navigator import Navigator
@@ -19,6 +18,7 @@ from companion.sim.autopilot.params import (
     MAV_PARAM_TYPE_INT32,
     MAV_PARAM_TYPE_REAL32,
     ParamStore,
+    decode_value,
     encode_value,
 )
 from companion.sim.autopilot.vehicle import KinematicMulticopter, Target, VehicleLimits
@@ -149,7 +149,7 @@ def test_attitude_target_hover_is_level_and_still() -> None:
 @given(st.integers(-(2**31), 2**31 - 1))
 def test_int_params_bytewise_round_trip(value: int) -> None:
     enc = encode_value(value, MAV_PARAM_TYPE_INT32)
-    assert decode_param_value(enc, MAV_PARAM_TYPE_INT32) == value or math.isnan(enc)
+    assert decode_value(enc, MAV_PARAM_TYPE_INT32) == value or math.isnan(enc)
 
 
 def test_param_store() -> None:

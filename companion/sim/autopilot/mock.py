@@ -33,7 +33,6 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import SimulationError
 from companion.geo import GeoOrigin
-from companion.mavlink.params import decode_param_value, param_id_str
 from companion.px4 import FlightMode
 from companion.sim.autopilot import offboard, telemetry
 from companion.sim.autopilot.behaviour import (
@@ -50,7 +49,7 @@ from companion.sim.autopilot.gps_denied import GPS_DENIED_PARAMS, VisionAiding
 from companion.sim.autopilot.guided import FollowTarget
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
-from companion.sim.autopilot.params import ParamStore, encode_value
+from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
 from companion.sim.autopilot.timesync import PeerClock
 from companion.sim.autopilot.transport import Faults, UdpEndpoint, sign_with
 from companion.sim.autopilot.vehicle import (
@@ -757,7 +756,7 @@ class MockAutopilot:
             log.warning("PARAM_SET %s: type %d does not match the parameter's type %d", name,
                         msg.param_type, spec.param_type)
         else:
-            value = decode_param_value(msg.param_value, spec.param_type)
+            value = decode_value(msg.param_value, spec.param_type)
             if math.isfinite(value):
                 old = self.params.get(name)
                 if self.params.set(name, value) != old:

@@ -3,8 +3,7 @@
 PX4 sends every parameter in the ``float param_value`` field of ``PARAM_VALUE`` *byte-wise*:
 an INT32 parameter's four bytes are copied into the float unchanged (``MAV_PROTOCOL_CAPABILITY_
 PARAM_ENCODE_BYTEWISE``), not converted by value as ArduPilot does. MAVSDK knows this from the
-autopilot type. :func:`encode_value` implements that encoding; the link's
-:func:`companion.mavlink.params.decode_param_value` reads it back, in the mock as in the service.
+autopilot type. :func:`encode_value` / :func:`decode_value` implement that encoding.
 
 Only the parameters the mock itself uses and the ones clients (MAVSDK, QGroundControl, our
 link) read are defined; their defaults are PX4's except where noted for indoor flight.
@@ -86,6 +85,20 @@ def encode_value(value: float, param_type: int) -> float:
     if param_type == MAV_PARAM_TYPE_INT32:
         return float(struct.unpack("<f", struct.pack("<i", int(value)))[0])
     return float(value)
+
+
+def decode_value(param_value: float, param_type: int) -> float:
+    """Inverse of :func:`encode_value`: the parameter's value from a ``PARAM_SET`` field."""
+    if param_type == MAV_PARAM_TYPE_INT32:
+        return float(struct.unpack("<i", struct.pack("<f", param_value))[0])
+    return float(param_value)
+
+
+def param_id_str(param_id: bytes | str) -> str:
+    """A MAVLink ``param_id`` (up to 16 chars, NUL padded) as a plain string."""
+    if isinstance(param_id, bytes):
+        param_id = param_id.decode("ascii", errors="replace")
+    return param_id.split("\x00", 1)[0]
 
 
 class ParamStore:
