@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
-from companion.sim.groundtruth import clearance_m, room_grid_spec, semantic_costmap
+from companion.sim.groundtruth import clearance_m, ground_truth_planner
 from companion.sim.world import Room, generate_room
 from planner.planner import Planner
 from semmap.costmap import VerticalBand
@@ -78,24 +78,6 @@ def _crossed(room: Room, a: NDArray[np.float64], b: NDArray[np.float64]) -> list
     n = max(2, int(math.ceil(np.linalg.norm(b - a) / 0.05)) + 1)
     pts = a + np.linspace(0.0, 1.0, n)[:, None] * (b - a)
     return [o.object_id for o in room.objects if np.any(_polygon_distance_m(o.footprint_xy_m(), pts) <= 0.0)]
-
-
-def ground_truth_planner(room: Room, cfg: CompanionConfig, altitude_m: float,
-                         tolerance_m: float = 0.0) -> Planner:
-    """The configured planner on the room's ideal semantic costmap at ``altitude_m`` (room
-    frame, the room as geofence, objects with their class margins). ``tolerance_m``: every
-    object's margin grows by it and the band by it above and below (objects taller by it
-    block), as a map of that accuracy could show them."""
-    margins = {c.name: c.margin_m + tolerance_m for c in cfg.classes}
-    spec = room_grid_spec(room, cfg.map.resolution_m)
-    band = band_at(cfg, altitude_m)
-    band = VerticalBand(band.z_min_m - tolerance_m, band.z_max_m + tolerance_m)
-    cm = semantic_costmap(room, spec, band, [c.name for c in cfg.classes], margins)
-    planner = Planner(cfg.planner.model_copy(update={
-        "flight_altitude_m": altitude_m, "geofence_xy_m": (0.0, 0.0, room.width_m, room.depth_m),
-        "refine_with_ompl": False}))
-    planner.set_map(cm)
-    return planner
 
 
 def pick_scenario(index: int, room: Room, cfg: CompanionConfig, altitude_m: float, kind: str,
@@ -151,7 +133,7 @@ def pick_scenario(index: int, room: Room, cfg: CompanionConfig, altitude_m: floa
         if target.object_id not in crossed:
             continue
         if planner is None:
-            planner = ground_truth_planner(room, cfg, altitude_m, MAP_TOLERANCE_M)
+            planner = ground_truth_planner(room, cfg, altitude_m=altitude_m, tolerance_m=MAP_TOLERANCE_M)
         if not planner.plan(a, b).ok:
             continue
         return Scenario(index, room, altitude_m, kind, (float(a[0]), float(a[1])), (float(b[0]), float(b[1])),
