@@ -155,8 +155,6 @@ class CameraView:
         return out
 
 
-
-
 def shrink_box(
     xyxy_px: tuple[float, float, float, float], frac: float, width_px: int, height_px: int
 ) -> tuple[int, int, int, int]:
@@ -256,7 +254,6 @@ def _quantile_lower(values: NDArray[np.float64], q: float) -> float:
     interpolation): O(N), without a full sort."""
     k = int(q * (len(values) - 1))
     return float(np.partition(values, k)[k])
-
 
 
 @dataclass(frozen=True, eq=False)
@@ -371,87 +368,37 @@ def object_in_box(
     :mod:`semmap.frame_objects`). ``shape_prior``: apply the class's shape prior
     (:mod:`semmap.shape_prior`).
     """
-    tab, window, stride = box.table, box.window_px, box.stride_px
-    W, H = box.image_size_px
+    tab = box.table
     if exclude_voxels_m is not None and len(exclude_voxels_m):
-        mine = ~within_a_voxel(tab[:3].T, exclude_voxels_m, params.voxel_size_m)
-        if np.count_nonzero(mine) < params.min_cluster_points:
+        mine = _without_other_objects(tab, exclude_voxels_m, params)
+        if mine is None:
             return None  # the box shows other objects only
-        tab = tab[:, mine]
-    pts = tab[:3].T  # (N, 3) view
-    heights, rng_cam, clearance = tab[_H], tab[_RANGE], tab[_CLEAR]
-
-    vox, inverse = voxel_downsample(pts, params.voxel_size_m)  # (M, 3), (N,)
-    spacing_m = stride * _quantile_lower(rng_cam, 0.9) / min(intrinsics.fx_px, intrinsics.fy_px)
-    eps = max(params.cluster_distance_m, params.cluster_pixel_gaps * spacing_m)
-    vox_label = euclidean_clusters(vox, eps)
-    point_label = vox_label[inverse]
-    if cluster_by == "voxels":
-        best = 0  # labels are ordered by voxel count
-    elif same_object_as_m is not None and len(same_object_as_m):
-        # The object seen before (this box's first look, less other objects' points): the
-        # cluster holding most of it, not whatever now spans the box best.
-        ours = in_sorted(voxel_keys(vox, params.voxel_size_m),
-                         np.sort(voxel_keys(same_object_as_m, params.voxel_size_m)))
-        best = int(np.argmax(np.bincount(vox_label[ours], minlength=int(vox_label.max()) + 1))) if ours.any() else 0
-    else:
-        candidates = _pick_cluster(point_label, rng_cam, tab[_U:].T.astype(np.int64), window,
-                                   params.cluster_min_pixel_frac, params.cluster_min_box_cover)
-        best = candidates[0]
-        if shape_prior and class_cfg.shape == "table" and len(candidates) > 1:
-            best = _widest_top(vox, vox_label, floor.signed_distance_m(vox), candidates, class_cfg, params)
-    obj_idx = np.flatnonzero(vox_label == best)
+        tab = mine
+    clusters = _cluster(tab, box.stride_px, intrinsics, params)
+    best = _choose_cluster(clusters, tab, box.window_px, class_cfg, params, floor, cluster_by, same_object_as_m,
+                           shape_prior)
+    obj_idx = np.flatnonzero(clusters.vox_label == best)
     if shape_prior and class_cfg.shape != "free":
-        # Touching furniture is one cluster: the class's shape says which part is this object.
-        obj_vox = vox[obj_idx]
-        keep = shape_mask(obj_vox, floor.signed_distance_m(obj_vox), class_cfg.shape, params.voxel_size_m,
-                          params.min_plane_points)
-        if keep.sum() < params.min_cluster_points:
+        part = _this_objects_part(clusters, obj_idx, class_cfg, params, floor)
+        if part is None:
             return None  # the box shows another object's top only
-        if not keep.all():
-            piece = euclidean_clusters(obj_vox[keep], eps)  # what is left may fall apart
-            obj_idx = obj_idx[keep][piece == 0]
-    obj_vox = vox[obj_idx]
+        obj_idx = part
+    obj_vox = clusters.vox[obj_idx]
     if len(obj_vox) < params.min_cluster_points:
         return None
-    in_obj = np.zeros(len(vox), dtype=bool)
+    in_obj = np.zeros(len(clusters.vox), dtype=bool)
     in_obj[obj_idx] = True
-    on_obj = np.flatnonzero(in_obj[inverse])
-    obj_h = heights[on_obj]
-    # Clearance at the object's lowest point: the floor cut removed up to that much of it.
-    lowest = int(np.argmin(obj_h))
-    lowest_clearance = float(clearance[on_obj[lowest]])
-
-    z_max = _quantile_lower(obj_h, params.height_quantile)
-    z_min = float(obj_h[lowest])
-    # Standing on the floor: its lowest points were cut with the floor, so it reaches z = 0.
-    if z_min <= lowest_clearance + params.voxel_size_m:
-        z_min = 0.0
-    centroid = obj_vox.mean(axis=0)
-
-    top_plane: Plane | None = None
-    top_height: float | None = None
-    if class_cfg.hollow != "none":
-        fit = fit_plane(
-            obj_vox, params.ransac_distance_m, params.ransac_iterations, rng,
-            up=floor.normal_array, max_tilt_rad=math.radians(params.plane_max_tilt_deg),
-            min_inliers=params.min_plane_points,
-        )
-        if fit is not None:
-            top_plane = fit.plane
-            inl = obj_vox[fit.inliers]
-            top_height = _median(floor.signed_distance_m(inl))
+    on_obj = np.flatnonzero(in_obj[clusters.inverse])
+    z_min, z_max = _height_range(tab[_H, on_obj], tab[_CLEAR, on_obj], params)
+    top_plane, top_height = _top_plane(obj_vox, class_cfg, params, floor, rng)
     if shape_prior and class_cfg.shape == "table" and top_height is not None:
         z_min = 0.0  # a table stands on the floor on legs the chairs round it often hide
-
+    centroid = obj_vox.mean(axis=0)
     # Projection onto the map plane: all object points, the top among them, so the space
     # between legs lies inside the hull.
     footprint = simplify_polygon(convex_footprint(obj_vox[:, :2], min_width_m=params.voxel_size_m),
                                  params.voxel_size_m / 2)
     cam_pos = T_map_camera[:3, 3]
-    bu0, bv0, bu1, bv1 = track.xyxy_px
-    m = _EDGE_MARGIN_PX
-    touches = bu0 <= m or bv0 <= m or bu1 >= W - m or bv1 >= H - m
     return ObjectObservation(
         track_id=track.track_id,
         class_name=track.class_name,
@@ -467,7 +414,117 @@ def object_in_box(
         range_m=float(np.linalg.norm(centroid - cam_pos)),
         top_plane=top_plane,
         top_height_m=top_height,
-        at_image_edge=bool(touches),
+        at_image_edge=_touches_image_edge(track.xyxy_px, box.image_size_px),
         camera_xy_m=(float(cam_pos[0]), float(cam_pos[1])),
         voxels_map_m=obj_vox,
     )
+
+
+def _without_other_objects(
+    tab: NDArray[np.float64], exclude_voxels_m: NDArray[np.float64], params: GeometryConfig,
+) -> NDArray[np.float64] | None:
+    """The columns of ``tab`` outside the voxels of ``exclude_voxels_m`` (K, 3), or None when
+    fewer than ``min_cluster_points`` remain."""
+    mine = ~within_a_voxel(tab[:3].T, exclude_voxels_m, params.voxel_size_m)
+    if np.count_nonzero(mine) < params.min_cluster_points:
+        return None
+    return tab[:, mine]
+
+
+@dataclass(frozen=True, eq=False)
+class _Clusters:
+    """A box's points voxelized and clustered: ``vox`` (M, 3) voxel centres, ``inverse`` (N,)
+    each point's voxel, ``vox_label`` (M,) cluster per voxel ordered by size, ``eps_m`` the
+    linkage distance used."""
+
+    vox: NDArray[np.float64]
+    inverse: NDArray[np.int64]
+    vox_label: NDArray[np.int64]
+    eps_m: float
+
+
+def _cluster(tab: NDArray[np.float64], stride_px: int, intrinsics: CameraIntrinsics,
+             params: GeometryConfig) -> _Clusters:
+    """Voxel downsampling, then single linkage at ``cluster_distance_m`` or
+    ``cluster_pixel_gaps`` sampled-pixel spacings at the box's far range, whichever is larger."""
+    vox, inverse = voxel_downsample(tab[:3].T, params.voxel_size_m)  # (M, 3), (N,)
+    spacing_m = stride_px * _quantile_lower(tab[_RANGE], 0.9) / min(intrinsics.fx_px, intrinsics.fy_px)
+    eps = max(params.cluster_distance_m, params.cluster_pixel_gaps * spacing_m)
+    return _Clusters(vox, inverse, euclidean_clusters(vox, eps), eps)
+
+
+def _choose_cluster(
+    clusters: _Clusters, tab: NDArray[np.float64], window: tuple[int, int, int, int], class_cfg: ClassConfig,
+    params: GeometryConfig, floor: Plane, cluster_by: Literal["box", "voxels"],
+    same_object_as_m: NDArray[np.float64] | None, shape_prior: bool,
+) -> int:
+    """The label of the cluster that is the object (see :func:`object_in_box`)."""
+    vox, vox_label = clusters.vox, clusters.vox_label
+    if cluster_by == "voxels":
+        return 0  # labels are ordered by voxel count
+    if same_object_as_m is not None and len(same_object_as_m):
+        # The object seen before (this box's first look, less other objects' points): the
+        # cluster holding most of it, not whatever now spans the box best.
+        ours = in_sorted(voxel_keys(vox, params.voxel_size_m),
+                         np.sort(voxel_keys(same_object_as_m, params.voxel_size_m)))
+        if not ours.any():
+            return 0
+        return int(np.argmax(np.bincount(vox_label[ours], minlength=int(vox_label.max()) + 1)))
+    candidates = _pick_cluster(vox_label[clusters.inverse], tab[_RANGE], tab[_U:].T.astype(np.int64), window,
+                               params.cluster_min_pixel_frac, params.cluster_min_box_cover)
+    if shape_prior and class_cfg.shape == "table" and len(candidates) > 1:
+        return _widest_top(vox, vox_label, floor.signed_distance_m(vox), candidates, class_cfg, params)
+    return candidates[0]
+
+
+def _this_objects_part(
+    clusters: _Clusters, obj_idx: NDArray[np.intp], class_cfg: ClassConfig, params: GeometryConfig, floor: Plane,
+) -> NDArray[np.intp] | None:
+    """Of the chosen cluster's voxels (indices ``obj_idx``), those the class's shape says are
+    this object (touching furniture is one cluster), or None when too few are."""
+    obj_vox = clusters.vox[obj_idx]
+    keep = shape_mask(obj_vox, floor.signed_distance_m(obj_vox), class_cfg.shape, params.voxel_size_m,
+                      params.min_plane_points)
+    if keep.sum() < params.min_cluster_points:
+        return None
+    if keep.all():
+        return obj_idx
+    piece = euclidean_clusters(obj_vox[keep], clusters.eps_m)  # what is left may fall apart
+    return obj_idx[keep][piece == 0]
+
+
+def _height_range(heights_m: NDArray[np.float64], clearance_m: NDArray[np.float64],
+                  params: GeometryConfig) -> tuple[float, float]:
+    """(z_min, z_max) above the floor of an object's points (heights and floor clearances)."""
+    lowest = int(np.argmin(heights_m))
+    z_max = _quantile_lower(heights_m, params.height_quantile)
+    z_min = float(heights_m[lowest])
+    # Standing on the floor: its lowest points were cut with the floor (up to the clearance at
+    # its lowest point), so it reaches z = 0.
+    if z_min <= float(clearance_m[lowest]) + params.voxel_size_m:
+        z_min = 0.0
+    return z_min, z_max
+
+
+def _top_plane(obj_vox: NDArray[np.float64], class_cfg: ClassConfig, params: GeometryConfig, floor: Plane,
+               rng: np.random.Generator) -> tuple[Plane | None, float | None]:
+    """A hollow-bottom class's near-horizontal top plane (RANSAC) and its median height above
+    the floor, or (None, None)."""
+    if class_cfg.hollow == "none":
+        return None, None
+    fit = fit_plane(
+        obj_vox, params.ransac_distance_m, params.ransac_iterations, rng,
+        up=floor.normal_array, max_tilt_rad=math.radians(params.plane_max_tilt_deg),
+        min_inliers=params.min_plane_points,
+    )
+    if fit is None:
+        return None, None
+    return fit.plane, _median(floor.signed_distance_m(obj_vox[fit.inliers]))
+
+
+def _touches_image_edge(xyxy_px: tuple[float, float, float, float], image_size_px: tuple[int, int]) -> bool:
+    """The box is within ``_EDGE_MARGIN_PX`` of the image border (so it may be cut by it)."""
+    u0, v0, u1, v1 = xyxy_px
+    w, h = image_size_px
+    m = _EDGE_MARGIN_PX
+    return bool(u0 <= m or v0 <= m or u1 >= w - m or v1 >= h - m)
