@@ -1,19 +1,9 @@
 """Geometry of one tracked detection: depth in its box -> an object observation in the map.
 
 The pipeline per track (one I/O-free step, :func:`observe_object`): the box's points
-(:func:`box_points`, steps 1-3), then the object among them (:func:`object_in_box`, 4-6).
+(:func:`semmap.box_points.box_points`, steps 1-3 there), then the object among them
+(:func:`object_in_box`, 4-6).
 
-1. The box, shrunk by ``box_shrink_frac`` on each side (box edges leak background), is
-   back-projected through the pinhole model; large boxes are sampled with a pixel stride so at
-   most ``max_box_points`` pixels are used. Invalid depth never becomes a point.
-2. Points go to the map frame with the full rigid transform ``T_map_camera`` (which callers
-   compose as ``T_map_body @ T_body_camera``, in SE(3)).
-3. Points within ``floor_clearance_m`` of the floor plane are dropped: the floor is not part
-   of any object, and it would join every leg into one cluster with the room.
-   The wall behind the object goes too, with everything beyond it: a vertical plane fitted
-   (:func:`semmap.walls.background_walls`) on a ring of pixels just outside the box, accepted only when
-   nothing of the ring or the box stands behind it and it faces the camera. A chair a few
-   centimetres in front of a wall would otherwise be one cluster with the wall.
 4. Voxel downsampling, then Euclidean clustering (:mod:`semmap.clustering`: exact single
    linkage) at a distance of ``cluster_distance_m`` or ``cluster_pixel_gaps`` sampled-pixel
    spacings at the box's far range, whichever is larger: a table top seen at a grazing angle
@@ -40,16 +30,16 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.box_points import BoxPoints, box_points
 from semmap.clustering import euclidean_clusters, voxel_downsample
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform, invert
-from semmap.pointcloud import valid_depth_mask, window_points_map
+from semmap.pointcloud import CLEARANCE_ROW, HEIGHT_ROW, PIXEL_U_ROW, RANGE_ROW, valid_depth_mask
 from semmap.polygons import convex_footprint, simplify_polygon
 from semmap.ransac import Plane, fit_plane
 from semmap.shape_prior import horizontal_layers, shape_mask
 from semmap.types import CameraIntrinsics, Track
 from semmap.voxels import in_sorted, voxel_keys, within_a_voxel
-from semmap.walls import in_front_of_walls
 
 #: A box this close to the image border may be cut by it (detector boxes jitter by a few px).
 _EDGE_MARGIN_PX = 8
@@ -59,9 +49,6 @@ TOP_WINS_FACTOR = 2.0
 TOP_HEIGHT_TOLERANCE_M = 0.05
 #: Candidates whose tops are measured (the nearest first): each costs a layer search.
 _MAX_TOP_CANDIDATES = 3
-#: Rows of the per-point table in :func:`observe_object` after map x, y, z: height above
-#: the floor, camera z-depth, floor clearance at that depth, pixel u, v.
-_H, _RANGE, _CLEAR, _U = 3, 4, 5, 6
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,20 +142,6 @@ class CameraView:
         return out
 
 
-def shrink_box(
-    xyxy_px: tuple[float, float, float, float], frac: float, width_px: int, height_px: int
-) -> tuple[int, int, int, int]:
-    """Integer half-open pixel window (u0, v0, u1, v1) of a box shrunk by ``frac`` of its width
-    and height on each side, clipped to the image."""
-    u0, v0, u1, v1 = xyxy_px
-    du, dv = (u1 - u0) * frac, (v1 - v0) * frac
-    a = max(0, int(math.floor(u0 + du)))
-    b = max(0, int(math.floor(v0 + dv)))
-    c = min(width_px, int(math.ceil(u1 - du)))
-    d = min(height_px, int(math.ceil(v1 - dv)))
-    return a, b, c, d
-
-
 def _pick_cluster(
     labels: NDArray[np.int64], range_m: NDArray[np.float64], uv: NDArray[np.int64],
     window: tuple[int, int, int, int], min_frac: float, min_cover: float,
@@ -256,53 +229,6 @@ def _quantile_lower(values: NDArray[np.float64], q: float) -> float:
     return float(np.partition(values, k)[k])
 
 
-@dataclass(frozen=True, eq=False)
-class BoxPoints:
-    """A box's depth as points: the first step of :func:`observe_object`, shared by every
-    look at the box (see :mod:`semmap.frame_objects`).
-
-    ``table`` (8, N): map x, y, z, height above the floor, camera z-depth, floor clearance,
-    pixel u, v of the box's sampled pixels above the floor cut and in front of any wall behind
-    the box (one row each, so each later filter is one gather). ``window_px``: the shrunk box
-    sampled at ``stride_px``. ``image_size_px``: (width, height).
-    """
-
-    table: NDArray[np.float64]
-    window_px: tuple[int, int, int, int]
-    stride_px: int
-    image_size_px: tuple[int, int]
-
-
-def box_points(
-    depth_m: NDArray[np.floating], intrinsics: CameraIntrinsics, T_map_camera: Transform,
-    xyxy_px: tuple[float, float, float, float], params: GeometryConfig, floor: Plane,
-    depth_range_m: tuple[float, float], rng: np.random.Generator, remove_walls: bool = True,
-) -> BoxPoints | None:
-    """The points of a box above the floor cut, less the wall behind it and all beyond
-    (:func:`semmap.walls.in_front_of_walls`); None when too few remain for an object."""
-    H, W = np.asarray(depth_m).shape
-    window = shrink_box(xyxy_px, params.box_shrink_frac, W, H)
-    u0, v0, u1, v1 = window
-    area = max(0, u1 - u0) * max(0, v1 - v0)
-    if area == 0:
-        return None
-    stride = max(1, int(math.ceil(math.sqrt(area / params.max_box_points))))
-    tab, n_all = window_points_map(
-        depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride, T_map_camera,
-        floor.normal_array, floor.offset_m, params.floor_clearance_m, params.floor_clearance_per_m2,
-    )
-    if n_all < params.min_cluster_points or tab.shape[1] < params.min_cluster_points:
-        return None
-    if remove_walls:
-        front = in_front_of_walls(tab, depth_m, intrinsics, T_map_camera, xyxy_px, params, floor,
-                                  depth_range_m, rng)
-        if front is not None and not front.all():
-            if np.count_nonzero(front) < params.min_cluster_points:
-                return None  # the box shows the wall only
-            tab = tab[:, front]
-    return BoxPoints(tab, window, stride, (W, H))
-
-
 def observe_object(
     depth_m: NDArray[np.floating],
     intrinsics: CameraIntrinsics,
@@ -356,7 +282,7 @@ def object_in_box(
     same_object_as_m: NDArray[np.float64] | None = None,
     shape_prior: bool = True,
 ) -> ObjectObservation | None:
-    """The object among a box's points (:func:`box_points`), or None when fewer than
+    """The object among a box's points (:func:`semmap.box_points.box_points`), or None when fewer than
     ``min_cluster_points`` voxels of it remain (an empty, distant or all-floor box).
 
     ``class_cfg.hollow`` decides whether a top plane is searched. ``cluster_by``: "box" picks
@@ -389,7 +315,7 @@ def object_in_box(
     in_obj = np.zeros(len(clusters.vox), dtype=bool)
     in_obj[obj_idx] = True
     on_obj = np.flatnonzero(in_obj[clusters.inverse])
-    z_min, z_max = _height_range(tab[_H, on_obj], tab[_CLEAR, on_obj], params)
+    z_min, z_max = _height_range(tab[HEIGHT_ROW, on_obj], tab[CLEARANCE_ROW, on_obj], params)
     top_plane, top_height = _top_plane(obj_vox, class_cfg, params, floor, rng)
     if shape_prior and class_cfg.shape == "table" and top_height is not None:
         z_min = 0.0  # a table stands on the floor on legs the chairs round it often hide
@@ -448,7 +374,7 @@ def _cluster(tab: NDArray[np.float64], stride_px: int, intrinsics: CameraIntrins
     """Voxel downsampling, then single linkage at ``cluster_distance_m`` or
     ``cluster_pixel_gaps`` sampled-pixel spacings at the box's far range, whichever is larger."""
     vox, inverse = voxel_downsample(tab[:3].T, params.voxel_size_m)  # (M, 3), (N,)
-    spacing_m = stride_px * _quantile_lower(tab[_RANGE], 0.9) / min(intrinsics.fx_px, intrinsics.fy_px)
+    spacing_m = stride_px * _quantile_lower(tab[RANGE_ROW], 0.9) / min(intrinsics.fx_px, intrinsics.fy_px)
     eps = max(params.cluster_distance_m, params.cluster_pixel_gaps * spacing_m)
     return _Clusters(vox, inverse, euclidean_clusters(vox, eps), eps)
 
@@ -470,7 +396,7 @@ def _choose_cluster(
         if not ours.any():
             return 0
         return int(np.argmax(np.bincount(vox_label[ours], minlength=int(vox_label.max()) + 1)))
-    candidates = _pick_cluster(vox_label[clusters.inverse], tab[_RANGE], tab[_U:].T.astype(np.int64), window,
+    candidates = _pick_cluster(vox_label[clusters.inverse], tab[RANGE_ROW], tab[PIXEL_U_ROW:].T.astype(np.int64), window,
                                params.cluster_min_pixel_frac, params.cluster_min_box_cover)
     if shape_prior and class_cfg.shape == "table" and len(candidates) > 1:
         return _widest_top(vox, vox_label, floor.signed_distance_m(vox), candidates, class_cfg, params)
