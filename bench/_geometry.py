@@ -55,11 +55,12 @@ from mapping import INTRINSICS, MaskOracle, OracleNoise, flight_poses  # noqa: E
 
 from companion.sim.render import DepthNoise, RoomRenderer  # noqa: E402
 from companion.sim.world import generate_room  # noqa: E402
+from semmap.box_points import shrink_box  # noqa: E402
 from semmap.config import GeometryConfig, MapConfig, default_classes  # noqa: E402
 from semmap.costmap import VerticalBand  # noqa: E402
 from semmap.frame_objects import observe_frame  # noqa: E402
 from semmap.frames import invert  # noqa: E402
-from semmap.geometry import observe_object, shrink_box  # noqa: E402
+from semmap.geometry import observe_object  # noqa: E402
 from semmap.objects import CameraView, ObjectMap  # noqa: E402
 from semmap.types import Frame, Track  # noqa: E402
 

@@ -8,14 +8,21 @@ with ``MAV_MODE_FLAG_CUSTOM_MODE_ENABLED`` set in ``base_mode`` (PX4
 ``src/modules/commander/px4_custom_mode.h``). The same encoding is used by
 ``MAV_CMD_DO_SET_MODE`` (param1 = base mode, param2 = main mode, param3 = sub mode).
 
+PX4 packs parameter values into the ``float param_value`` field of ``PARAM_VALUE`` and
+``PARAM_SET`` *byte-wise* (``MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE``, PX4
+``src/modules/mavlink/mavlink_parameters.cpp``): an integer parameter's bytes are the float's
+low bytes, so the INT32 value 5000000 travels as a tiny denormal float, not as 5000000.0
+(ArduPilot's C cast). :func:`encode_param_value` / :func:`decode_param_value` are that encoding.
+
 Both our link (:mod:`companion.mavlink`) and the mock autopilot (:mod:`companion.sim.autopilot`)
-decode and encode modes through this module, so the two cannot disagree. It depends on nothing
+decode and encode modes and parameters through this module, so the two cannot disagree. It depends on nothing
 but the standard library so either side can import it cheaply.
 """
 
 from __future__ import annotations
 
 import enum
+import struct
 from dataclasses import dataclass
 
 
@@ -128,6 +135,22 @@ MAV_LANDED_STATE_IN_AIR = 2
 MAV_LANDED_STATE_TAKEOFF = 3
 MAV_LANDED_STATE_LANDING = 4
 
+#: ``MAV_PARAM_TYPE``: PX4's parameters are INT32 or REAL32; the other integer types are
+#: decoded too, from the low bytes of the field as the MAVLink parameter union lays them.
+MAV_PARAM_TYPE_UINT8 = 1
+MAV_PARAM_TYPE_INT8 = 2
+MAV_PARAM_TYPE_UINT16 = 3
+MAV_PARAM_TYPE_INT16 = 4
+MAV_PARAM_TYPE_UINT32 = 5
+MAV_PARAM_TYPE_INT32 = 6
+MAV_PARAM_TYPE_REAL32 = 9
+
+#: ``struct`` format of each integer parameter type inside the 4-byte field (little endian).
+_PARAM_INT_FORMATS = {
+    MAV_PARAM_TYPE_UINT8: "<B", MAV_PARAM_TYPE_INT8: "<b", MAV_PARAM_TYPE_UINT16: "<H",
+    MAV_PARAM_TYPE_INT16: "<h", MAV_PARAM_TYPE_UINT32: "<I", MAV_PARAM_TYPE_INT32: "<i",
+}
+
 #: ``MAV_CMD_COMPONENT_ARM_DISARM`` param2 value that forces a disarm in flight.
 PX4_FORCE_DISARM_MAGIC = 21196.0
 
@@ -219,3 +242,33 @@ def mode_from_set_mode_params(param1: float, param2: float, param3: float) -> Fl
     if not int(param1) & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
         return None
     return mode_from_main_sub(int(param2), int(param3))
+
+
+def encode_param_value(value: float, param_type: int) -> float:
+    """The ``param_value`` float PX4 sends (and expects in PARAM_SET) for ``value`` of
+    ``param_type``: an integer's bytes in the field's low bytes, REAL32 as itself.
+    Raises ValueError for an integer out of its type's range."""
+    fmt = _PARAM_INT_FORMATS.get(int(param_type))
+    if fmt is None:
+        return float(value)
+    try:
+        raw = struct.pack(fmt, int(value)).ljust(4, b"\x00")
+    except struct.error as exc:
+        raise ValueError(f"parameter value {value!r} does not fit MAV_PARAM_TYPE {param_type}: {exc}") from exc
+    return float(struct.unpack("<f", raw)[0])
+
+
+def decode_param_value(value: float, param_type: int) -> float:
+    """The parameter's value from a PARAM_VALUE's or PARAM_SET's ``param_value`` float
+    (inverse of :func:`encode_param_value`)."""
+    fmt = _PARAM_INT_FORMATS.get(int(param_type))
+    if fmt is None:
+        return float(value)
+    return float(struct.unpack_from(fmt, struct.pack("<f", float(value)))[0])
+
+
+def param_id_str(param_id: bytes | str) -> str:
+    """A MAVLink ``param_id`` (up to 16 chars, NUL padded) as a plain string."""
+    if isinstance(param_id, bytes):
+        param_id = param_id.decode("ascii", errors="replace")
+    return str(param_id).split("\x00", 1)[0]

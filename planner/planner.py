@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -82,10 +82,13 @@ class Planner:
         return self._version
 
     def set_base_map(self, base: Costmap, objects: Sequence[ObjectFootprint],
-                     version: int | None = None, min_existence: float = 0.0) -> None:
+                     version: int | None = None, min_existence: float = 0.0,
+                     class_margins_m: Mapping[str, float] | None = None) -> None:
         """Use an occupancy costmap plus object footprints, costed by the map's layers at the
-        vehicle's band: objects at or above ``min_existence`` are lethal with their margin."""
-        self.set_map(paint_objects(base, objects, self.band, existence_confirm=min_existence), version)
+        vehicle's band: objects at or above ``min_existence`` are lethal with their margin
+        (their class's from ``class_margins_m`` where they have none)."""
+        self.set_map(paint_objects(base, objects, self.band, existence_confirm=min_existence,
+                                   class_margins_m=class_margins_m), version)
 
     def set_map(self, costmap: Costmap, version: int | None = None) -> tuple[int, int, int, int] | None:
         """Adopt a new costmap version; returns the window (r0, r1, c0, c1) whose fields changed.

@@ -8,11 +8,13 @@ semantic map for one flight altitude; the planner consumes it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.errors import MapError
 from semmap.grid import GridSpec, rasterize_polygon
 
 FREE_SPACE = 0
@@ -52,6 +54,8 @@ class ObjectFootprint:
     ``polygon_xy_m``: (M, 2) footprint polygon (the projection of the whole object, legs and
     the space between them included). ``z_min_m``/``z_max_m``: its vertical extent above the
     floor. ``existence``: probability the object is real (1.0 for ground truth).
+    ``margin_m``: the keep-out distance around the footprint; None means its class's margin
+    (filled in by :meth:`with_class_margin` where the classes are known), 0.0 means none.
     """
 
     object_id: int
@@ -60,7 +64,25 @@ class ObjectFootprint:
     z_min_m: float
     z_max_m: float
     existence: float = 1.0
-    margin_m: float = 0.0
+    margin_m: float | None = None
+
+    def with_class_margin(self, class_margins_m: Mapping[str, float]) -> ObjectFootprint:
+        """This footprint with its class's margin if it has none of its own (0 for a class
+        ``class_margins_m`` does not list)."""
+        if self.margin_m is not None:
+            return self
+        return replace(self, margin_m=float(class_margins_m.get(self.class_name, 0.0)))
+
+    @property
+    def resolved_margin_m(self) -> float:
+        """The margin in metres, for code that paints or reports it after
+        :meth:`with_class_margin`."""
+        if self.margin_m is None:
+            raise MapError(
+                f"object {self.object_id} ({self.class_name}): margin_m is None (its class's "
+                "margin), not yet resolved with ObjectFootprint.with_class_margin"
+            )
+        return self.margin_m
 
     def blocks(self, band: VerticalBand) -> bool:
         """True if the object's height range intersects the vehicle's band."""

@@ -190,7 +190,7 @@ def object_records(smap: SemanticMap) -> list[dict[str, Any]]:
             "z_min_m": round(float(fp.z_min_m), 4),
             "z_max_m": round(float(fp.z_max_m), 4),
             "height_m": round(float(fp.z_max_m), 4),
-            "margin_m": round(float(fp.margin_m), 4),
+            "margin_m": round(fp.resolved_margin_m, 4),
         })
     return out
 
@@ -400,7 +400,8 @@ def object_footprints_from_records(records: Sequence[Mapping[str, Any]]) -> list
             object_id=int(r["object_id"]), class_name=str(r["class_name"]),
             polygon_xy_m=np.asarray(r["polygon_xy_m"], np.float64).reshape(-1, 2),
             z_min_m=float(r["z_min_m"]), z_max_m=float(r["z_max_m"]),
-            existence=float(r["existence"]), margin_m=float(r.get("margin_m", 0.0)),
+            existence=float(r["existence"]),
+            margin_m=None if r.get("margin_m") is None else float(r["margin_m"]),
         )
         for r in records
     ]

@@ -27,9 +27,10 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.box_points import BoxPoints, box_points
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform
-from semmap.geometry import BoxPoints, ObjectObservation, box_points, object_in_box
+from semmap.geometry import ObjectObservation, object_in_box
 from semmap.ransac import Plane
 from semmap.types import CameraIntrinsics, Track
 from semmap.voxels import within_a_voxel

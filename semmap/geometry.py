@@ -1,19 +1,9 @@
 """Geometry of one tracked detection: depth in its box -> an object observation in the map.
 
 The pipeline per track (one I/O-free step, :func:`observe_object`): the box's points
-(:func:`box_points`, steps 1-3), then the object among them (:func:`object_in_box`, 4-6).
+(:func:`semmap.box_points.box_points`, steps 1-3 there), then the object among them
+(:func:`object_in_box`, 4-6).
 
-1. The box, shrunk by ``box_shrink_frac`` on each side (box edges leak background), is
-   back-projected through the pinhole model; large boxes are sampled with a pixel stride so at
-   most ``max_box_points`` pixels are used. Invalid depth never becomes a point.
-2. Points go to the map frame with the full rigid transform ``T_map_camera`` (which callers
-   compose as ``T_map_body @ T_body_camera``, in SE(3)).
-3. Points within ``floor_clearance_m`` of the floor plane are dropped: the floor is not part
-   of any object, and it would join every leg into one cluster with the room.
-   The wall behind the object goes too, with everything beyond it: a vertical plane fitted
-   (:func:`semmap.walls.background_walls`) on a ring of pixels just outside the box, accepted only when
-   nothing of the ring or the box stands behind it and it faces the camera. A chair a few
-   centimetres in front of a wall would otherwise be one cluster with the wall.
 4. Voxel downsampling, then Euclidean clustering (:mod:`semmap.clustering`: exact single
    linkage) at a distance of ``cluster_distance_m`` or ``cluster_pixel_gaps`` sampled-pixel
    spacings at the box's far range, whichever is larger: a table top seen at a grazing angle
@@ -40,16 +30,16 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.box_points import BoxPoints, box_points
 from semmap.clustering import euclidean_clusters, voxel_downsample
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform, invert
-from semmap.pointcloud import valid_depth_mask, window_points_map
+from semmap.pointcloud import CLEARANCE_ROW, HEIGHT_ROW, PIXEL_U_ROW, RANGE_ROW, valid_depth_mask
 from semmap.polygons import convex_footprint, simplify_polygon
 from semmap.ransac import Plane, fit_plane
 from semmap.shape_prior import horizontal_layers, shape_mask
 from semmap.types import CameraIntrinsics, Track
 from semmap.voxels import in_sorted, voxel_keys, within_a_voxel
-from semmap.walls import in_front_of_walls
 
 #: A box this close to the image border may be cut by it (detector boxes jitter by a few px).
 _EDGE_MARGIN_PX = 8
@@ -59,9 +49,6 @@ TOP_WINS_FACTOR = 2.0
 TOP_HEIGHT_TOLERANCE_M = 0.05
 #: Candidates whose tops are measured (the nearest first): each costs a layer search.
 _MAX_TOP_CANDIDATES = 3
-#: Rows of the per-point table in :func:`observe_object` after map x, y, z: height above
-#: the floor, camera z-depth, floor clearance at that depth, pixel u, v.
-_H, _RANGE, _CLEAR, _U = 3, 4, 5, 6
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,22 +142,6 @@ class CameraView:
         return out
 
 
-
-
-def shrink_box(
-    xyxy_px: tuple[float, float, float, float], frac: float, width_px: int, height_px: int
-) -> tuple[int, int, int, int]:
-    """Integer half-open pixel window (u0, v0, u1, v1) of a box shrunk by ``frac`` of its width
-    and height on each side, clipped to the image."""
-    u0, v0, u1, v1 = xyxy_px
-    du, dv = (u1 - u0) * frac, (v1 - v0) * frac
-    a = max(0, int(math.floor(u0 + du)))
-    b = max(0, int(math.floor(v0 + dv)))
-    c = min(width_px, int(math.ceil(u1 - du)))
-    d = min(height_px, int(math.ceil(v1 - dv)))
-    return a, b, c, d
-
-
 def _pick_cluster(
     labels: NDArray[np.int64], range_m: NDArray[np.float64], uv: NDArray[np.int64],
     window: tuple[int, int, int, int], min_frac: float, min_cover: float,
@@ -258,54 +229,6 @@ def _quantile_lower(values: NDArray[np.float64], q: float) -> float:
     return float(np.partition(values, k)[k])
 
 
-
-@dataclass(frozen=True, eq=False)
-class BoxPoints:
-    """A box's depth as points: the first step of :func:`observe_object`, shared by every
-    look at the box (see :mod:`semmap.frame_objects`).
-
-    ``table`` (8, N): map x, y, z, height above the floor, camera z-depth, floor clearance,
-    pixel u, v of the box's sampled pixels above the floor cut and in front of any wall behind
-    the box (one row each, so each later filter is one gather). ``window_px``: the shrunk box
-    sampled at ``stride_px``. ``image_size_px``: (width, height).
-    """
-
-    table: NDArray[np.float64]
-    window_px: tuple[int, int, int, int]
-    stride_px: int
-    image_size_px: tuple[int, int]
-
-
-def box_points(
-    depth_m: NDArray[np.floating], intrinsics: CameraIntrinsics, T_map_camera: Transform,
-    xyxy_px: tuple[float, float, float, float], params: GeometryConfig, floor: Plane,
-    depth_range_m: tuple[float, float], rng: np.random.Generator, remove_walls: bool = True,
-) -> BoxPoints | None:
-    """The points of a box above the floor cut, less the wall behind it and all beyond
-    (:func:`semmap.walls.in_front_of_walls`); None when too few remain for an object."""
-    H, W = np.asarray(depth_m).shape
-    window = shrink_box(xyxy_px, params.box_shrink_frac, W, H)
-    u0, v0, u1, v1 = window
-    area = max(0, u1 - u0) * max(0, v1 - v0)
-    if area == 0:
-        return None
-    stride = max(1, int(math.ceil(math.sqrt(area / params.max_box_points))))
-    tab, n_all = window_points_map(
-        depth_m, intrinsics, depth_range_m[0], depth_range_m[1], window, stride, T_map_camera,
-        floor.normal_array, floor.offset_m, params.floor_clearance_m, params.floor_clearance_per_m2,
-    )
-    if n_all < params.min_cluster_points or tab.shape[1] < params.min_cluster_points:
-        return None
-    if remove_walls:
-        front = in_front_of_walls(tab, depth_m, intrinsics, T_map_camera, xyxy_px, params, floor,
-                                  depth_range_m, rng)
-        if front is not None and not front.all():
-            if np.count_nonzero(front) < params.min_cluster_points:
-                return None  # the box shows the wall only
-            tab = tab[:, front]
-    return BoxPoints(tab, window, stride, (W, H))
-
-
 def observe_object(
     depth_m: NDArray[np.floating],
     intrinsics: CameraIntrinsics,
@@ -359,7 +282,7 @@ def object_in_box(
     same_object_as_m: NDArray[np.float64] | None = None,
     shape_prior: bool = True,
 ) -> ObjectObservation | None:
-    """The object among a box's points (:func:`box_points`), or None when fewer than
+    """The object among a box's points (:func:`semmap.box_points.box_points`), or None when fewer than
     ``min_cluster_points`` voxels of it remain (an empty, distant or all-floor box).
 
     ``class_cfg.hollow`` decides whether a top plane is searched. ``cluster_by``: "box" picks
@@ -371,87 +294,37 @@ def object_in_box(
     :mod:`semmap.frame_objects`). ``shape_prior``: apply the class's shape prior
     (:mod:`semmap.shape_prior`).
     """
-    tab, window, stride = box.table, box.window_px, box.stride_px
-    W, H = box.image_size_px
+    tab = box.table
     if exclude_voxels_m is not None and len(exclude_voxels_m):
-        mine = ~within_a_voxel(tab[:3].T, exclude_voxels_m, params.voxel_size_m)
-        if np.count_nonzero(mine) < params.min_cluster_points:
+        mine = _without_other_objects(tab, exclude_voxels_m, params)
+        if mine is None:
             return None  # the box shows other objects only
-        tab = tab[:, mine]
-    pts = tab[:3].T  # (N, 3) view
-    heights, rng_cam, clearance = tab[_H], tab[_RANGE], tab[_CLEAR]
-
-    vox, inverse = voxel_downsample(pts, params.voxel_size_m)  # (M, 3), (N,)
-    spacing_m = stride * _quantile_lower(rng_cam, 0.9) / min(intrinsics.fx_px, intrinsics.fy_px)
-    eps = max(params.cluster_distance_m, params.cluster_pixel_gaps * spacing_m)
-    vox_label = euclidean_clusters(vox, eps)
-    point_label = vox_label[inverse]
-    if cluster_by == "voxels":
-        best = 0  # labels are ordered by voxel count
-    elif same_object_as_m is not None and len(same_object_as_m):
-        # The object seen before (this box's first look, less other objects' points): the
-        # cluster holding most of it, not whatever now spans the box best.
-        ours = in_sorted(voxel_keys(vox, params.voxel_size_m),
-                         np.sort(voxel_keys(same_object_as_m, params.voxel_size_m)))
-        best = int(np.argmax(np.bincount(vox_label[ours], minlength=int(vox_label.max()) + 1))) if ours.any() else 0
-    else:
-        candidates = _pick_cluster(point_label, rng_cam, tab[_U:].T.astype(np.int64), window,
-                                   params.cluster_min_pixel_frac, params.cluster_min_box_cover)
-        best = candidates[0]
-        if shape_prior and class_cfg.shape == "table" and len(candidates) > 1:
-            best = _widest_top(vox, vox_label, floor.signed_distance_m(vox), candidates, class_cfg, params)
-    obj_idx = np.flatnonzero(vox_label == best)
+        tab = mine
+    clusters = _cluster(tab, box.stride_px, intrinsics, params)
+    best = _choose_cluster(clusters, tab, box.window_px, class_cfg, params, floor, cluster_by, same_object_as_m,
+                           shape_prior)
+    obj_idx = np.flatnonzero(clusters.vox_label == best)
     if shape_prior and class_cfg.shape != "free":
-        # Touching furniture is one cluster: the class's shape says which part is this object.
-        obj_vox = vox[obj_idx]
-        keep = shape_mask(obj_vox, floor.signed_distance_m(obj_vox), class_cfg.shape, params.voxel_size_m,
-                          params.min_plane_points)
-        if keep.sum() < params.min_cluster_points:
+        part = _this_objects_part(clusters, obj_idx, class_cfg, params, floor)
+        if part is None:
             return None  # the box shows another object's top only
-        if not keep.all():
-            piece = euclidean_clusters(obj_vox[keep], eps)  # what is left may fall apart
-            obj_idx = obj_idx[keep][piece == 0]
-    obj_vox = vox[obj_idx]
+        obj_idx = part
+    obj_vox = clusters.vox[obj_idx]
     if len(obj_vox) < params.min_cluster_points:
         return None
-    in_obj = np.zeros(len(vox), dtype=bool)
+    in_obj = np.zeros(len(clusters.vox), dtype=bool)
     in_obj[obj_idx] = True
-    on_obj = np.flatnonzero(in_obj[inverse])
-    obj_h = heights[on_obj]
-    # Clearance at the object's lowest point: the floor cut removed up to that much of it.
-    lowest = int(np.argmin(obj_h))
-    lowest_clearance = float(clearance[on_obj[lowest]])
-
-    z_max = _quantile_lower(obj_h, params.height_quantile)
-    z_min = float(obj_h[lowest])
-    # Standing on the floor: its lowest points were cut with the floor, so it reaches z = 0.
-    if z_min <= lowest_clearance + params.voxel_size_m:
-        z_min = 0.0
-    centroid = obj_vox.mean(axis=0)
-
-    top_plane: Plane | None = None
-    top_height: float | None = None
-    if class_cfg.hollow != "none":
-        fit = fit_plane(
-            obj_vox, params.ransac_distance_m, params.ransac_iterations, rng,
-            up=floor.normal_array, max_tilt_rad=math.radians(params.plane_max_tilt_deg),
-            min_inliers=params.min_plane_points,
-        )
-        if fit is not None:
-            top_plane = fit.plane
-            inl = obj_vox[fit.inliers]
-            top_height = _median(floor.signed_distance_m(inl))
+    on_obj = np.flatnonzero(in_obj[clusters.inverse])
+    z_min, z_max = _height_range(tab[HEIGHT_ROW, on_obj], tab[CLEARANCE_ROW, on_obj], params)
+    top_plane, top_height = _top_plane(obj_vox, class_cfg, params, floor, rng)
     if shape_prior and class_cfg.shape == "table" and top_height is not None:
         z_min = 0.0  # a table stands on the floor on legs the chairs round it often hide
-
+    centroid = obj_vox.mean(axis=0)
     # Projection onto the map plane: all object points, the top among them, so the space
     # between legs lies inside the hull.
     footprint = simplify_polygon(convex_footprint(obj_vox[:, :2], min_width_m=params.voxel_size_m),
                                  params.voxel_size_m / 2)
     cam_pos = T_map_camera[:3, 3]
-    bu0, bv0, bu1, bv1 = track.xyxy_px
-    m = _EDGE_MARGIN_PX
-    touches = bu0 <= m or bv0 <= m or bu1 >= W - m or bv1 >= H - m
     return ObjectObservation(
         track_id=track.track_id,
         class_name=track.class_name,
@@ -467,7 +340,117 @@ def object_in_box(
         range_m=float(np.linalg.norm(centroid - cam_pos)),
         top_plane=top_plane,
         top_height_m=top_height,
-        at_image_edge=bool(touches),
+        at_image_edge=_touches_image_edge(track.xyxy_px, box.image_size_px),
         camera_xy_m=(float(cam_pos[0]), float(cam_pos[1])),
         voxels_map_m=obj_vox,
     )
+
+
+def _without_other_objects(
+    tab: NDArray[np.float64], exclude_voxels_m: NDArray[np.float64], params: GeometryConfig,
+) -> NDArray[np.float64] | None:
+    """The columns of ``tab`` outside the voxels of ``exclude_voxels_m`` (K, 3), or None when
+    fewer than ``min_cluster_points`` remain."""
+    mine = ~within_a_voxel(tab[:3].T, exclude_voxels_m, params.voxel_size_m)
+    if np.count_nonzero(mine) < params.min_cluster_points:
+        return None
+    return tab[:, mine]
+
+
+@dataclass(frozen=True, eq=False)
+class _Clusters:
+    """A box's points voxelized and clustered: ``vox`` (M, 3) voxel centres, ``inverse`` (N,)
+    each point's voxel, ``vox_label`` (M,) cluster per voxel ordered by size, ``eps_m`` the
+    linkage distance used."""
+
+    vox: NDArray[np.float64]
+    inverse: NDArray[np.int64]
+    vox_label: NDArray[np.int64]
+    eps_m: float
+
+
+def _cluster(tab: NDArray[np.float64], stride_px: int, intrinsics: CameraIntrinsics,
+             params: GeometryConfig) -> _Clusters:
+    """Voxel downsampling, then single linkage at ``cluster_distance_m`` or
+    ``cluster_pixel_gaps`` sampled-pixel spacings at the box's far range, whichever is larger."""
+    vox, inverse = voxel_downsample(tab[:3].T, params.voxel_size_m)  # (M, 3), (N,)
+    spacing_m = stride_px * _quantile_lower(tab[RANGE_ROW], 0.9) / min(intrinsics.fx_px, intrinsics.fy_px)
+    eps = max(params.cluster_distance_m, params.cluster_pixel_gaps * spacing_m)
+    return _Clusters(vox, inverse, euclidean_clusters(vox, eps), eps)
+
+
+def _choose_cluster(
+    clusters: _Clusters, tab: NDArray[np.float64], window: tuple[int, int, int, int], class_cfg: ClassConfig,
+    params: GeometryConfig, floor: Plane, cluster_by: Literal["box", "voxels"],
+    same_object_as_m: NDArray[np.float64] | None, shape_prior: bool,
+) -> int:
+    """The label of the cluster that is the object (see :func:`object_in_box`)."""
+    vox, vox_label = clusters.vox, clusters.vox_label
+    if cluster_by == "voxels":
+        return 0  # labels are ordered by voxel count
+    if same_object_as_m is not None and len(same_object_as_m):
+        # The object seen before (this box's first look, less other objects' points): the
+        # cluster holding most of it, not whatever now spans the box best.
+        ours = in_sorted(voxel_keys(vox, params.voxel_size_m),
+                         np.sort(voxel_keys(same_object_as_m, params.voxel_size_m)))
+        if not ours.any():
+            return 0
+        return int(np.argmax(np.bincount(vox_label[ours], minlength=int(vox_label.max()) + 1)))
+    candidates = _pick_cluster(vox_label[clusters.inverse], tab[RANGE_ROW], tab[PIXEL_U_ROW:].T.astype(np.int64), window,
+                               params.cluster_min_pixel_frac, params.cluster_min_box_cover)
+    if shape_prior and class_cfg.shape == "table" and len(candidates) > 1:
+        return _widest_top(vox, vox_label, floor.signed_distance_m(vox), candidates, class_cfg, params)
+    return candidates[0]
+
+
+def _this_objects_part(
+    clusters: _Clusters, obj_idx: NDArray[np.intp], class_cfg: ClassConfig, params: GeometryConfig, floor: Plane,
+) -> NDArray[np.intp] | None:
+    """Of the chosen cluster's voxels (indices ``obj_idx``), those the class's shape says are
+    this object (touching furniture is one cluster), or None when too few are."""
+    obj_vox = clusters.vox[obj_idx]
+    keep = shape_mask(obj_vox, floor.signed_distance_m(obj_vox), class_cfg.shape, params.voxel_size_m,
+                      params.min_plane_points)
+    if keep.sum() < params.min_cluster_points:
+        return None
+    if keep.all():
+        return obj_idx
+    piece = euclidean_clusters(obj_vox[keep], clusters.eps_m)  # what is left may fall apart
+    return obj_idx[keep][piece == 0]
+
+
+def _height_range(heights_m: NDArray[np.float64], clearance_m: NDArray[np.float64],
+                  params: GeometryConfig) -> tuple[float, float]:
+    """(z_min, z_max) above the floor of an object's points (heights and floor clearances)."""
+    lowest = int(np.argmin(heights_m))
+    z_max = _quantile_lower(heights_m, params.height_quantile)
+    z_min = float(heights_m[lowest])
+    # Standing on the floor: its lowest points were cut with the floor (up to the clearance at
+    # its lowest point), so it reaches z = 0.
+    if z_min <= float(clearance_m[lowest]) + params.voxel_size_m:
+        z_min = 0.0
+    return z_min, z_max
+
+
+def _top_plane(obj_vox: NDArray[np.float64], class_cfg: ClassConfig, params: GeometryConfig, floor: Plane,
+               rng: np.random.Generator) -> tuple[Plane | None, float | None]:
+    """A hollow-bottom class's near-horizontal top plane (RANSAC) and its median height above
+    the floor, or (None, None)."""
+    if class_cfg.hollow == "none":
+        return None, None
+    fit = fit_plane(
+        obj_vox, params.ransac_distance_m, params.ransac_iterations, rng,
+        up=floor.normal_array, max_tilt_rad=math.radians(params.plane_max_tilt_deg),
+        min_inliers=params.min_plane_points,
+    )
+    if fit is None:
+        return None, None
+    return fit.plane, _median(floor.signed_distance_m(obj_vox[fit.inliers]))
+
+
+def _touches_image_edge(xyxy_px: tuple[float, float, float, float], image_size_px: tuple[int, int]) -> bool:
+    """The box is within ``_EDGE_MARGIN_PX`` of the image border (so it may be cut by it)."""
+    u0, v0, u1, v1 = xyxy_px
+    w, h = image_size_px
+    m = _EDGE_MARGIN_PX
+    return bool(u0 <= m or v0 <= m or u1 >= w - m or v1 >= h - m)

@@ -229,7 +229,7 @@ class SafetyMarginLayer(_ObjectLayer):
                 continue
             src, dst = views
             d = r.dist_m[src]
-            m = r.footprint.margin_m
+            m = r.footprint.resolved_margin_m
             scale = existence_scale(r.footprint.existence, self.existence_confirm)
             soft = MAX_NON_OBSTACLE * cost_decay(d - m, decay)
             cost = np.where(d <= m, float(INSCRIBED_INFLATED_OBSTACLE), soft) * scale
@@ -447,6 +447,7 @@ class LayeredCostmap:
 def paint_objects(
     base: Costmap, objects: Sequence[ObjectFootprint], band: VerticalBand, *,
     existence_confirm: float = 0.6, class_names: Sequence[str] = (),
+    class_margins_m: Mapping[str, float] | None = None,
 ) -> Costmap:
     """``base`` with the footprint and margin layers of ``objects`` at ``band`` combined in by
     the maximum rule, as :class:`LayeredCostmap` combines them for the map's own objects.
@@ -454,8 +455,10 @@ def paint_objects(
     For a costmap that did not come from the layer stack: an occupancy map read from a file
     plus its objects, or a ground-truth room. Objects at or above ``existence_confirm`` are
     lethal with an inscribed margin; the margins decay over ``base.clearance_decay_m``. The
-    result carries ``band`` and all of ``objects``.
+    result carries ``band`` and all of ``objects``, those whose margin is None given their
+    class's from ``class_margins_m`` (none for a class it does not list).
     """
+    objects = [fp.with_class_margin(class_margins_m or {}) for fp in objects]
     spec = base.spec
     rasters = ObjectRasters(class_names, base.clearance_decay_m)
     rasters.set_spec(spec)

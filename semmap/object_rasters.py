@@ -53,7 +53,7 @@ class ObjectRaster:
 
 
 def _geometry_key(fp: ObjectFootprint) -> tuple[NDArray[np.float64], float]:
-    return np.asarray(fp.polygon_xy_m, np.float64).reshape(-1, 2).copy(), float(fp.margin_m)
+    return np.asarray(fp.polygon_xy_m, np.float64).reshape(-1, 2).copy(), fp.resolved_margin_m
 
 
 def _same_geometry(drawn: tuple[NDArray[np.float64], float] | None, fp: ObjectFootprint, tol_m: float) -> bool:
@@ -61,7 +61,7 @@ def _same_geometry(drawn: tuple[NDArray[np.float64], float] | None, fp: ObjectFo
     if drawn is None:
         return False
     poly = np.asarray(fp.polygon_xy_m, np.float64).reshape(-1, 2)
-    return (drawn[1] == fp.margin_m and drawn[0].shape == poly.shape
+    return (drawn[1] == fp.resolved_margin_m and drawn[0].shape == poly.shape
             and bool(np.all(np.abs(drawn[0] - poly) <= tol_m)))
 
 
@@ -87,7 +87,7 @@ class ObjectRasters:
 
     def reach_m(self, fp: ObjectFootprint) -> float:
         """How far beyond the footprint the margin layer may put cost."""
-        return fp.margin_m + 3.0 * self.clearance_decay_m
+        return fp.resolved_margin_m + 3.0 * self.clearance_decay_m
 
     def one_hot(self, class_name: str) -> NDArray[np.float32]:
         """(K,) class probabilities of an object known only by its class name."""

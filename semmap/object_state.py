@@ -109,10 +109,11 @@ class MappedObject:
         """Centre of the footprint's bounding box in its own orientation (a rectangle's centre)."""
         return min_perimeter_rectangle(self.footprint_xy_m).mean(axis=0)
 
-    def to_footprint(self, margin_m: float = 0.0,
+    def to_footprint(self, margin_m: float | None = None,
                      min_footprint_m: tuple[float, float] | None = None) -> ObjectFootprint:
         """The costmap's view of this object: its footprint, grown to ``min_footprint_m``
-        (the class's least size) on the side its views did not see, when smaller."""
+        (the class's least size) on the side its views did not see, when smaller, with
+        ``margin_m`` around it (None: its class's, 0.0: none)."""
         polygon = self.footprint_xy_m
         if min_footprint_m is not None:
             polygon = grow_to_least_size(polygon, min_footprint_m, self.view_dir_xy)

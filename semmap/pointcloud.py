@@ -15,6 +15,10 @@ from numpy.typing import NDArray
 
 from semmap.types import CameraIntrinsics
 
+#: Rows of a :func:`window_points_map` table after map x, y, z (0-2): height above the plane,
+#: camera z-depth, floor clearance at that depth, pixel u (then v).
+HEIGHT_ROW, RANGE_ROW, CLEARANCE_ROW, PIXEL_U_ROW = 3, 4, 5, 6
+
 
 def valid_depth_mask(depth_m: NDArray[np.floating], min_m: float, max_m: float) -> NDArray[np.bool_]:
     """(H, W) True where depth is finite and within [min_m, max_m] (and > 0)."""

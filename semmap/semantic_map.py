@@ -223,17 +223,14 @@ class SemanticMap:
         self, objects: Sequence[ObjectFootprint], stamp_s: float,
         class_probs: Mapping[int, NDArray[np.floating]] | None = None,
     ) -> Bounds:
-        """Replace the object set (map frame). Objects without a margin get their class's.
+        """Replace the object set (map frame). Objects whose margin is None get their class's.
 
         ``class_probs`` maps object id -> (K,) probabilities over ``settings.class_names``;
         objects without an entry count as certain of their ``class_name``. Grows the grid to
         cover the objects and their margins. Returns the touched window.
         """
         margins = dict(self.settings.class_margins_m)
-        fps = tuple(
-            replace(fp, margin_m=margins.get(fp.class_name, 0.0)) if fp.margin_m <= 0.0 else fp
-            for fp in objects
-        )
+        fps = tuple(fp.with_class_margin(margins) for fp in objects)
         if fps and not self.grid.fixed_size:
             reach = max(self.layers.rasters.reach_m(fp) for fp in fps) + self.grid.spec.resolution_m
             pts = np.concatenate([np.asarray(fp.polygon_xy_m, np.float64).reshape(-1, 2) for fp in fps])
@@ -455,8 +452,13 @@ def _footprint_from_dict(d: Mapping[str, Any]) -> ObjectFootprint:
         object_id=int(d["object_id"]), class_name=str(d["class_name"]),
         polygon_xy_m=np.asarray(d["polygon_xy_m"], np.float64).reshape(-1, 2),
         z_min_m=float(d["z_min_m"]), z_max_m=float(d["z_max_m"]),
-        existence=float(d["existence"]), margin_m=float(d["margin_m"]),
+        existence=float(d["existence"]), margin_m=_margin_or_none(d.get("margin_m")),
     )
+
+
+def _margin_or_none(value: Any) -> float | None:
+    """A saved margin; None (or a file from before margins were saved) means the class's."""
+    return None if value is None else float(value)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -17,14 +17,12 @@ from numpy.typing import NDArray
 
 from semmap.config import GeometryConfig
 from semmap.frames import Transform
-from semmap.pointcloud import window_points_map
+from semmap.pointcloud import RANGE_ROW, window_points_map
 from semmap.ransac import Plane
 from semmap.types import CameraIntrinsics
 
 __all__ = ["background_walls", "in_front_of_walls", "noise_tolerance_m"]
 
-#: Rows of a :func:`~semmap.pointcloud.window_points_map` table: map x, y (0, 1), camera z-depth.
-_RANGE = 4
 #: Background walls are fitted on a ring of pixels around the box: this far outside it (box
 #: jitter must not put the object's own edge in the ring), this wide, sampled at this stride.
 _RING_GAP_PX = 4
@@ -212,10 +210,10 @@ def in_front_of_walls(
     )
     if n_ring < _WALL_MIN_POINTS:
         return None
-    walls = background_walls(ring_tab[:2].T, ring_tab[_RANGE], T_map_camera[:2, 3], params, rng)
+    walls = background_walls(ring_tab[:2].T, ring_tab[RANGE_ROW], T_map_camera[:2, 3], params, rng)
     if not walls:
         return None
-    tol = noise_tolerance_m(tab[_RANGE], params)
+    tol = noise_tolerance_m(tab[RANGE_ROW], params)
     front = np.ones(tab.shape[1], dtype=bool)
     for n_xy, off in walls:
         dist = n_xy @ tab[:2] + off  # (N,) in front of the wall

@@ -15,6 +15,7 @@ import json
 import logging
 import math
 import re
+from collections.abc import Mapping
 from pathlib import Path
 
 import cv2
@@ -104,8 +105,11 @@ def costmap_from_ros_occupancy(occupancy: NDArray[np.int8], spec: object, band: 
     return Costmap(spec, cost, band)  # type: ignore[arg-type]
 
 
-def load_map(folder: Path, band: VerticalBand, source: str) -> tuple[Costmap, str]:
-    """The costmap at ``band`` from a map folder, and a description of what was read."""
+def load_map(
+    folder: Path, band: VerticalBand, source: str, class_margins_m: Mapping[str, float] | None = None,
+) -> tuple[Costmap, str]:
+    """The costmap at ``band`` from a map folder, and a description of what was read; objects
+    listed without a margin get their class's from ``class_margins_m``."""
     if not folder.is_dir():
         raise DataError(f"{folder}: not a map folder")
     npz = folder / "semantic_map.npz"
@@ -133,7 +137,8 @@ def load_map(folder: Path, band: VerticalBand, source: str) -> tuple[Costmap, st
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise DataError(f"{obj_path}: cannot read objects ({exc})") from exc
     # A plain map file carries no existence threshold: every object it lists is kept out of.
-    return paint_objects(base, objects, band, existence_confirm=0.0), f"{yaml_path} + {len(objects)} objects"
+    return (paint_objects(base, objects, band, existence_confirm=0.0, class_margins_m=class_margins_m),
+            f"{yaml_path} + {len(objects)} objects")
 
 
 # --- the picture --------------------------------------------------------------------------
@@ -185,7 +190,8 @@ def draw_plan(planner: Planner, costmap: Costmap, result: PlanResult,
 
 
 def _run(args: argparse.Namespace) -> int:
-    cfg: PlannerConfig = load_config(args.config).planner
+    full_cfg = load_config(args.config)
+    cfg: PlannerConfig = full_cfg.planner
     updates: dict[str, object] = {}
     if args.altitude is not None:
         updates["flight_altitude_m"] = args.altitude
@@ -200,7 +206,8 @@ def _run(args: argparse.Namespace) -> int:
             raise DataError(f"bad planner option: {exc}") from exc
     planner = Planner(cfg)
     try:
-        costmap, what = load_map(Path(args.map), planner.band, args.source)
+        margins = {c.name: c.margin_m for c in full_cfg.classes}
+        costmap, what = load_map(Path(args.map), planner.band, args.source, margins)
     except MapError as exc:
         raise DataError(str(exc)) from exc
     log.info("planning on %s at %.2f m altitude", what, cfg.flight_altitude_m)

@@ -221,7 +221,7 @@ def object_items(objects: Iterable[ObjectFootprint]) -> list[ObjectItem]:
             existence=round(float(ob.existence), 3),
             z_min_m=_r(ob.z_min_m),
             z_max_m=_r(ob.z_max_m),
-            margin_m=_r(ob.margin_m),
+            margin_m=_r(ob.resolved_margin_m),
             polygon_xy_m=[(_r(x), _r(y)) for x, y in poly],
         ))
     return items

@@ -1,8 +1,7 @@
 """Reading the autopilot's parameters (PARAM_REQUEST_READ -> PARAM_VALUE).
 
-PX4 sends every parameter in PARAM_VALUE's ``float param_value`` field *byte-wise*: an INT32
-parameter's four bytes are the float's (``MAV_PARAM_TYPE_INT32``), so 5000000 arrives as a
-tiny denormal float and must be reinterpreted, not converted. PX4 also sends PARAM_VALUE
+PX4 sends every parameter in PARAM_VALUE's ``float param_value`` field *byte-wise*
+(:func:`companion.px4.decode_param_value` reads it). PX4 also sends PARAM_VALUE
 unasked when a parameter changes (a ground station's PARAM_SET), so :class:`ParamWatch`
 keeps listening after the first answer.
 """
@@ -12,34 +11,15 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import struct
 from collections.abc import Callable, Iterable
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import LinkError
 from companion.mavlink.link import MavlinkLink
+from companion.px4 import decode_param_value, param_id_str
 
 log = logging.getLogger(__name__)
-
-#: Integer parameter types PX4 packs byte-wise into the float (PX4 has INT32 and REAL32 only).
-_INT_TYPES = {mavlink.MAV_PARAM_TYPE_INT32: "<i", mavlink.MAV_PARAM_TYPE_UINT32: "<I"}
-
-
-def param_value(msg: mavlink.MAVLink_param_value_message) -> float:
-    """The parameter's value from a PARAM_VALUE (integers unpacked byte-wise, as PX4 packs them)."""
-    fmt = _INT_TYPES.get(int(msg.param_type))
-    if fmt is None:
-        return float(msg.param_value)
-    return float(struct.unpack(fmt, struct.pack("<f", float(msg.param_value)))[0])
-
-
-def param_name(msg: mavlink.MAVLink_param_value_message) -> str:
-    pid = msg.param_id
-    if isinstance(pid, bytes):
-        pid = pid.decode("ascii", errors="replace")
-    return str(pid).split("\x00", 1)[0]
-
 
 class ParamWatch:
     """The latest values of ``names`` on the autopilot ``target_system``/``target_component``,
@@ -65,10 +45,10 @@ class ParamWatch:
     def _on_param(self, msg: mavlink.MAVLink_param_value_message) -> None:
         if msg.get_srcSystem() != self.target_system:
             return
-        name = param_name(msg)
+        name = param_id_str(msg.param_id)
         if name not in self.names:
             return
-        value = param_value(msg)
+        value = decode_param_value(msg.param_value, msg.param_type)
         if not math.isfinite(value) or self.values.get(name) == value:
             return
         self.values[name] = value

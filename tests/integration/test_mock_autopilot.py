@@ -17,9 +17,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from raw_mavlink_client import RawClient
 
 from companion import px4
-from companion.px4 import FlightMode
+from companion.px4 import MAV_PARAM_TYPE_INT32, FlightMode, decode_param_value, encode_param_value
 from companion.sim.autopilot import MockAutopilot
-from companion.sim.autopilot.params import MAV_PARAM_TYPE_INT32, decode_value, encode_value
 
 pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(60)]
 
@@ -143,13 +142,13 @@ async def test_params_bytewise_int_and_float(link) -> None:
     c.send(c.mav.param_request_read_encode(1, 1, b"MIS_TAKEOFF_ALT", -1))
     pv = await c.recv("PARAM_VALUE", pred=lambda m: m.param_id == "MIS_TAKEOFF_ALT")
     assert pv.param_value == pytest.approx(2.5)
-    c.send(c.mav.param_set_encode(1, 1, b"COM_OBL_RC_ACT", encode_value(4, MAV_PARAM_TYPE_INT32),
+    c.send(c.mav.param_set_encode(1, 1, b"COM_OBL_RC_ACT", encode_param_value(4, MAV_PARAM_TYPE_INT32),
                                   MAV_PARAM_TYPE_INT32))
     pv = await c.recv("PARAM_VALUE", pred=lambda m: m.param_id == "COM_OBL_RC_ACT")
-    assert decode_value(pv.param_value, pv.param_type) == 4
+    assert decode_param_value(pv.param_value, pv.param_type) == 4
     assert ap.params.get("COM_OBL_RC_ACT") == 4
     # A set with the wrong type is refused: the answer carries the unchanged value.
-    c.send(c.mav.param_set_encode(1, 1, b"MIS_TAKEOFF_ALT", encode_value(7, MAV_PARAM_TYPE_INT32),
+    c.send(c.mav.param_set_encode(1, 1, b"MIS_TAKEOFF_ALT", encode_param_value(7, MAV_PARAM_TYPE_INT32),
                                   MAV_PARAM_TYPE_INT32))
     pv = await c.recv("PARAM_VALUE", pred=lambda m: m.param_id == "MIS_TAKEOFF_ALT")
     assert pv.param_value == pytest.approx(2.5) and ap.params.get("MIS_TAKEOFF_ALT") == 2.5

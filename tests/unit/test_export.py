@@ -146,6 +146,14 @@ def test_objects_json_round_trip(tmp_path: Path) -> None:
     back = object_footprints_from_records(doc["objects"])
     assert [b.object_id for b in back] == [3, 7]
     assert np.allclose(back[0].polygon_xy_m, sm.objects[0].polygon_xy_m)
+    assert [b.margin_m for b in back] == [0.25, 0.2]
+
+
+def test_objects_json_without_a_margin_means_the_class_margin() -> None:
+    rec = {"object_id": 1, "class_name": "desk", "existence": 0.9, "z_min_m": 0.0, "z_max_m": 0.75,
+           "polygon_xy_m": [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]}
+    back = object_footprints_from_records([rec, {**rec, "margin_m": None}, {**rec, "margin_m": 0.0}])
+    assert [b.margin_m for b in back] == [None, None, 0.0]
 
 
 def test_geojson_is_lon_lat_with_closed_rings() -> None:

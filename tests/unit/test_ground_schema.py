@@ -231,7 +231,7 @@ def test_builders_round_and_reject_non_finite_values() -> None:
     assert path_message("d", np.zeros((0, 3))).waypoints_xyz_map_m == []
     with pytest.raises(ValueError, match="waypoints_xyz_map_m must be finite"):
         path_message("d", [[0, 0, math.inf]])
-    fps = [ObjectFootprint(k, "chair", np.array([[0.0, 0.0], [0.5, 0.0], [0.5, 0.5]]), 0.0, 0.9)
+    fps = [ObjectFootprint(k, "chair", np.array([[0.0, 0.0], [0.5, 0.0], [0.5, 0.5]]), 0.0, 0.9, margin_m=0.2)
            for k in (7, 2)]
     assert [o.object_id for o in objects_message("d", fps).objects] == [2, 7]
 

@@ -34,7 +34,7 @@ def band_at(altitude_m: float) -> VerticalBand:
     return VerticalBand.for_altitude(altitude_m, vehicle_height_m=0.15, margin_m=0.1)
 
 
-def coffee_table(existence: float = 0.9, margin_m: float = 0.2, oid: int = 1) -> ObjectFootprint:
+def coffee_table(existence: float = 0.9, margin_m: float | None = 0.2, oid: int = 1) -> ObjectFootprint:
     return ObjectFootprint(oid, "coffee_table", TABLE, 0.0, 0.45, existence=existence, margin_m=margin_m)
 
 
@@ -160,7 +160,7 @@ def test_class_probability_planes() -> None:
 
 def test_height_layer() -> None:
     lc = stack()
-    chair = ObjectFootprint(2, "chair", TABLE + [1.2, 0.0], 0.0, 0.9, existence=0.7)
+    chair = ObjectFootprint(2, "chair", TABLE + [1.2, 0.0], 0.0, 0.9, existence=0.7, margin_m=0.0)
     lc.update_objects([coffee_table(), chair], stamp_s=1.0)
     h = lc.heights.heights_m(lc.spec)
     r, c = lc.spec.cell_of(np.array([[1.5, 1.3], [2.7, 1.3], [0.2, 0.2]]))[:, 0], lc.spec.cell_of(
@@ -204,3 +204,17 @@ def test_paint_objects_costs_objects_as_the_layer_stack_does(altitude_m: float) 
     painted = paint_objects(unknown, objects, band, existence_confirm=0.6)
     np.testing.assert_array_equal(painted.cost, layered.cost)
     assert painted.clearance_decay_m == layered.clearance_decay_m == 0.2
+
+
+def test_paint_objects_gives_footprints_without_a_margin_their_class_margin() -> None:
+    band = band_at(0.4)
+    base = Costmap(GridSpec(0.05, (0.0, 0.0), (80, 80)), np.full((80, 80), FREE_SPACE, np.uint8), band)
+    unset, none = coffee_table(margin_m=None), coffee_table(margin_m=0.0, oid=2)
+    cm = paint_objects(base, [unset, none], band, class_margins_m={"coffee_table": 0.3})
+    assert [o.margin_m for o in cm.objects] == [0.3, 0.0]
+    assert paint_objects(base, [unset], band).objects[0].margin_m == 0.0  # a class it was not told
+
+
+def test_the_layers_refuse_a_footprint_whose_margin_was_not_resolved() -> None:
+    with pytest.raises(MapError, match=r"object 1 \(coffee_table\): margin_m is None"):
+        stack().update_objects([coffee_table(margin_m=None)], stamp_s=1.0)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+import struct
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -120,3 +123,48 @@ def test_the_map_frame_floor_is_where_the_vehicle_stood_landed() -> None:
     state = tracker.snapshot()
     assert state.map_frame.floor_down_m == pytest.approx(-0.86)
     assert state.height_above_floor_m == pytest.approx(1.0)
+
+
+# --- parameter encoding --------------------------------------------------------------------------
+
+def test_int32_params_travel_bytewise_as_px4_sends_them() -> None:
+    # EKF2_NOAID_TOUT = 5000000 us: PX4 puts the integer's bytes in the float field.
+    wire = struct.unpack("<f", struct.pack("<i", 5_000_000))[0]
+    assert px4.encode_param_value(5_000_000, px4.MAV_PARAM_TYPE_INT32) == wire
+    assert px4.decode_param_value(wire, px4.MAV_PARAM_TYPE_INT32) == 5_000_000
+    assert px4.decode_param_value(5_000_000.0, px4.MAV_PARAM_TYPE_REAL32) == 5_000_000.0
+
+
+_INT_RANGES = {
+    px4.MAV_PARAM_TYPE_UINT8: (0, 2**8 - 1), px4.MAV_PARAM_TYPE_INT8: (-(2**7), 2**7 - 1),
+    px4.MAV_PARAM_TYPE_UINT16: (0, 2**16 - 1), px4.MAV_PARAM_TYPE_INT16: (-(2**15), 2**15 - 1),
+    px4.MAV_PARAM_TYPE_UINT32: (0, 2**32 - 1), px4.MAV_PARAM_TYPE_INT32: (-(2**31), 2**31 - 1),
+}
+
+
+@given(st.sampled_from(sorted(_INT_RANGES)).flatmap(
+    lambda t: st.tuples(st.just(t), st.integers(*_INT_RANGES[t]))))
+def test_every_integer_type_is_read_from_the_fields_low_bytes(type_value: tuple[int, int]) -> None:
+    param_type, value = type_value
+    wire = px4.encode_param_value(value, param_type)
+    raw = struct.pack("<f", wire)
+    lo, hi = _INT_RANGES[param_type]
+    assert raw == (value % (hi - lo + 1)).to_bytes(4, "little") or math.isnan(wire)  # zero padded
+    assert px4.decode_param_value(wire, param_type) == value or math.isnan(wire)
+
+
+def test_small_integer_types_are_not_cast_by_value() -> None:
+    # An INT16 of -2 is the bytes fe ff 00 00 in the field, a denormal float, not -2.0.
+    wire = struct.unpack("<f", b"\xfe\xff\x00\x00")[0]
+    assert px4.decode_param_value(wire, px4.MAV_PARAM_TYPE_INT16) == -2
+    assert px4.decode_param_value(wire, px4.MAV_PARAM_TYPE_UINT8) == 254
+
+
+def test_an_integer_out_of_its_types_range_is_refused() -> None:
+    with pytest.raises(ValueError, match="MAV_PARAM_TYPE 2"):
+        px4.encode_param_value(300, px4.MAV_PARAM_TYPE_INT8)
+
+
+def test_param_ids_lose_their_nul_padding() -> None:
+    assert px4.param_id_str(b"EKF2_NOAID_TOUT\x00") == "EKF2_NOAID_TOUT"
+    assert px4.param_id_str("NAV_ACC_RAD\x00\x00\x00") == "NAV_ACC_RAD"

@@ -11,16 +11,16 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.geo import GeoOrigin
-from companion.px4 import FlightMode
-from companion.sim.autopilot import offboard
-from companion.sim.autopilot.navigator import Navigator
-from companion.sim.autopilot.params import (
+from companion.px4 import (
     MAV_PARAM_TYPE_INT32,
     MAV_PARAM_TYPE_REAL32,
-    ParamStore,
-    decode_value,
-    encode_value,
+    FlightMode,
+    decode_param_value,
+    encode_param_value,
 )
+from companion.sim.autopilot import offboard
+from companion.sim.autopilot.navigator import Navigator
+from companion.sim.autopilot.params import ParamStore
 from companion.sim.autopilot.vehicle import KinematicMulticopter, Target, VehicleLimits
 
 DT = 0.01
@@ -148,8 +148,8 @@ def test_attitude_target_hover_is_level_and_still() -> None:
 
 @given(st.integers(-(2**31), 2**31 - 1))
 def test_int_params_bytewise_round_trip(value: int) -> None:
-    enc = encode_value(value, MAV_PARAM_TYPE_INT32)
-    assert decode_value(enc, MAV_PARAM_TYPE_INT32) == value or math.isnan(enc)
+    enc = encode_param_value(value, MAV_PARAM_TYPE_INT32)
+    assert decode_param_value(enc, MAV_PARAM_TYPE_INT32) == value or math.isnan(enc)
 
 
 def test_param_store() -> None:
@@ -217,3 +217,13 @@ def test_velocity_loop_gain_trails_a_moving_setpoint_and_overshoots_its_end() ->
     lag_m, speed_m_s, overshoot_m = results[1.8]
     assert 0.2 < lag_m < 0.8 and speed_m_s > 0.2 and overshoot_m > 0.1
     assert v.position_ned_m[0] == pytest.approx(end_m, abs=0.03)  # and it comes back
+
+
+def test_every_mock_parameter_reads_back_as_the_link_decodes_it() -> None:
+    # The mock answers with encode_param_value; our link reads with decode_param_value.
+    p = ParamStore()
+    for name in (p.name_at(i) for i in range(len(p))):
+        assert name is not None
+        spec = p.spec(name)
+        wire = encode_param_value(p.get(name), spec.param_type)
+        assert decode_param_value(wire, spec.param_type) == p.get(name), name

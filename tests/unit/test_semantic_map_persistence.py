@@ -11,7 +11,12 @@ import pytest
 
 import semmap.semantic_map as sm_mod
 from semmap.config import default_classes
-from semmap.costmap import LETHAL_OBSTACLE, ObjectFootprint, VerticalBand
+from semmap.costmap import (
+    INSCRIBED_INFLATED_OBSTACLE,
+    LETHAL_OBSTACLE,
+    ObjectFootprint,
+    VerticalBand,
+)
 from semmap.errors import MapError
 from semmap.frames import R_BODY_CAMERA_FORWARD, make_transform
 from semmap.geometry import ObjectObservation
@@ -193,3 +198,37 @@ def test_settings_saved_with_the_old_decay_key_still_load() -> None:
     d = settings(clearance_decay_m=0.3).to_dict()
     d["margin_decay_m"] = d.pop("clearance_decay_m")
     assert SemanticMapSettings.from_dict(json.loads(json.dumps(d))).clearance_decay_m == 0.3
+
+
+def _table(object_id: int, margin_m: float | None) -> ObjectFootprint:
+    poly = np.array([[1.0, -0.5], [1.8, -0.5], [1.8, 0.0], [1.0, 0.0]]) + [0.0, 2.0 * object_id]
+    return ObjectFootprint(object_id, "coffee_table", poly, 0.0, 0.45, 0.9, margin_m=margin_m)
+
+
+def test_a_zero_margin_stays_zero_and_none_takes_the_class_margin(tmp_path: Path) -> None:
+    m = SemanticMap(settings())
+    m.set_objects([_table(0, 0.0), _table(1, None)], 0.4)
+    assert [o.margin_m for o in m.objects] == [0.0, 0.15]
+    # 0.1 m beside each table: inside the coffee table's 0.15 m keep-out only for the second.
+    beside = np.array([[1.9, -0.25], [1.9, 1.75]])
+    cost = m.costmap(VerticalBand(0.3, 0.5)).cost_at_xy(beside)
+    assert cost[0] < INSCRIBED_INFLATED_OBSTACLE <= cost[1]
+    loaded = SemanticMap.load(m.save(tmp_path / "map.npz"))
+    assert [o.margin_m for o in loaded.objects] == [0.0, 0.15]
+    assert np.array_equal(loaded.costmap(VerticalBand(0.3, 0.5)).cost_at_xy(beside), cost)
+
+
+@pytest.mark.parametrize("saved", ["missing", None])
+def test_a_saved_object_without_a_margin_loads_with_its_class_margin(tmp_path: Path, saved: str | None) -> None:
+    m = SemanticMap(settings())
+    m.set_objects([_table(0, 0.3)], 0.4)
+    path = m.save(tmp_path / "map.npz")
+    data = dict(np.load(path))
+    meta = json.loads(data["meta"].tobytes().decode("utf-8"))
+    if saved == "missing":
+        del meta["objects"][0]["margin_m"]
+    else:
+        meta["objects"][0]["margin_m"] = None
+    data["meta"] = np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8)
+    np.savez(tmp_path / "old.npz", **data)
+    assert [o.margin_m for o in SemanticMap.load(tmp_path / "old.npz").objects] == [0.15]

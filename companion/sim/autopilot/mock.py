@@ -33,7 +33,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import SimulationError
 from companion.geo import GeoOrigin
-from companion.px4 import FlightMode
+from companion.px4 import FlightMode, decode_param_value, encode_param_value, param_id_str
 from companion.sim.autopilot import offboard, telemetry
 from companion.sim.autopilot.behaviour import (
     Px4Behaviour,
@@ -49,7 +49,7 @@ from companion.sim.autopilot.gps_denied import GPS_DENIED_PARAMS, VisionAiding
 from companion.sim.autopilot.guided import FollowTarget
 from companion.sim.autopilot.mission_server import MissionItem, MissionServer
 from companion.sim.autopilot.navigator import Navigator
-from companion.sim.autopilot.params import ParamStore, decode_value, encode_value, param_id_str
+from companion.sim.autopilot.params import ParamStore
 from companion.sim.autopilot.timesync import PeerClock
 from companion.sim.autopilot.transport import Faults, UdpEndpoint, sign_with
 from companion.sim.autopilot.vehicle import (
@@ -740,7 +740,7 @@ class MockAutopilot:
 
     def _send_param(self, name: str) -> None:
         spec = self.params.spec(name)
-        value = encode_value(self.params.get(name), spec.param_type)
+        value = encode_param_value(self.params.get(name), spec.param_type)
         self.send(self._mav.param_value_encode(name.encode("ascii"), value, spec.param_type,
                                                len(self.params), self.params.index_of(name)))
 
@@ -756,7 +756,7 @@ class MockAutopilot:
             log.warning("PARAM_SET %s: type %d does not match the parameter's type %d", name,
                         msg.param_type, spec.param_type)
         else:
-            value = decode_value(msg.param_value, spec.param_type)
+            value = decode_param_value(msg.param_value, spec.param_type)
             if math.isfinite(value):
                 old = self.params.get(name)
                 if self.params.set(name, value) != old:

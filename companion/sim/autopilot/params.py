@@ -1,9 +1,8 @@
 """The mock autopilot's parameters, with PX4's byte-wise MAVLink encoding.
 
-PX4 sends every parameter in the ``float param_value`` field of ``PARAM_VALUE`` *byte-wise*:
-an INT32 parameter's four bytes are copied into the float unchanged (``MAV_PROTOCOL_CAPABILITY_
-PARAM_ENCODE_BYTEWISE``), not converted by value as ArduPilot does. MAVSDK knows this from the
-autopilot type. :func:`encode_value` / :func:`decode_value` implement that encoding.
+PX4 sends every parameter in the ``float param_value`` field of ``PARAM_VALUE`` *byte-wise*
+(``MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE``); MAVSDK knows this from the autopilot type.
+The mock encodes and decodes with :mod:`companion.px4`, as our link does.
 
 Only the parameters the mock itself uses and the ones clients (MAVSDK, QGroundControl, our
 link) read are defined; their defaults are PX4's except where noted for indoor flight.
@@ -12,13 +11,11 @@ link) read are defined; their defaults are PX4's except where noted for indoor f
 from __future__ import annotations
 
 import logging
-import struct
 from dataclasses import dataclass
 
-log = logging.getLogger(__name__)
+from companion.px4 import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
 
-MAV_PARAM_TYPE_INT32 = 6
-MAV_PARAM_TYPE_REAL32 = 9
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -78,27 +75,6 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("CAL_GYRO0_ID", MAV_PARAM_TYPE_INT32, 1310988),
     ParamSpec("CAL_MAG0_ID", MAV_PARAM_TYPE_INT32, 197388),
 )
-
-
-def encode_value(value: float, param_type: int) -> float:
-    """The ``param_value`` float PX4 sends for ``value`` (byte-wise for integer types)."""
-    if param_type == MAV_PARAM_TYPE_INT32:
-        return float(struct.unpack("<f", struct.pack("<i", int(value)))[0])
-    return float(value)
-
-
-def decode_value(param_value: float, param_type: int) -> float:
-    """Inverse of :func:`encode_value`: the parameter's value from a ``PARAM_SET`` field."""
-    if param_type == MAV_PARAM_TYPE_INT32:
-        return float(struct.unpack("<i", struct.pack("<f", param_value))[0])
-    return float(param_value)
-
-
-def param_id_str(param_id: bytes | str) -> str:
-    """A MAVLink ``param_id`` (up to 16 chars, NUL padded) as a plain string."""
-    if isinstance(param_id, bytes):
-        param_id = param_id.decode("ascii", errors="replace")
-    return param_id.split("\x00", 1)[0]
 
 
 class ParamStore:
