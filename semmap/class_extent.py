@@ -13,11 +13,14 @@ from __future__ import annotations
 from semmap.config import ClassConfig
 
 __all__ = [
-    "HEIGHT_ALLOWANCE_M", "ON_TOP_ALLOWANCE_M", "class_height_limit_m", "contradicts_class",
+    "HEIGHT_ALLOWANCE_M", "MEASURED_ONLY_MARGIN_M", "ON_TOP_ALLOWANCE_M", "class_height_limit_m",
+    "contradicts_class",
 ]
 
 #: What may stand on a table's top and join its cluster (a monitor, a lamp, a vase).
 ON_TOP_ALLOWANCE_M = 0.6
+#: Margin of an object its class does not fit: only the error of a measured footprint's edge.
+MEASURED_ONLY_MARGIN_M = 0.05
 #: Measurement slack above the class's height range for objects nothing stands on.
 HEIGHT_ALLOWANCE_M = 0.15
 

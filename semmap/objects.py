@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from semmap.class_extent import contradicts_class
+from semmap.class_extent import MEASURED_ONLY_MARGIN_M, contradicts_class
 from semmap.class_prior import ClassPrior
 from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
@@ -125,7 +125,7 @@ class ObjectMap:
             cls = by_name[o.class_name]
             if contradicts_class(cls, o.z_max_m):
                 # Its measured footprint blocks, with no class's margin or size.
-                out.append(o.to_footprint(0.0, None))
+                out.append(o.to_footprint(MEASURED_ONLY_MARGIN_M, None))
             else:
                 out.append(o.to_footprint(cls.margin_m, cls.min_footprint_m))
         return out

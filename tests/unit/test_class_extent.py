@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from semmap.class_extent import class_height_limit_m, contradicts_class
+from semmap.class_extent import MEASURED_ONLY_MARGIN_M, class_height_limit_m, contradicts_class
 from semmap.config import default_classes
 from semmap.objects import ObjectMap
 from semmap.polygons import polygon_area_m2
@@ -50,13 +50,14 @@ def test_limits_follow_the_class_priors() -> None:
 def test_cabinet_called_conference_table_is_not_grown_to_a_table() -> None:
     # A 0.84 x 0.46 m cabinet 1.71 m high (room 1053's phantom conference table).
     fp = _footprint(_dump("conference_table", (3.6, 5.52), (4.44, 5.98), 1.71, 0.63))
-    assert fp.margin_m == 0.0
+    assert fp.margin_m == pytest.approx(MEASURED_ONLY_MARGIN_M)
     assert polygon_area_m2(fp.polygon_xy_m) == pytest.approx(0.84 * 0.46, rel=0.1)
 
 
 def test_cabinet_called_chair_gets_no_chair_margin() -> None:
     fp = _footprint(_dump("chair", (3.62, 5.52), (4.44, 5.76), 1.67, 0.96))
-    assert fp.margin_m == 0.0
+    assert fp.margin_m == pytest.approx(MEASURED_ONLY_MARGIN_M)
+    assert fp.margin_m < BY_NAME["chair"].margin_m
 
 
 @pytest.mark.parametrize("z_max_m", [0.75, 1.15, 1.35])
