@@ -85,6 +85,14 @@ class LinkConfig(StageConfig):
     #: EKF2 resets to it instead of rejecting it at its innovation gate.
     vision_reset_jump_m: float = Field(default=0.10, gt=0.0)
     vision_reset_jump_deg: float = Field(default=3.0, gt=0.0)
+    #: The frames' odometry (``Frame.T_odom_body``) is a sensor of the vehicle's own that PX4's
+    #: estimate does not contain (optical flow, VIO): a partly matched SLAM pose, which takes
+    #: the direction its scan cannot see (a bare wall) from that odometry, is then a
+    #: measurement and goes to PX4 too, its position 1-sigma grown by
+    #: ``vision_odometry_drift_per_m`` for every metre flown since the last full match. Off
+    #: (default) the odometry may be PX4's own velocity, and only full matches are sent.
+    vision_odometry_independent: bool = False
+    vision_odometry_drift_per_m: float = Field(default=0.05, gt=0.0, le=1.0)
     #: PX4 has no horizontal position but our pose (no GPS; docs/mavlink.md "PX4 without GPS"):
     #: when the pose stops the vehicle holds and then lands (the two settings below). Off,
     #: PX4 coasts on its other sources while the SLAM has no match.

@@ -38,6 +38,9 @@ log = logging.getLogger(__name__)
 VISION_MAX_AGE_S = 1.0
 #: External-vision message rate (PX4 expects 30 Hz or more from a VIO).
 VISION_RATE_HZ = 30.0
+#: A partly matched pose whose grown 1-sigma exceeds this is not sent: beyond it the pose
+#: could no longer keep the planner's clearance from what it flies past.
+PARTIAL_MAX_STD_M = 0.25
 
 
 class VisionPoseSource:
@@ -55,17 +58,29 @@ class VisionPoseSource:
     prediction moves the SLAM pose by that same pull, and both drift together at that
     fraction of their offset per scan (test_service_slam: a 4.5 cm offset became 0.26 m in
     eleven partly matched scans along a wall; the map then kept it). An odometry fallback
-    is not sent for the same reason."""
+    is not sent for the same reason.
+
+    That loop needs the prior to be PX4's estimate. With ``odometry_independent`` (the
+    frames' odometry is a sensor of the vehicle's own, see
+    ``link.vision_odometry_independent``) a partly matched pose built on that odometry is
+    sent, its position 1-sigma grown by ``odometry_drift_per_m`` per metre since the last
+    full match, up to :data:`PARTIAL_MAX_STD_M`: a wall that hides one direction for a few
+    seconds then costs EKF2 some confidence, not its only position source."""
 
     def __init__(self, shared: SharedLocalization, *, max_age_s: float = 1.0, position_std_m: float | None = None,
                  yaw_std_rad: float | None = None, reset_after_gap_s: float = math.inf,
+                 odometry_independent: bool = False, odometry_drift_per_m: float = 0.05,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.shared = shared
         self.max_age_s = max_age_s
         self.position_std_m = position_std_m
         self.yaw_std_rad = yaw_std_rad
         self.reset_after_gap_s = reset_after_gap_s
+        self.odometry_independent = odometry_independent
+        self.odometry_drift_per_m = odometry_drift_per_m
         self.clock = clock
+        #: Times a partly matched pose was handed out (with a grown covariance).
+        self.partial_sends = 0
         #: Returns after a gap (each bumped the reset counter).
         self.gap_resets = 0
         self._last_given_s: float | None = None
@@ -74,12 +89,28 @@ class VisionPoseSource:
     def from_config(cls, shared: SharedLocalization, cfg: CompanionConfig) -> VisionPoseSource:
         link = cfg.link
         return cls(shared, max_age_s=VISION_MAX_AGE_S, position_std_m=link.vision_position_std_m,
-                   yaw_std_rad=math.radians(link.vision_yaw_std_deg), reset_after_gap_s=link.vision_lost_hold_s)
+                   yaw_std_rad=math.radians(link.vision_yaw_std_deg), reset_after_gap_s=link.vision_lost_hold_s,
+                   odometry_independent=link.vision_odometry_independent,
+                   odometry_drift_per_m=link.vision_odometry_drift_per_m)
+
+    def partial_std_m(self, st: LocalizationState) -> float | None:
+        """The position 1-sigma a pose that is not fully matched may go to PX4 with; None
+        when it may not go."""
+        if not (self.odometry_independent and st.prior_is_odometry and st.status == SlamStatus.PARTIAL_ODOMETRY.value):
+            return None
+        std = math.hypot(self.position_std_m or 0.0, self.odometry_drift_per_m * st.since_match_m)
+        return std if std <= PARTIAL_MAX_STD_M else None
 
     def __call__(self) -> VisionPose | None:
         st = self.shared.latest()
-        if st is None or st.status != SlamStatus.OK.value or st.age_s > self.max_age_s:
+        if st is None or st.age_s > self.max_age_s:
             return None
+        std = self.position_std_m
+        if st.status != SlamStatus.OK.value:
+            std = self.partial_std_m(st)
+            if std is None:
+                return None
+            self.partial_sends += 1
         now = self.clock()
         if self._last_given_s is not None and now - self._last_given_s >= self.reset_after_gap_s:
             self.gap_resets += 1
@@ -87,7 +118,7 @@ class VisionPoseSource:
                         "(PX4 takes the pose as it is)", now - self._last_given_s)
         self._last_given_s = now
         return VisionPose(st.stamp_s, st.T_map_body, 100, (st.resets + self.gap_resets) & 0xFF,
-                          self.position_std_m, self.yaw_std_rad)
+                          std, self.yaw_std_rad)
 
 
 def vision_pose(shared: SharedLocalization, max_age_s: float = VISION_MAX_AGE_S) -> VisionPose | None:

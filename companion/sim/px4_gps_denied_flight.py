@@ -159,7 +159,9 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     loss: dict[str, Any] = {}
     loss_window: list[float] = []  # our s: the camera stopped, and the recovery after it ended
     if odometry is not None:
-        cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"camera_pose": "autopilot"})})
+        # The frames carry the sensor's odometry, which PX4's estimate does not contain.
+        cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"camera_pose": "autopilot"}),
+                                     "link": cfg.link.model_copy(update={"vision_odometry_independent": True})})
     async with SihTruth(sitl.display_url, placement, SharedSimState(), odometry) as truth:
         await asyncio.to_thread(sitl.stream_truth)
         await truth.wait_first()

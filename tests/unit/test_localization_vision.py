@@ -125,3 +125,37 @@ def test_the_slam_thread_does_not_yield_with_the_niced_perception_process() -> N
     t.start()
     t.join()
     assert seen == [parent]
+
+
+def _partial(since_match_m: float, prior_odometry: bool = True,
+             status: SlamStatus = SlamStatus.PARTIAL_ODOMETRY) -> SharedLocalization:
+    shared = SharedLocalization()
+    shared.publish({"stamp_s": 3.0, "x_m": 1.0, "y_m": 2.0, "status": _STATUS_CODES[status],
+                    "since_match_m": since_match_m, "prior_odometry": 1.0 if prior_odometry else 0.0})
+    return shared
+
+
+def test_a_partial_pose_on_an_independent_odometry_goes_with_a_grown_error() -> None:
+    source = VisionPoseSource(_partial(2.0), position_std_m=0.05, odometry_independent=True,
+                              odometry_drift_per_m=0.05)
+    pose = source()
+    assert pose is not None and pose.stamp_s == 3.0
+    assert pose.position_std_m == pytest.approx(math.hypot(0.05, 0.10))
+    assert source.partial_sends == 1
+
+
+def test_a_partial_pose_is_held_back_unless_its_odometry_is_the_vehicles_own() -> None:
+    # The default: the odometry may be PX4's own velocity, which the vision corrected.
+    assert VisionPoseSource(_partial(0.5), position_std_m=0.05)() is None
+    # Switched on, but this prior is the autopilot's estimate (frames without odometry).
+    assert VisionPoseSource(_partial(0.5, prior_odometry=False), position_std_m=0.05,
+                            odometry_independent=True)() is None
+    # A pose wholly from odometry is no scan measurement at all.
+    assert VisionPoseSource(_partial(0.5, status=SlamStatus.DEGENERATE_FALLBACK_ODOMETRY), position_std_m=0.05,
+                            odometry_independent=True)() is None
+
+
+def test_a_partial_pose_carried_too_far_by_odometry_stops() -> None:
+    source = VisionPoseSource(_partial(10.0), position_std_m=0.05, odometry_independent=True,
+                              odometry_drift_per_m=0.05)
+    assert source() is None
