@@ -88,7 +88,8 @@ class LinkConfig(StageConfig):
     #: The frames' odometry (``Frame.T_odom_body``) is a sensor of the vehicle's own that PX4's
     #: estimate does not contain (optical flow, VIO): a partly matched SLAM pose, which takes
     #: the direction its scan cannot see (a bare wall) from that odometry, is then a
-    #: measurement and goes to PX4 too, its position 1-sigma grown by
+    #: measurement and goes to PX4 too, as does a scan that matched nothing (the last match
+    #: moved by the odometry), its position 1-sigma grown by
     #: ``vision_odometry_drift_per_m`` for every metre flown since the last full match. Off
     #: (default) the odometry may be PX4's own velocity, and only full matches are sent.
     vision_odometry_independent: bool = False

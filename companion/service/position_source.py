@@ -20,7 +20,7 @@ from companion.mavlink.commands import CommandSender
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.params import ParamWatch
 from companion.mavlink.timesync import TimesyncConvergence
-from companion.mavlink.vision import VisionPose, VisionStream
+from companion.mavlink.vision import DEFAULT_YAW_STD_RAD, VisionPose, VisionStream
 from companion.service.localization import LocalizationState, SharedLocalization, localized_source
 from companion.service.vision_loss import (
     LAND_SPEED_PARAM,
@@ -38,9 +38,11 @@ log = logging.getLogger(__name__)
 VISION_MAX_AGE_S = 1.0
 #: External-vision message rate (PX4 expects 30 Hz or more from a VIO).
 VISION_RATE_HZ = 30.0
-#: A partly matched pose whose grown 1-sigma exceeds this is not sent: beyond it the pose
-#: could no longer keep the planner's clearance from what it flies past.
+#: A pose carried by odometry whose grown 1-sigma exceeds this is not sent: beyond it the
+#: pose could no longer keep the planner's clearance from what it flies past.
 PARTIAL_MAX_STD_M = 0.25
+#: The statuses whose pose (some or all of it) the SLAM carried on its odometry prior.
+_DEAD_RECKONED = (SlamStatus.PARTIAL_ODOMETRY.value, SlamStatus.DEGENERATE_FALLBACK_ODOMETRY.value)
 
 
 class VisionPoseSource:
@@ -63,9 +65,11 @@ class VisionPoseSource:
     That loop needs the prior to be PX4's estimate. With ``odometry_independent`` (the
     frames' odometry is a sensor of the vehicle's own, see
     ``link.vision_odometry_independent``) a partly matched pose built on that odometry is
-    sent, its position 1-sigma grown by ``odometry_drift_per_m`` per metre since the last
-    full match, up to :data:`PARTIAL_MAX_STD_M`: a wall that hides one direction for a few
-    seconds then costs EKF2 some confidence, not its only position source."""
+    sent, and so is a scan that matched nothing (the pose then is the last match moved by
+    that odometry, as a VIO coasts), its position 1-sigma grown by ``odometry_drift_per_m``
+    per metre since the last full match, up to :data:`PARTIAL_MAX_STD_M`: a wall that hides
+    one direction for a few seconds then costs EKF2 some confidence, not its only position
+    source. A camera that delivers nothing still stops the stream (the pose goes stale)."""
 
     def __init__(self, shared: SharedLocalization, *, max_age_s: float = 1.0, position_std_m: float | None = None,
                  yaw_std_rad: float | None = None, reset_after_gap_s: float = math.inf,
@@ -93,23 +97,31 @@ class VisionPoseSource:
                    odometry_independent=link.vision_odometry_independent,
                    odometry_drift_per_m=link.vision_odometry_drift_per_m)
 
-    def partial_std_m(self, st: LocalizationState) -> float | None:
-        """The position 1-sigma a pose that is not fully matched may go to PX4 with; None
-        when it may not go."""
-        if not (self.odometry_independent and st.prior_is_odometry and st.status == SlamStatus.PARTIAL_ODOMETRY.value):
+    def dead_reckoned_std(self, st: LocalizationState) -> tuple[float, float | None] | None:
+        """The position and yaw 1-sigma (m, rad) a pose that is not fully matched may go to
+        PX4 with; None when it may not go. A wholly dead-reckoned pose (the scan saw
+        nothing usable) grows its yaw 1-sigma too, by the drift fraction in radians per metre."""
+        if not (self.odometry_independent and st.prior_is_odometry and st.status in _DEAD_RECKONED):
             return None
-        std = math.hypot(self.position_std_m or 0.0, self.odometry_drift_per_m * st.since_match_m)
-        return std if std <= PARTIAL_MAX_STD_M else None
+        grown_m = self.odometry_drift_per_m * st.since_match_m
+        std = math.hypot(self.position_std_m or 0.0, grown_m)
+        if std > PARTIAL_MAX_STD_M:
+            return None
+        yaw = self.yaw_std_rad
+        if st.status == SlamStatus.DEGENERATE_FALLBACK_ODOMETRY.value:
+            yaw = math.hypot(yaw if yaw is not None else DEFAULT_YAW_STD_RAD, grown_m)
+        return std, yaw
 
     def __call__(self) -> VisionPose | None:
         st = self.shared.latest()
         if st is None or st.age_s > self.max_age_s:
             return None
-        std = self.position_std_m
+        std, yaw_std = self.position_std_m, self.yaw_std_rad
         if st.status != SlamStatus.OK.value:
-            std = self.partial_std_m(st)
-            if std is None:
+            grown = self.dead_reckoned_std(st)
+            if grown is None:
                 return None
+            std, yaw_std = grown
             self.partial_sends += 1
         now = self.clock()
         if self._last_given_s is not None and now - self._last_given_s >= self.reset_after_gap_s:
@@ -118,7 +130,7 @@ class VisionPoseSource:
                         "(PX4 takes the pose as it is)", now - self._last_given_s)
         self._last_given_s = now
         return VisionPose(st.stamp_s, st.T_map_body, 100, (st.resets + self.gap_resets) & 0xFF,
-                          std, self.yaw_std_rad)
+                          std, yaw_std)
 
 
 def vision_pose(shared: SharedLocalization, max_age_s: float = VISION_MAX_AGE_S) -> VisionPose | None:

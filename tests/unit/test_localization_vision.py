@@ -150,12 +150,21 @@ def test_a_partial_pose_is_held_back_unless_its_odometry_is_the_vehicles_own() -
     # Switched on, but this prior is the autopilot's estimate (frames without odometry).
     assert VisionPoseSource(_partial(0.5, prior_odometry=False), position_std_m=0.05,
                             odometry_independent=True)() is None
-    # A pose wholly from odometry is no scan measurement at all.
-    assert VisionPoseSource(_partial(0.5, status=SlamStatus.DEGENERATE_FALLBACK_ODOMETRY), position_std_m=0.05,
-                            odometry_independent=True)() is None
 
 
 def test_a_partial_pose_carried_too_far_by_odometry_stops() -> None:
     source = VisionPoseSource(_partial(10.0), position_std_m=0.05, odometry_independent=True,
                               odometry_drift_per_m=0.05)
     assert source() is None
+
+
+def test_a_scan_that_matched_nothing_is_dead_reckoned_on_an_independent_odometry() -> None:
+    source = VisionPoseSource(_partial(1.0, status=SlamStatus.DEGENERATE_FALLBACK_ODOMETRY), position_std_m=0.05,
+                              yaw_std_rad=0.03, odometry_independent=True, odometry_drift_per_m=0.05)
+    pose = source()
+    assert pose is not None
+    assert pose.position_std_m == pytest.approx(math.hypot(0.05, 0.05))
+    assert pose.yaw_std_rad == pytest.approx(math.hypot(0.03, 0.05))
+    # The configured pure-odometry mode is no SLAM pose at all.
+    assert VisionPoseSource(_partial(0.0, status=SlamStatus.ODOMETRY), position_std_m=0.05,
+                            odometry_independent=True)() is None
