@@ -36,6 +36,10 @@ log = logging.getLogger(__name__)
 
 #: A SLAM pose older than this is not sent to the autopilot (the camera stalled).
 VISION_MAX_AGE_S = 1.0
+#: EKF2 fuses a pose only while its delayed horizon (``EKF2_DELAY_MAX``, 200 ms by default,
+#: behind now) is less than 100 ms past the pose's stamp (its buffer's ``pop_first_older_than``):
+#: a pose older than this at sending is dropped there, so it does not count as sent here.
+FUSION_WINDOW_S = 0.3
 #: External-vision message rate (PX4 expects 30 Hz or more from a VIO).
 VISION_RATE_HZ = 30.0
 #: A pose carried by odometry whose grown 1-sigma exceeds this is not sent: beyond it the
@@ -74,7 +78,7 @@ class VisionPoseSource:
     def __init__(self, shared: SharedLocalization, *, max_age_s: float = 1.0, position_std_m: float | None = None,
                  yaw_std_rad: float | None = None, reset_after_gap_s: float = math.inf,
                  odometry_independent: bool = False, odometry_drift_per_m: float = 0.05,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 fusion_window_s: float = math.inf, clock: Callable[[], float] = time.monotonic) -> None:
         self.shared = shared
         self.max_age_s = max_age_s
         self.position_std_m = position_std_m
@@ -82,6 +86,9 @@ class VisionPoseSource:
         self.reset_after_gap_s = reset_after_gap_s
         self.odometry_independent = odometry_independent
         self.odometry_drift_per_m = odometry_drift_per_m
+        self.fusion_window_s = fusion_window_s
+        #: Poses held back because they were captured too long ago for EKF2 to fuse.
+        self.too_late = 0
         self.clock = clock
         #: Times a partly matched pose was handed out (with a grown covariance).
         self.partial_sends = 0
@@ -95,7 +102,7 @@ class VisionPoseSource:
         return cls(shared, max_age_s=VISION_MAX_AGE_S, position_std_m=link.vision_position_std_m,
                    yaw_std_rad=math.radians(link.vision_yaw_std_deg), reset_after_gap_s=link.vision_lost_hold_s,
                    odometry_independent=link.vision_odometry_independent,
-                   odometry_drift_per_m=link.vision_odometry_drift_per_m)
+                   odometry_drift_per_m=link.vision_odometry_drift_per_m, fusion_window_s=FUSION_WINDOW_S)
 
     def dead_reckoned_std(self, st: LocalizationState) -> tuple[float, float | None] | None:
         """The position and yaw 1-sigma (m, rad) a pose that is not fully matched may go to
@@ -116,6 +123,15 @@ class VisionPoseSource:
         st = self.shared.latest()
         if st is None or st.age_s > self.max_age_s:
             return None
+        now = self.clock()
+        capture_age_s = now - st.stamp_s
+        # Only a stamp on our clock can be judged (a camera on another clock: not checked).
+        if self.fusion_window_s < capture_age_s <= self.max_age_s:
+            self.too_late += 1
+            if self.too_late % 30 == 1:
+                log.warning("SLAM pose %.0f ms after its capture, past EKF2's fusion window: not sent (%d so far)",
+                            1e3 * capture_age_s, self.too_late)
+            return None
         std, yaw_std = self.position_std_m, self.yaw_std_rad
         if st.status != SlamStatus.OK.value:
             grown = self.dead_reckoned_std(st)
@@ -123,7 +139,6 @@ class VisionPoseSource:
                 return None
             std, yaw_std = grown
             self.partial_sends += 1
-        now = self.clock()
         if self._last_given_s is not None and now - self._last_given_s >= self.reset_after_gap_s:
             self.gap_resets += 1
             log.warning("external vision back after %.1f s without a matched SLAM pose: reset counter bumped "

@@ -168,3 +168,14 @@ def test_a_scan_that_matched_nothing_is_dead_reckoned_on_an_independent_odometry
     # The configured pure-odometry mode is no SLAM pose at all.
     assert VisionPoseSource(_partial(0.0, status=SlamStatus.ODOMETRY), position_std_m=0.05,
                             odometry_independent=True)() is None
+
+
+def test_a_pose_too_old_for_ekf2_to_fuse_is_not_sent() -> None:
+    # Captured at 3.0 s: at 3.25 s it is inside EKF2's fusion window, at 3.4 s past it
+    # (PX4 drops it, so the loss guard must not count it as sent).
+    now = [3.25]
+    shared = _partial(0.0, status=SlamStatus.OK)
+    source = VisionPoseSource(shared, position_std_m=0.05, fusion_window_s=0.3, clock=lambda: now[0])
+    assert source() is not None
+    now[0] = 3.4
+    assert source() is None and source.too_late == 1
