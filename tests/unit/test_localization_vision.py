@@ -179,3 +179,13 @@ def test_a_pose_too_old_for_ekf2_to_fuse_is_not_sent() -> None:
     assert source() is not None
     now[0] = 3.4
     assert source() is None and source.too_late == 1
+
+
+def test_the_perception_process_is_niced_only_without_the_slam_in_it() -> None:
+    from companion.config import CompanionConfig
+    from companion.service.perception_process import PERCEPTION_NICE, perception_nice
+
+    cfg = CompanionConfig()
+    assert perception_nice(cfg) == PERCEPTION_NICE
+    slam = cfg.model_copy(update={"service": cfg.service.model_copy(update={"localization": "slam"})})
+    assert perception_nice(slam) == 0
