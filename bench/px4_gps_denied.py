@@ -90,6 +90,8 @@ def main() -> int:
                          "link.vision_lost_hold_s plus the landing deadline: the vehicle lands)")
     ap.add_argument("--altitude", type=float, default=None,
                     help="flight altitude above the floor (m; default planner.flight_altitude_m)")
+    ap.add_argument("--vision-std-m", type=float, default=None,
+                    help="the SLAM pose's position 1-sigma sent to PX4 (m; default link.vision_position_std_m)")
     ap.add_argument("--camera-scale", type=float, default=1.0,
                     help="scale the camera's resolution and intrinsics (0.5: 320x240), for a loaded machine")
     ap.add_argument("--weak-prior", action="store_true",
@@ -111,11 +113,14 @@ def main() -> int:
             "fy_px": c.fy_px * k, "cx_px": c.cx_px * k, "cy_px": c.cy_px * k})})
     if args.weak_prior:
         cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update=WEAK_PRIOR)})
+    if args.vision_std_m is not None:
+        cfg = cfg.model_copy(update={"link": cfg.link.model_copy(update={"vision_position_std_m": args.vision_std_m})})
     if args.altitude is not None:
         cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"flight_altitude_m": args.altitude})})
     camera = (f"{cfg.camera.width_px}x{cfg.camera.height_px} at {cfg.camera.rate_hz:g} Hz, detector "
               f"{cfg.detector.kind}, SLAM prior {'weak' if args.weak_prior else 'as shipped'} from "
-              f"{'an odometry sensor' if args.odometry_sensor else 'PX4 velocity'}")
+              f"{'an odometry sensor' if args.odometry_sensor else 'PX4 velocity'}, vision 1-sigma "
+              f"{cfg.link.vision_position_std_m:g} m")
     load0 = os.getloadavg()
     t0 = time.monotonic()
     seeds = room_seeds(cfg, args.seed, n)

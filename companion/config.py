@@ -77,14 +77,24 @@ class LinkConfig(StageConfig):
     #: Send the SLAM pose to PX4 as external vision.
     external_vision: bool = False
     #: The SLAM pose's 1-sigma errors sent with it as ODOMETRY's covariance (EKF2 weighs it by
-    #: them with ``EKF2_EV_NOISE_MD`` 0): bench/slam.py's ATE and the live error in flight.
-    vision_position_std_m: float = Field(default=0.05, gt=0.0, le=5.0)
+    #: them with ``EKF2_EV_NOISE_MD`` 0): bench/slam.py's ATE and the live error in flight in
+    #: the SLAM's own frame (PX4 SITL: 0.04-0.08 m p95 after a best-fit alignment).
+    vision_position_std_m: float = Field(default=0.03, gt=0.0, le=5.0)
     vision_yaw_std_deg: float = Field(default=2.0, gt=0.0, le=90.0)
     #: A SLAM pose that moves farther than this from where the previous one and the odometry
     #: since put it (a loop closure, a relocalisation) bumps ODOMETRY's ``reset_counter``, so
     #: EKF2 resets to it instead of rejecting it at its innovation gate.
     vision_reset_jump_m: float = Field(default=0.10, gt=0.0)
     vision_reset_jump_deg: float = Field(default=3.0, gt=0.0)
+    #: The frames' odometry (``Frame.T_odom_body``) is a sensor of the vehicle's own that PX4's
+    #: estimate does not contain (optical flow, VIO): a partly matched SLAM pose, which takes
+    #: the direction its scan cannot see (a bare wall) from that odometry, is then a
+    #: measurement and goes to PX4 too, as does a scan that matched nothing (the last match
+    #: moved by the odometry), its position 1-sigma grown by
+    #: ``vision_odometry_drift_per_m`` for every metre flown since the last full match. Off
+    #: (default) the odometry may be PX4's own velocity, and only full matches are sent.
+    vision_odometry_independent: bool = False
+    vision_odometry_drift_per_m: float = Field(default=0.05, gt=0.0, le=1.0)
     #: PX4 has no horizontal position but our pose (no GPS; docs/mavlink.md "PX4 without GPS"):
     #: when the pose stops the vehicle holds and then lands (the two settings below). Off,
     #: PX4 coasts on its other sources while the SLAM has no match.

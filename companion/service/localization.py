@@ -59,7 +59,8 @@ _STATUS_NAMES = {int(v): (k.value if k is not None else "none") for k, v in _STA
 #: Shared array layout.
 _FIELDS = ("seq", "stamp_s", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad", "status",
            "scans", "ok", "partial", "fallbacks", "consecutive_fallbacks", "loop_closures",
-           "generation", "loop_searches_dropped", "localize_ms", "resets", "published_monotonic_s")
+           "generation", "loop_searches_dropped", "localize_ms", "resets", "published_monotonic_s",
+           "since_match_m", "prior_odometry")
 _IX = {name: i for i, name in enumerate(_FIELDS)}
 
 
@@ -86,6 +87,10 @@ class LocalizationState:
     age_s: float
     #: Jumps of the matched pose (loop closures, relocalisations; see :class:`JumpCounter`).
     resets: int = 0
+    #: Metres the motion prior moved since the last fully matched scan (0 on a full match).
+    since_match_m: float = 0.0
+    #: True when the motion prior is the frames' own odometry, not the autopilot's estimate.
+    prior_is_odometry: bool = False
 
     @property
     def matched(self) -> bool:
@@ -133,7 +138,8 @@ class SharedLocalization:
             int(g(_IX["scans"])), int(g(_IX["ok"])), int(g(_IX["partial"])), int(g(_IX["fallbacks"])),
             int(g(_IX["consecutive_fallbacks"])), int(g(_IX["loop_closures"])), int(g(_IX["generation"])),
             int(g(_IX["loop_searches_dropped"])), g(_IX["localize_ms"]),
-            time.monotonic() - g(_IX["published_monotonic_s"]), int(g(_IX["resets"])))
+            time.monotonic() - g(_IX["published_monotonic_s"]), int(g(_IX["resets"])),
+            g(_IX["since_match_m"]), g(_IX["prior_odometry"]) > 0.5)
 
 
 #: The GIL switch interval of the process the SLAM runs in (seconds).
@@ -197,6 +203,16 @@ class Localizer:
         self._prior_anchor = np.zeros(3)
         self._last_prior: NDArray[np.float64] | None = None
         self.jumps = JumpCounter(cfg.link.vision_reset_jump_m, math.radians(cfg.link.vision_reset_jump_deg))
+        #: The motion prior at the last fully matched scan (None before the first).
+        self._prior_at_match: NDArray[np.float64] | None = None
+
+    def since_match_m(self, prior: NDArray[np.float64], status: SlamStatus) -> float:
+        """Metres the motion ``prior`` moved since the last fully matched scan: how far the
+        directions a partly matched scan could not see were carried by odometry alone."""
+        if status is SlamStatus.OK or self._prior_at_match is None:
+            self._prior_at_match = np.asarray(prior, dtype=np.float64).copy()
+            return 0.0
+        return float(math.hypot(prior[0] - self._prior_at_match[0], prior[1] - self._prior_at_match[1]))
 
     def close(self) -> None:
         """Stop the background loop closer."""
@@ -258,6 +274,7 @@ class Localizer:
         prior = self.odometry_prior(frame, (x, y, yaw))
         est = self.slam.add_scan(frame.stamp_s, scan, prior)
         resets = self.jumps.update(est.pose_map, prior, est.status is SlamStatus.OK)
+        since_match_m = self.since_match_m(prior, est.status)
         stats = self.slam.stats()
         self.last_status = est.status
         px, py, pyaw = (float(v) for v in est.pose_map)
@@ -270,7 +287,8 @@ class Localizer:
                 "scans": stats.scans, "ok": stats.ok, "partial": stats.partial, "fallbacks": stats.fallbacks,
                 "consecutive_fallbacks": stats.consecutive_fallbacks, "loop_closures": stats.loop_closures,
                 "generation": stats.generation, "loop_searches_dropped": stats.loop_searches_dropped,
-                "localize_ms": ms, "resets": resets})
+                "localize_ms": ms, "resets": resets, "since_match_m": since_match_m,
+                "prior_odometry": 1.0 if self.prior_source == "odometry" else 0.0})
         return replace(frame, T_map_camera=T_map_body @ self.T_body_camera)
 
 

@@ -76,6 +76,14 @@ RESTART_DELAY_S = 1.0
 PERCEPTION_NICE = 5
 
 
+def perception_nice(cfg: CompanionConfig) -> int:
+    """The perception process's nice increment: :data:`PERCEPTION_NICE`, or 0 when the SLAM
+    runs in it (``service.localization: slam``). The SLAM thread shares the process's GIL
+    with detection and mapping; a niced thread preempted while it holds the GIL stalls the
+    SLAM for as long as it waits for a CPU, and the SLAM pose is PX4's position without GPS."""
+    return 0 if cfg.service.localization == "slam" else PERCEPTION_NICE
+
+
 @dataclass(frozen=True)
 class PerceptionUpdate:
     """What the perception process reports after a frame (or as a keep-alive).
@@ -154,7 +162,7 @@ def _child_main(conn: Connection, stop: Connection, spec: _ChildSpec) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     # When the CPU is short, the service process (setpoints, MAVLink) runs first.
     with contextlib.suppress(OSError):
-        os.nice(PERCEPTION_NICE)
+        os.nice(perception_nice(spec.cfg))
     logging.basicConfig(level=spec.log_level,
                         format="%(asctime)s %(levelname)-7s %(name)s [perception]: %(message)s")
     try:

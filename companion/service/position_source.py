@@ -20,7 +20,7 @@ from companion.mavlink.commands import CommandSender
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.params import ParamWatch
 from companion.mavlink.timesync import TimesyncConvergence
-from companion.mavlink.vision import VisionPose, VisionStream
+from companion.mavlink.vision import DEFAULT_YAW_STD_RAD, VisionPose, VisionStream
 from companion.service.localization import LocalizationState, SharedLocalization, localized_source
 from companion.service.vision_loss import (
     LAND_SPEED_PARAM,
@@ -36,8 +36,17 @@ log = logging.getLogger(__name__)
 
 #: A SLAM pose older than this is not sent to the autopilot (the camera stalled).
 VISION_MAX_AGE_S = 1.0
+#: EKF2 fuses a pose only while its delayed horizon (``EKF2_DELAY_MAX``, 200 ms by default,
+#: behind now) is less than 100 ms past the pose's stamp (its buffer's ``pop_first_older_than``):
+#: a pose older than this at sending is dropped there, so it does not count as sent here.
+FUSION_WINDOW_S = 0.3
 #: External-vision message rate (PX4 expects 30 Hz or more from a VIO).
 VISION_RATE_HZ = 30.0
+#: A pose carried by odometry whose grown 1-sigma exceeds this is not sent: beyond it the
+#: pose could no longer keep the planner's clearance from what it flies past.
+PARTIAL_MAX_STD_M = 0.25
+#: The statuses whose pose (some or all of it) the SLAM carried on its odometry prior.
+_DEAD_RECKONED = (SlamStatus.PARTIAL_ODOMETRY.value, SlamStatus.DEGENERATE_FALLBACK_ODOMETRY.value)
 
 
 class VisionPoseSource:
@@ -55,17 +64,34 @@ class VisionPoseSource:
     prediction moves the SLAM pose by that same pull, and both drift together at that
     fraction of their offset per scan (test_service_slam: a 4.5 cm offset became 0.26 m in
     eleven partly matched scans along a wall; the map then kept it). An odometry fallback
-    is not sent for the same reason."""
+    is not sent for the same reason.
+
+    That loop needs the prior to be PX4's estimate. With ``odometry_independent`` (the
+    frames' odometry is a sensor of the vehicle's own, see
+    ``link.vision_odometry_independent``) a partly matched pose built on that odometry is
+    sent, and so is a scan that matched nothing (the pose then is the last match moved by
+    that odometry, as a VIO coasts), its position 1-sigma grown by ``odometry_drift_per_m``
+    per metre since the last full match, up to :data:`PARTIAL_MAX_STD_M`: a wall that hides
+    one direction for a few seconds then costs EKF2 some confidence, not its only position
+    source. A camera that delivers nothing still stops the stream (the pose goes stale)."""
 
     def __init__(self, shared: SharedLocalization, *, max_age_s: float = 1.0, position_std_m: float | None = None,
                  yaw_std_rad: float | None = None, reset_after_gap_s: float = math.inf,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 odometry_independent: bool = False, odometry_drift_per_m: float = 0.05,
+                 fusion_window_s: float = math.inf, clock: Callable[[], float] = time.monotonic) -> None:
         self.shared = shared
         self.max_age_s = max_age_s
         self.position_std_m = position_std_m
         self.yaw_std_rad = yaw_std_rad
         self.reset_after_gap_s = reset_after_gap_s
+        self.odometry_independent = odometry_independent
+        self.odometry_drift_per_m = odometry_drift_per_m
+        self.fusion_window_s = fusion_window_s
+        #: Poses held back because they were captured too long ago for EKF2 to fuse.
+        self.too_late = 0
         self.clock = clock
+        #: Times a partly matched pose was handed out (with a grown covariance).
+        self.partial_sends = 0
         #: Returns after a gap (each bumped the reset counter).
         self.gap_resets = 0
         self._last_given_s: float | None = None
@@ -74,20 +100,52 @@ class VisionPoseSource:
     def from_config(cls, shared: SharedLocalization, cfg: CompanionConfig) -> VisionPoseSource:
         link = cfg.link
         return cls(shared, max_age_s=VISION_MAX_AGE_S, position_std_m=link.vision_position_std_m,
-                   yaw_std_rad=math.radians(link.vision_yaw_std_deg), reset_after_gap_s=link.vision_lost_hold_s)
+                   yaw_std_rad=math.radians(link.vision_yaw_std_deg), reset_after_gap_s=link.vision_lost_hold_s,
+                   odometry_independent=link.vision_odometry_independent,
+                   odometry_drift_per_m=link.vision_odometry_drift_per_m, fusion_window_s=FUSION_WINDOW_S)
+
+    def dead_reckoned_std(self, st: LocalizationState) -> tuple[float, float | None] | None:
+        """The position and yaw 1-sigma (m, rad) a pose that is not fully matched may go to
+        PX4 with; None when it may not go. A wholly dead-reckoned pose (the scan saw
+        nothing usable) grows its yaw 1-sigma too, by the drift fraction in radians per metre."""
+        if not (self.odometry_independent and st.prior_is_odometry and st.status in _DEAD_RECKONED):
+            return None
+        grown_m = self.odometry_drift_per_m * st.since_match_m
+        std = math.hypot(self.position_std_m or 0.0, grown_m)
+        if std > PARTIAL_MAX_STD_M:
+            return None
+        yaw = self.yaw_std_rad
+        if st.status == SlamStatus.DEGENERATE_FALLBACK_ODOMETRY.value:
+            yaw = math.hypot(yaw if yaw is not None else DEFAULT_YAW_STD_RAD, grown_m)
+        return std, yaw
 
     def __call__(self) -> VisionPose | None:
         st = self.shared.latest()
-        if st is None or st.status != SlamStatus.OK.value or st.age_s > self.max_age_s:
+        if st is None or st.age_s > self.max_age_s:
             return None
         now = self.clock()
+        capture_age_s = now - st.stamp_s
+        # Only a stamp on our clock can be judged (a camera on another clock: not checked).
+        if self.fusion_window_s < capture_age_s <= self.max_age_s:
+            self.too_late += 1
+            if self.too_late % 30 == 1:
+                log.warning("SLAM pose %.0f ms after its capture, past EKF2's fusion window: not sent (%d so far)",
+                            1e3 * capture_age_s, self.too_late)
+            return None
+        std, yaw_std = self.position_std_m, self.yaw_std_rad
+        if st.status != SlamStatus.OK.value:
+            grown = self.dead_reckoned_std(st)
+            if grown is None:
+                return None
+            std, yaw_std = grown
+            self.partial_sends += 1
         if self._last_given_s is not None and now - self._last_given_s >= self.reset_after_gap_s:
             self.gap_resets += 1
             log.warning("external vision back after %.1f s without a matched SLAM pose: reset counter bumped "
                         "(PX4 takes the pose as it is)", now - self._last_given_s)
         self._last_given_s = now
         return VisionPose(st.stamp_s, st.T_map_body, 100, (st.resets + self.gap_resets) & 0xFF,
-                          self.position_std_m, self.yaw_std_rad)
+                          std, yaw_std)
 
 
 def vision_pose(shared: SharedLocalization, max_age_s: float = VISION_MAX_AGE_S) -> VisionPose | None:

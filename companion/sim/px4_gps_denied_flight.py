@@ -17,6 +17,7 @@ import contextlib
 import json
 import logging
 import math
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -60,6 +61,9 @@ ORIGIN_AFTER_POSES = 20
 #: Above this height (m) the vehicle counts as airborne for the error figures.
 AIRBORNE_M = 0.3
 #: The SLAM statuses as the tracks record them (tracks.npz ``scans``).
+#: How often PX4's console is read for :data:`PX4_EVENT_LINES` (s): the time each is seen.
+PX4_LOG_PERIOD_S = 0.2
+PX4_EVENT_LINES = r"[Ff]ailsafe|[Ll]anding|vision|invalid setpoints|Disarmed"
 SCAN_STATUS_CODES = {"ok": 0, "partial_odometry": 1, "degenerate_fallback_odometry": 2, "odometry": 3}
 #: After the injected SLAM loss ends, PX4's estimate is given this long (s) to take the
 #: pose back (EKF2 restarts vision fusion, resets to it) before it is judged again.
@@ -158,8 +162,11 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     new_pose_rate: list[float] = []
     loss: dict[str, Any] = {}
     loss_window: list[float] = []  # our s: the camera stopped, and the recovery after it ended
+    px4_events: list[tuple[float, str]] = []  # our s when seen, PX4 console line (its log has no clock)
     if odometry is not None:
-        cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"camera_pose": "autopilot"})})
+        # The frames carry the sensor's odometry, which PX4's estimate does not contain.
+        cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"camera_pose": "autopilot"}),
+                                     "link": cfg.link.model_copy(update={"vision_odometry_independent": True})})
     async with SihTruth(sitl.display_url, placement, SharedSimState(), odometry) as truth:
         await asyncio.to_thread(sitl.stream_truth)
         await truth.wait_first()
@@ -226,13 +233,22 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
             loss_window.append(time.monotonic() + LOSS_RECOVERY_S)
             loss.setdefault("held", False)
 
+        async def watch_px4_log() -> None:
+            offset = len(sitl.log_text())
+            while True:
+                await asyncio.sleep(PX4_LOG_PERIOD_S)
+                text = sitl.log_text()
+                now = time.monotonic()
+                px4_events.extend((now, ln) for ln in text[offset:].splitlines() if re.search(PX4_EVENT_LINES, ln))
+                offset = len(text)
+
         async def on_active(svc: CompanionService) -> None:
             v = svc.vehicle
             assert v is not None
             truth.to_local = v.autopilot_clock.to_local
             est.attach(v.link)
             truth.follow_estimate(v.link, v.cfg.target_system)
-            tasks = [set_origin_until_home(svc, origin), sample_slam(), sample_uorb()]
+            tasks = [set_origin_until_home(svc, origin), sample_slam(), sample_uorb(), watch_px4_log()]
             if slam_loss_s > 0.0:
                 tasks.append(lose_slam())
             await asyncio.gather(*tasks)
@@ -267,6 +283,9 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     if slam_loss_s > 0.0:
         if loss_window:
             loss.update(landing_after_loss(truth.samples, loss_window[0]))
+            # When PX4 said what, counted from the camera's stop (within a poll period).
+            loss["px4_events_after_loss_s"] = [(round(t - loss_window[0], 1), ln.strip())
+                                               for t, ln in px4_events if t >= loss_window[0]]
         summary["slam_loss"] = {"seconds": slam_loss_s, **loss}
     summary["px4_log_events"] = sitl.log_lines_since(0, r"WARN|ERROR|Armed|Disarmed|[Ll]anding|[Tt]akeoff|"
                                                         r"[Ff]ailsafe|[Oo]ffboard|vision|EV |reset")[-40:]

@@ -125,3 +125,67 @@ def test_the_slam_thread_does_not_yield_with_the_niced_perception_process() -> N
     t.start()
     t.join()
     assert seen == [parent]
+
+
+def _partial(since_match_m: float, prior_odometry: bool = True,
+             status: SlamStatus = SlamStatus.PARTIAL_ODOMETRY) -> SharedLocalization:
+    shared = SharedLocalization()
+    shared.publish({"stamp_s": 3.0, "x_m": 1.0, "y_m": 2.0, "status": _STATUS_CODES[status],
+                    "since_match_m": since_match_m, "prior_odometry": 1.0 if prior_odometry else 0.0})
+    return shared
+
+
+def test_a_partial_pose_on_an_independent_odometry_goes_with_a_grown_error() -> None:
+    source = VisionPoseSource(_partial(2.0), position_std_m=0.05, odometry_independent=True,
+                              odometry_drift_per_m=0.05)
+    pose = source()
+    assert pose is not None and pose.stamp_s == 3.0
+    assert pose.position_std_m == pytest.approx(math.hypot(0.05, 0.10))
+    assert source.partial_sends == 1
+
+
+def test_a_partial_pose_is_held_back_unless_its_odometry_is_the_vehicles_own() -> None:
+    # The default: the odometry may be PX4's own velocity, which the vision corrected.
+    assert VisionPoseSource(_partial(0.5), position_std_m=0.05)() is None
+    # Switched on, but this prior is the autopilot's estimate (frames without odometry).
+    assert VisionPoseSource(_partial(0.5, prior_odometry=False), position_std_m=0.05,
+                            odometry_independent=True)() is None
+
+
+def test_a_partial_pose_carried_too_far_by_odometry_stops() -> None:
+    source = VisionPoseSource(_partial(10.0), position_std_m=0.05, odometry_independent=True,
+                              odometry_drift_per_m=0.05)
+    assert source() is None
+
+
+def test_a_scan_that_matched_nothing_is_dead_reckoned_on_an_independent_odometry() -> None:
+    source = VisionPoseSource(_partial(1.0, status=SlamStatus.DEGENERATE_FALLBACK_ODOMETRY), position_std_m=0.05,
+                              yaw_std_rad=0.03, odometry_independent=True, odometry_drift_per_m=0.05)
+    pose = source()
+    assert pose is not None
+    assert pose.position_std_m == pytest.approx(math.hypot(0.05, 0.05))
+    assert pose.yaw_std_rad == pytest.approx(math.hypot(0.03, 0.05))
+    # The configured pure-odometry mode is no SLAM pose at all.
+    assert VisionPoseSource(_partial(0.0, status=SlamStatus.ODOMETRY), position_std_m=0.05,
+                            odometry_independent=True)() is None
+
+
+def test_a_pose_too_old_for_ekf2_to_fuse_is_not_sent() -> None:
+    # Captured at 3.0 s: at 3.25 s it is inside EKF2's fusion window, at 3.4 s past it
+    # (PX4 drops it, so the loss guard must not count it as sent).
+    now = [3.25]
+    shared = _partial(0.0, status=SlamStatus.OK)
+    source = VisionPoseSource(shared, position_std_m=0.05, fusion_window_s=0.3, clock=lambda: now[0])
+    assert source() is not None
+    now[0] = 3.4
+    assert source() is None and source.too_late == 1
+
+
+def test_the_perception_process_is_niced_only_without_the_slam_in_it() -> None:
+    from companion.config import CompanionConfig
+    from companion.service.perception_process import PERCEPTION_NICE, perception_nice
+
+    cfg = CompanionConfig()
+    assert perception_nice(cfg) == PERCEPTION_NICE
+    slam = cfg.model_copy(update={"service": cfg.service.model_copy(update={"localization": "slam"})})
+    assert perception_nice(slam) == 0

@@ -23,6 +23,7 @@ from companion.service.perception_worker import check_frame, new_semantic_map
 from companion.sim.sim_world import SharedSimState
 from semmap.errors import FrameError
 from semmap.frames import pose_from_xyz_rpy
+from semmap.slam import SlamStatus
 from semmap.types import CameraIntrinsics, Frame
 
 HOME = HomePosition(47.397742, 8.545594, 488.0, (0.0, 0.0, 0.0))
@@ -147,6 +148,18 @@ def test_slam_motion_prior_is_the_odometry_anchored_on_the_estimate_and_never_th
         assert loc.prior_source == "estimate"
         p3 = loc.odometry_prior(frame(3, None), (1.7, 2.3, 0.1))
         np.testing.assert_allclose(p3, [1.6, 2.0, 0.1], atol=1e-12)
+    finally:
+        loc.close()
+
+
+def test_the_distance_since_the_last_full_match_follows_the_prior_and_restarts_on_a_match() -> None:
+    loc = Localizer(CompanionConfig(), CompanionConfig().camera.intrinsics())
+    try:
+        assert loc.since_match_m(np.array([0.0, 0.0, 0.0]), SlamStatus.OK) == 0.0
+        assert loc.since_match_m(np.array([0.3, 0.4, 0.2]), SlamStatus.PARTIAL_ODOMETRY) == pytest.approx(0.5)
+        assert loc.since_match_m(np.array([0.6, 0.8, 0.2]), SlamStatus.PARTIAL_ODOMETRY) == pytest.approx(1.0)
+        assert loc.since_match_m(np.array([0.6, 0.9, 0.2]), SlamStatus.OK) == 0.0
+        assert loc.since_match_m(np.array([0.6, 1.1, 0.2]), SlamStatus.PARTIAL_ODOMETRY) == pytest.approx(0.2)
     finally:
         loc.close()
 
