@@ -34,6 +34,7 @@ from semmap.box_points import BoxPoints, box_points
 from semmap.clustering import euclidean_clusters, voxel_downsample
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform, invert
+from semmap.noise_bridges import dense_parts
 from semmap.pointcloud import CLEARANCE_ROW, HEIGHT_ROW, PIXEL_U_ROW, RANGE_ROW, valid_depth_mask
 from semmap.polygons import convex_footprint, simplify_polygon
 from semmap.ransac import Plane, fit_plane
@@ -304,6 +305,13 @@ def object_in_box(
     best = _choose_cluster(clusters, tab, box.window_px, class_cfg, params, floor, cluster_by, same_object_as_m,
                            shape_prior)
     obj_idx = np.flatnonzero(clusters.vox_label == best)
+    if (cluster_by == "box" and clusters.eps_m > params.cluster_distance_m
+            and len(obj_idx) >= 2 * params.min_cluster_points
+            and (not shape_prior or (class_cfg.shape == "free" and class_cfg.hollow == "none"))):
+        # A distance grown with range also spans the depth noise in the gap to a neighbour. Only
+        # for solid objects without a shape prior (a sofa): a chair's thin back is as sparse as
+        # that noise, and a table's pick weighs its top, not the nearest part.
+        obj_idx = _unbridged(obj_idx, clusters, tab, box.window_px, params, same_object_as_m)
     if shape_prior and class_cfg.shape != "free":
         part = _this_objects_part(clusters, obj_idx, class_cfg, params, floor)
         if part is None:
@@ -401,6 +409,38 @@ def _choose_cluster(
     if shape_prior and class_cfg.shape == "table" and len(candidates) > 1:
         return _widest_top(vox, vox_label, floor.signed_distance_m(vox), candidates, class_cfg, params)
     return candidates[0]
+
+
+def _unbridged(
+    obj_idx: NDArray[np.int64], clusters: _Clusters, tab: NDArray[np.float64], window: tuple[int, int, int, int],
+    params: GeometryConfig, same_object_as_m: NDArray[np.float64] | None,
+) -> NDArray[np.int64]:
+    """The chosen cluster's voxels ``obj_idx`` less what noise in a gap joined to them: of its
+    dense parts (:func:`semmap.noise_bridges.dense_parts`) the one holding most of
+    ``same_object_as_m``, else :func:`_pick_cluster`'s (a sofa's, not the coffee table's in
+    front of its lower half). One part: the cluster as it was."""
+    vox = clusters.vox
+    parts = dense_parts(vox[obj_idx], clusters.eps_m)
+    if parts.max(initial=-1) < 1:
+        return obj_idx
+    if same_object_as_m is not None and len(same_object_as_m):
+        ours = in_sorted(voxel_keys(vox[obj_idx], params.voxel_size_m),
+                         np.sort(voxel_keys(same_object_as_m, params.voxel_size_m)))
+        held = np.bincount(parts[ours & (parts >= 0)], minlength=int(parts.max()) + 1)
+        return obj_idx[parts == int(np.argmax(held))]
+    part_of_vox = np.full(len(vox), -1, dtype=np.int64)
+    part_of_vox[obj_idx] = parts
+    point_part = part_of_vox[clusters.inverse]
+    on = point_part >= 0
+    range_m = tab[RANGE_ROW]
+    chosen = _pick_cluster(point_part[on], range_m[on], tab[PIXEL_U_ROW:].T.astype(np.int64)[on], window,
+                           params.cluster_min_pixel_frac, params.cluster_min_box_cover)[0]
+    # Only what stands in front of the object is another one; parts behind stay its own.
+    med = np.array([np.median(range_m[point_part == k]) if np.any(point_part == k) else -np.inf
+                    for k in range(int(parts.max()) + 1)])
+    if np.any(med > med[chosen]):
+        return obj_idx
+    return obj_idx[parts == chosen]
 
 
 def _this_objects_part(
