@@ -32,6 +32,10 @@ SMALL: dict[str, Any] = {
 }
 
 
+#: How far a mapped object's centre may lie from the true footprint with exact poses.
+OBJECT_MAP_ERROR_M = 0.25
+
+
 def test_frames_without_a_pose_are_posed_from_telemetry_and_the_mission_is_mapped(tmp_path: Path) -> None:
     path = tmp_path / "cfg.yaml"
     path.write_text(yaml.safe_dump(SMALL))
@@ -44,12 +48,16 @@ def test_frames_without_a_pose_are_posed_from_telemetry_and_the_mission_is_mappe
     # Only the frames read before the link brought the first telemetry go unposed.
     assert frames["processed"] > 100, frames
     assert 0 < frames["unposed"] < 0.05 * frames["processed"], frames
-    # Each mapped object lies on a piece of the room's furniture: the poses are right.
+    # The mapped objects lie on the room's furniture, as with posed frames: most centres on a
+    # footprint, none further off than the object map's own error (bench/mapping.py, position
+    # p95 about 0.2 m; a rotated desk's centre lands up to 0.18 m off with exact poses). Frames
+    # posed at the wrong time or place would shift them all. Pose accuracy in centimetres and
+    # tenths of a degree is bench/frame_pose.py's figure.
     room = room_from_config(cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": s["seed"]})}))
     # Mapped centres (map frame) in the room frame: xy_room = xy_map + offset.
     offset = np.asarray(s["room_offset_xy_m"])
     assert len(s["objects_found"]) >= 3, s["objects_found"]
-    for obj in s["objects_found"]:
-        xy_room = np.asarray(obj["center_xy_m"]) + offset
-        gap = min(float(o.footprint_distance_m(xy_room)[0]) for o in room.objects)
-        assert gap < 0.15, (obj, gap)
+    gaps = {obj["id"]: min(float(o.footprint_distance_m(np.asarray(obj["center_xy_m"]) + offset)[0])
+                           for o in room.objects) for obj in s["objects_found"]}
+    assert max(gaps.values()) < OBJECT_MAP_ERROR_M, (gaps, s["objects_found"])
+    assert float(np.median(list(gaps.values()))) < 0.05, (gaps, s["objects_found"])
