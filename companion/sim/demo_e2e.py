@@ -58,10 +58,6 @@ MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 LANDING_TIMEOUT_S = 30.0
 #: Planning time for each candidate leg when a mission is chosen on the true map.
 SETUP_PLAN_TIME_LIMIT_S = 10.0
-#: The object map's error a mission must leave room for (metres): bench/mapping.py's position
-#: error p95 in realistic rooms. A passage only that much wider than the vehicle and its margins
-#: is flyable on a perfect map, not on ours, and the mission would hold at it.
-MISSION_MAP_TOLERANCE_M = 0.2
 
 
 @dataclass
@@ -168,15 +164,13 @@ def crossing_waypoints_room(placement: SimPlacement, cfg: CompanionConfig) -> li
     free = cand[ok, :2]
     order = np.argsort(np.linalg.norm(free - mid_target, axis=1))
     # Choosing a mission is set-up, not flight: a loaded machine must not make a room infeasible.
-    planner = ground_truth_planner(room, cfg, tolerance_m=MISSION_MAP_TOLERANCE_M, clutter_as_objects=True,
-                                   time_limit_s=max(cfg.planner.time_limit_s, SETUP_PLAN_TIME_LIMIT_S))
+    planner = ground_truth_planner(room, cfg, time_limit_s=max(cfg.planner.time_limit_s, SETUP_PLAN_TIME_LIMIT_S))
     goal_xy = (float(goal[0]), float(goal[1]))
     start_xy = (float(start[0]), float(start[1]))
     best: tuple[int, tuple[float, float]] | None = None
     for k in order[:90:3]:
         mid = (float(free[k, 0]), float(free[k, 1]))
-        # Our planner, with the class margins, has a path through it on the true semantic map
-        # with every footprint as wrong as the object map's p95 error.
+        # Our planner, with the class margins, has a path through it on the true semantic map.
         if not (planner.plan(start, mid).ok and planner.plan(mid, goal).ok):
             continue
         # Prefer waypoints whose straight legs run into furniture: the planner must go around.

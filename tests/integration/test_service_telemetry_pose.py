@@ -50,8 +50,7 @@ def test_frames_without_a_pose_are_posed_from_telemetry_and_the_mission_is_mappe
     assert 0 < frames["unposed"] < 0.05 * frames["processed"], frames
     # The mapped objects lie on the room's furniture, as with posed frames: most centres on a
     # footprint, none further off than the object map's own error (bench/mapping.py, position
-    # p95 about 0.2 m; a rotated desk's centre lands up to 0.18 m off with exact poses). Frames
-    # posed at the wrong time or place would shift them all. Pose accuracy in centimetres and
+    # p95 about 0.2 m). Frames posed at the wrong time or place would shift them all. Pose accuracy in centimetres and
     # tenths of a degree is bench/frame_pose.py's figure.
     room = room_from_config(cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": s["seed"]})}))
     # Mapped centres (map frame) in the room frame: xy_room = xy_map + offset.
