@@ -35,6 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--class-weights", default="",
                    help="relative class frequencies of the rooms, e.g. conference_table=2,sofa=1.5 "
                    "(classes left out keep the world's defaults; training data)")
+    p.add_argument("--layout", choices=("realistic", "scattered"), default=None,
+                   help="room layout (default: the config's sim.layout)")
     p.add_argument("--config", default=None, help="config file for classes and camera intrinsics")
     p.set_defaults(func=_run)
 
@@ -62,6 +64,7 @@ def _run(args: argparse.Namespace) -> int:
         min_visible_px=args.min_visible_px, motion_blur_fraction=args.motion_blur_fraction,
         aim_class_balanced=args.aim_class_balanced,
         class_weights=_class_weights(args.class_weights, names),
+        layout=args.layout or cfg.sim.layout,
     )
     t0 = time.perf_counter()
     counts = write_dataset(spec, args.out, room_start=args.room_start)
