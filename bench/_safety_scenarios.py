@@ -32,7 +32,6 @@ from companion.config import CompanionConfig
 from companion.sim.groundtruth import clearance_m, ground_truth_planner
 from companion.sim.world import Room, generate_room
 from planner.planner import Planner
-from semmap.costmap import VerticalBand
 
 #: Classes a depth slice sees only the legs (or posts, pedestal) of.
 HOLLOW_CLASSES = ("chair", "coffee_table", "conference_table", "desk", "whiteboard")
@@ -61,12 +60,6 @@ class Scenario:
         return math.dist(self.start_xy_m, self.goal_xy_m)
 
 
-def band_at(cfg: CompanionConfig, altitude_m: float) -> VerticalBand:
-    """The planner's vertical band at ``altitude_m`` (vehicle height and vertical margin)."""
-    p = cfg.planner
-    return VerticalBand.for_altitude(altitude_m, p.vehicle_height_m, p.vertical_margin_m)
-
-
 def _polygon_distance_m(poly: NDArray[np.float64], xy: NDArray[np.float64]) -> NDArray[np.float64]:
     """(N,) signed distance of points to a polygon (negative inside)."""
     c = poly.astype(np.float32)
@@ -85,7 +78,7 @@ def pick_scenario(index: int, room: Room, cfg: CompanionConfig, altitude_m: floa
                   tries: int = 600) -> Scenario | None:
     """A start and goal in ``room`` for ``kind`` at ``altitude_m`` (see the module doc), or None."""
     p = cfg.planner
-    band = band_at(cfg, altitude_m)
+    band = cfg.planner.band_at(altitude_m)
     margins = {c.name: c.margin_m for c in cfg.classes}
     hollow = [o for o in room.objects if o.class_name in HOLLOW_CLASSES]
     if kind == "blocking":

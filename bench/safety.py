@@ -47,7 +47,7 @@ sys.path.insert(0, str(REPO))
 from bench._judge import FlightVerdict, judge_flight, side_clearance_m  # noqa: E402
 from bench._safety_loop import FlightLog, LockstepFlight  # noqa: E402
 from bench._safety_plots import clearance_histogram, example_room, rates_chart  # noqa: E402
-from bench._safety_scenarios import Scenario, band_at, make_scenarios  # noqa: E402
+from bench._safety_scenarios import Scenario, make_scenarios  # noqa: E402
 from companion.config import CompanionConfig, load_config  # noqa: E402
 from companion.sim.groundtruth import densify  # noqa: E402
 from companion.sim.render import renderer_from_config  # noqa: E402
@@ -396,7 +396,7 @@ def write_pictures(out: Path, cfg: CompanionConfig, fig: dict[str, Any], records
     if kept:
         best = max(kept.values(), key=score)
         sc = best["scenario"]
-        band = band_at(cfg, sc.altitude_m)
+        band = cfg.planner.band_at(sc.altitude_m)
         slice_band = VerticalBand(sc.altitude_m - fig["config"]["metric_slice_m"] / 2,
                                   sc.altitude_m + fig["config"]["metric_slice_m"] / 2)
         title = (f"room seed {sc.room.seed} at {sc.altitude_m} m: metric-only "

@@ -33,7 +33,6 @@ from numpy.typing import NDArray
 
 from companion.config import CompanionConfig, write_effective_config
 from companion.sources.recorded import RecordedFrameSource
-from semmap.costmap import VerticalBand
 from semmap.detection import Detector, detector_from_config
 from semmap.detection.builtin import detector_vote_groups, vote_groups
 from semmap.errors import ConfigError, DataError, FrameError, MapError
@@ -199,8 +198,7 @@ def build_offline_map(
 
     T_map_world = (estimate_map_alignment(source, depth_range, opts.floor_sample_frames)
                    if opts.align_floor else np.eye(4))
-    p = cfg.planner
-    band = VerticalBand.for_altitude(p.flight_altitude_m, p.vehicle_height_m, p.vertical_margin_m)
+    band = cfg.planner.band_at()
     settings = SemanticMapSettings.from_config(cfg.map, cfg.classes, band, *depth_range)
     groups = (vote_groups(detections_class_map(class_names, cfg.detector.class_map)) if detections is not None
               else detector_vote_groups(cfg.detector, class_names, real_camera=True))

@@ -7,6 +7,7 @@ from typing import ClassVar, Literal
 from pydantic import Field, model_validator
 
 from semmap.config import StageConfig
+from semmap.costmap import VerticalBand
 
 
 class PlannerConfig(StageConfig):
@@ -85,3 +86,9 @@ class PlannerConfig(StageConfig):
                 f"({self.max_altitude_m}): every goal at the flight altitude would be refused"
             )
         return self
+
+    def band_at(self, altitude_m: float | None = None) -> VerticalBand:
+        """The heights the vehicle occupies at ``altitude_m`` (default: the flight altitude),
+        grown by the vertical margin: an object blocks when it reaches into this band."""
+        altitude = self.flight_altitude_m if altitude_m is None else float(altitude_m)
+        return VerticalBand.for_altitude(altitude, self.vehicle_height_m, self.vertical_margin_m)

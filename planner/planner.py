@@ -68,8 +68,7 @@ class Planner:
     @property
     def band(self) -> VerticalBand:
         """The vehicle's vertical band at the configured flight altitude."""
-        c = self.config
-        return VerticalBand.for_altitude(c.flight_altitude_m, c.vehicle_height_m, c.vertical_margin_m)
+        return self.config.band_at()
 
     @property
     def cspace(self) -> CSpace:

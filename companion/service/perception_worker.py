@@ -35,8 +35,7 @@ log = logging.getLogger(__name__)
 
 def flight_band(cfg: CompanionConfig) -> VerticalBand:
     """The vertical band the vehicle occupies at the planner's flight altitude."""
-    p = cfg.planner
-    return VerticalBand.for_altitude(p.flight_altitude_m, p.vehicle_height_m, p.vertical_margin_m)
+    return cfg.planner.band_at()
 
 
 def semantic_map_settings(cfg: CompanionConfig) -> SemanticMapSettings:

@@ -28,7 +28,7 @@ from companion.sim.render import RoomRenderer, renderer_from_config
 from companion.sim.trajectory import Trajectory, check_clearance, doorway_transit
 from companion.sim.world import Room
 from companion.sources.sim import SimFrameSource, room_from_config
-from semmap.costmap import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION, Costmap, VerticalBand
+from semmap.costmap import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION, Costmap
 from semmap.types import Frame
 
 log = logging.getLogger(__name__)
@@ -178,8 +178,7 @@ def ground_truth_map_picture(
     names = [c.name for c in cfg.classes]
     colors = [c.color_rgb for c in cfg.classes]
     spec = room_grid_spec(room, cfg.map.resolution_m)
-    band = VerticalBand.for_altitude(world.altitude_m, cfg.planner.vehicle_height_m,
-                                     cfg.planner.vertical_margin_m)
+    band = cfg.planner.band_at(world.altitude_m)
     sem = semantic_costmap(room, spec, band, class_names=names)
     met = metric_costmap(room, spec, world.altitude_m)
     panels = []

@@ -6,7 +6,6 @@ against the primitives (oriented boxes), not against a rasterised grid.
 
 from __future__ import annotations
 
-import dataclasses
 from collections import deque
 from collections.abc import Mapping
 
@@ -94,26 +93,20 @@ def semantic_costmap(
 
 
 def ground_truth_planner(room: Room, cfg: CompanionConfig, *, altitude_m: float | None = None,
-                         tolerance_m: float = 0.0, clutter_as_objects: bool = False,
+                         tolerance_m: float = 0.0,
                          time_limit_s: float | None = None) -> Planner:
     """The configured planner on the room's ideal semantic costmap (room frame, the room as
     geofence, objects with their class margins): what a perfect map would allow.
 
     ``tolerance_m``: every object's margin grows by it and the band by it above and below, as a
-    map of that accuracy could show them. ``clutter_as_objects``: clutter that reaches the band
-    (a floor lamp, a shelf) blocks with its whole footprint and the largest class margin, since
-    the detector may map it as any of our classes; without it only its slice at the band blocks.
+    map of that accuracy could show them. Clutter (a floor lamp, a shelf) blocks with its
+    slice at the band only: it is none of our classes.
     """
     p = cfg.planner
     altitude = p.flight_altitude_m if altitude_m is None else float(altitude_m)
     margins = {c.name: c.margin_m + tolerance_m for c in cfg.classes}
-    band = VerticalBand.for_altitude(altitude, p.vehicle_height_m, p.vertical_margin_m)
+    band = p.band_at(altitude)
     band = VerticalBand(band.z_min_m - tolerance_m, band.z_max_m + tolerance_m)
-    if clutter_as_objects:
-        tall = tuple(c for c in room.clutter if band.intersects(*c.z_range_m))
-        widest = max((c.margin_m for c in cfg.classes), default=0.0) + tolerance_m
-        margins.update({c.class_name: widest for c in tall})
-        room = dataclasses.replace(room, objects=(*room.objects, *tall))
     spec = room_grid_spec(room, cfg.map.resolution_m)
     cm = semantic_costmap(room, spec, band, [c.name for c in cfg.classes], margins)
     update: dict[str, object] = {"flight_altitude_m": altitude, "refine_with_ompl": False,

@@ -1,6 +1,5 @@
 """The planner on a room's true map (companion/sim/groundtruth.py): what a mission or a
-safety scenario may ask of our map, allowing for the map's error and for clutter the detector
-may map as furniture."""
+safety scenario may ask of our map, allowing for the map's error."""
 
 from __future__ import annotations
 
@@ -51,7 +50,7 @@ def test_a_passage_a_perfect_map_allows_is_refused_with_the_map_error_allowed_fo
     assert not ground_truth_planner(room, cfg, tolerance_m=0.2).plan((3.0, 0.7), (3.0, 3.3)).ok
 
 
-def test_a_floor_lamp_blocks_with_its_base_only_as_an_object() -> None:
+def test_a_floor_lamp_blocks_with_its_pole_only() -> None:
     cfg = _cfg()
     room = _room(3.0, clutter=(_floor_lamp(3.0, 1.0),))
     keep_m = max(c.margin_m for c in cfg.classes) + cfg.planner.vehicle_radius_m
@@ -61,13 +60,9 @@ def test_a_floor_lamp_blocks_with_its_base_only_as_an_object() -> None:
         return float(np.hypot(np.maximum(np.abs(pts[:, 0] - 3.0) - 0.2, 0.0),
                               np.maximum(np.abs(pts[:, 1] - 1.0) - 0.2, 0.0)).min())
 
-    # Its pole at the band is 3 cm wide: the true map lets the vehicle pass over its base...
+    # Its pole at the band is 3 cm wide: the true map lets the vehicle pass over its base.
     plain = ground_truth_planner(room, cfg).plan((2.0, 0.5), (4.0, 1.5))
     assert plain.ok and closest_to_base_m(plain.path_xy_m) < keep_m - 0.1
-    # ...but a detector may call the lamp furniture, and the map then blocks its whole base
-    # with the largest class margin.
-    as_object = ground_truth_planner(room, cfg, clutter_as_objects=True).plan((2.0, 0.5), (4.0, 1.5))
-    assert as_object.ok and closest_to_base_m(as_object.path_xy_m) >= keep_m - cfg.map.resolution_m
 
 
 def test_clutter_below_the_band_stays_as_it_is() -> None:
@@ -75,4 +70,4 @@ def test_clutter_below_the_band_stays_as_it_is() -> None:
     rug = FurnitureObject(-2, "boxes", (3.0, 1.0), 0.0, (1.0, 1.0, 0.1),
                           (Box((3.0, 1.0, 0.05), (1.0, 1.0, 0.1)),), (100, 100, 100))
     room = _room(3.0, clutter=(rug,))
-    assert ground_truth_planner(room, cfg, clutter_as_objects=True).plan((3.0, 0.3), (3.0, 1.6)).ok
+    assert ground_truth_planner(room, cfg).plan((3.0, 0.3), (3.0, 1.6)).ok
