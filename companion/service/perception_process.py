@@ -38,6 +38,7 @@ from multiprocessing.connection import Connection
 from types import TracebackType
 from typing import Literal
 
+from companion.background import TASK_STOP_TIMEOUT_S, stop_tasks
 from companion.config import CompanionConfig
 from companion.service.checkpoint import Checkpointer, checkpoint_path, restore_map
 from companion.service.perception_worker import (
@@ -384,9 +385,7 @@ class PerceptionProcess:
     async def _shutdown(self) -> None:
         self._stopping = True
         if self._supervisor is not None:
-            self._supervisor.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._supervisor
+            await stop_tasks([self._supervisor], TASK_STOP_TIMEOUT_S, "stopping the perception supervisor")
             self._supervisor = None
         child, self._child = self._child, None
         if child is not None:
@@ -394,8 +393,7 @@ class PerceptionProcess:
             await self._stop_child(child, kill=not child.ready.is_set())
 
     async def _stop_child(self, child: _Child, *, kill: bool) -> None:
-        """Stop one child: closing the stop pipe never blocks, whether the child lives or not
-        (it saves the map and exits); ``kill`` does not wait for that."""
+        """Stop one child (the stop pipe's close never blocks; it saves the map); ``kill``: at once."""
         proc = child.proc
         proc.request_stop()
         if kill and proc.is_alive():
@@ -480,6 +478,10 @@ class PerceptionProcess:
     @property
     def running(self) -> bool:
         return self._child is not None and self._child.ready.is_set() and self._child.proc.is_alive()
+
+    @property
+    def worker(self) -> WorkerProcess | None:  # the child now (for a stop's diagnostics)
+        return self._child.proc if self._child is not None else None
 
     def is_fresh(self) -> bool:
         """True while frames keep being integrated (within ``map.stale_after_s``)."""
