@@ -62,7 +62,7 @@ class BackgroundTasks:
 TASK_STOP_TIMEOUT_S = 5.0
 #: A task that has not ended is cancelled again this often: one that swallowed a cancellation
 #: (a ``suppress(CancelledError)`` around an await) usually ends on the next.
-RECANCEL_PERIOD_S = 0.5
+RECANCEL_PERIOD_S = 1.0
 
 
 def task_stack(task: asyncio.Task[Any]) -> str:
@@ -94,3 +94,13 @@ async def stop_tasks(tasks: Iterable[asyncio.Task[Any]], timeout_s: float, what:
         log.error("%s: task %r did not end within %.1f s of being cancelled; it is left running at:\n%s",
                   what, task.get_name(), timeout_s, task_stack(task))
     return stuck
+
+
+async def end_task(task: asyncio.Task[Any] | None, what: str, timeout_s: float = TASK_STOP_TIMEOUT_S) -> None:
+    """Cancel a part's loop and wait (bounded, :func:`stop_tasks`) for it to end; raises what
+    the loop raised other than its cancellation."""
+    if task is None:
+        return
+    await stop_tasks([task], timeout_s, what)
+    if task.done() and not task.cancelled() and task.exception() is not None:
+        raise task.exception()  # type: ignore[misc]

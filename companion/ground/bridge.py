@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from paho.mqtt.subscribeoptions import SubscribeOptions
 from pydantic import BaseModel, ValidationError
 
+from companion.background import end_task
 from companion.config import CompanionConfig, MqttConfig
 from companion.errors import GroundLinkError
 from companion.ground import connection
@@ -176,12 +177,9 @@ class MqttBridge:
                 )
             except (aiomqtt.MqttError, asyncio.TimeoutError) as err:
                 self._log.warning("ground link: could not publish offline: %s", err)
-        for task in self._tasks:
-            task.cancel()
-        for task in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-        self._tasks = []
+        tasks, self._tasks = self._tasks, []
+        for task in tasks:
+            await end_task(task, f"the ground link's {task.get_name()} loop")
 
     @property
     def connected(self) -> bool:

@@ -205,8 +205,9 @@ class CompanionService:
         log.info("service configured (%s map)", "restored" if self.restored else "new")
 
     async def run(self, stop: asyncio.Event) -> ServiceReport:
-        """Activate, run until ``stop`` is set (or the mission ends when ``fly_mission``),
-        deactivate. Returns the run's report."""
+        """Activate, run until ``stop`` is set (a caller that flies one mission sets it once
+        :attr:`mission_done` is) or one of the service's loops fails, deactivate. Returns the
+        run's report; a loop's failure is raised once the service has stopped."""
         if self.state != "configured":
             self.configure()
         assert self.smap is not None
@@ -245,61 +246,73 @@ class CompanionService:
         dump_state(why, self._workers)
 
     async def _run_parts(self, stop: asyncio.Event, perception: PerceptionProcess, watch: ShutdownWatch) -> None:
-        """Open every part under one exit stack, serve until ``stop``, close them (each close bounded)."""
+        """Open every part under one exit stack, serve until ``stop``, close them (each close
+        bounded); ``watch`` is armed before they close, however the run ends."""
+        async with contextlib.AsyncExitStack() as stack:
+            try:
+                await self._open_and_serve(stack, stop, perception, watch)
+            finally:
+                watch.arm()
+
+    async def _open_and_serve(self, stack: contextlib.AsyncExitStack, stop: asyncio.Event,
+                              perception: PerceptionProcess, watch: ShutdownWatch) -> None:
         cfg = self.cfg
         loc = self.localization
         assert self.smap is not None
-        async with contextlib.AsyncExitStack() as stack:
-            planning = self.planning = PlanningService(cfg.planner)
-            await asyncio.to_thread(planning.start)
-            # Joining the worker waits up to seconds: off the loop (MQTT and the link stay served).
-            stack.push_async_callback(self._close_planning, planning)
-            await stack.enter_async_context(self._bounded(perception, "the perception process",
-                                                          PERCEPTION_CLOSE_TIMEOUT_S))
-            # OBSTACLE_DISTANCE from the flight-band costmap lets PX4's collision prevention
-            # (CP_DIST) stop the vehicle short of what the map holds, whoever flies it.
-            self.vehicle = await stack.enter_async_context(self._bounded(
-                Vehicle(cfg.link, is_map_fresh=perception.is_fresh, is_pose_fresh=self._pose_fresh,
-                        obstacle_source=self._obstacle_input), "the MAVLink vehicle"))
-            recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component,
-                                             remote_to_local=self.vehicle.autopilot_clock.to_local,
-                                             map_frame=lambda: self.vehicle.snapshot().map_frame if self.vehicle else None)
-            stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
-            await stack.enter_async_context(self._bounded(loc.vision_stream(self.vehicle.link), "the vision stream"))
-            vehicle = self.vehicle
-            missions = self.missions
-            guard = loc.loss_guard(vehicle.link, lambda: vehicle.snapshot().in_air,
-                                   lambda: missions.land_here("the SLAM pose (PX4's position source) is lost"),
-                                   height_m=lambda: vehicle.snapshot().height_above_floor_m)
-            flight_log = await stack.enter_async_context(
-                self._bounded(FlightLog(self.out_dir / "flight_log.csv", self.vehicle), "the flight log"))
-            self.ground = await stack.enter_async_context(self._bounded(MqttBridge.from_config(cfg), "the MQTT bridge"))
-            self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,
-                                        on_path=missions.on_path, capture_time=perception.capture_time)
-            missions.bind(self.vehicle, self.runner, self.ground)
-            status = self.status = StatusPublisher(cfg, self.vehicle, self.ground, perception, self.runner, loc,
-                                                   self.notifier, state=lambda: self.state, map_spec=self.smap.spec,
-                                                   started_at=self._t0)
-            status.update_goal_fence()
-            watchdog = await stack.enter_async_context(self._bounded(Watchdog(self.notifier), "the systemd watchdog"))
-            watchdog.register("status-loop", 5.0)
-            # A hung perception process (or camera) stops the pings: systemd restarts us.
-            watchdog.register("perception", PERCEPTION_SILENCE_S)
-            perception.on_frame = lambda: watchdog.alive("perception")
-            perception.on_failed = lambda: self._background(missions.land_here("perception is gone", lost=True),
-                                                            "perception-lost")
-            self.state = "active"
-            self.notifier.ready("active")
-            log.info("service active")
-            try:
-                await self._serve_until_stopped(stop, status, watchdog, guard, watch)
-            finally:
-                self.state = "stopped"
-                self.report.flight_log_rows = flight_log.rows
-                self.report.mission_error = missions.error
-                if self.runner is not None:
-                    self.report.legs = list(self.runner.reports)
-                    self.report.plan_ms = [ms for r in self.runner.reports for ms in r.plan_ms]
+        planning = self.planning = PlanningService(cfg.planner)
+        await asyncio.to_thread(planning.start)
+        # Joining the worker waits up to seconds: off the loop (MQTT and the link stay served).
+        stack.push_async_callback(self._close_planning, planning)
+        await stack.enter_async_context(BoundedExit(perception, PERCEPTION_CLOSE_TIMEOUT_S, "the perception process",
+                                                    on_overrun=self._perception_overran))
+        # OBSTACLE_DISTANCE from the flight-band costmap lets PX4's collision prevention
+        # (CP_DIST) stop the vehicle short of what the map holds, whoever flies it.
+        self.vehicle = await stack.enter_async_context(self._bounded(
+            Vehicle(cfg.link, is_map_fresh=perception.is_fresh, is_pose_fresh=self._pose_fresh,
+                    obstacle_source=self._obstacle_input), "the MAVLink vehicle"))
+        recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component,
+                                         remote_to_local=self.vehicle.autopilot_clock.to_local,
+                                         map_frame=lambda: self.vehicle.snapshot().map_frame if self.vehicle else None)
+        stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
+        await stack.enter_async_context(self._bounded(loc.vision_stream(self.vehicle.link), "the vision stream"))
+        vehicle = self.vehicle
+        missions = self.missions
+        guard = loc.loss_guard(vehicle.link, lambda: vehicle.snapshot().in_air,
+                               lambda: missions.land_here("the SLAM pose (PX4's position source) is lost"),
+                               height_m=lambda: vehicle.snapshot().height_above_floor_m)
+        flight_log = await stack.enter_async_context(
+            self._bounded(FlightLog(self.out_dir / "flight_log.csv", self.vehicle), "the flight log"))
+        self.ground = await stack.enter_async_context(self._bounded(MqttBridge.from_config(cfg), "the MQTT bridge"))
+        self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,
+                                    on_path=missions.on_path, capture_time=perception.capture_time)
+        missions.bind(self.vehicle, self.runner, self.ground)
+        status = self.status = StatusPublisher(cfg, self.vehicle, self.ground, perception, self.runner, loc,
+                                               self.notifier, state=lambda: self.state, map_spec=self.smap.spec,
+                                               started_at=self._t0)
+        status.update_goal_fence()
+        watchdog = await stack.enter_async_context(self._bounded(Watchdog(self.notifier), "the systemd watchdog"))
+        watchdog.register("status-loop", 5.0)
+        # A hung perception process (or camera) stops the pings: systemd restarts us.
+        watchdog.register("perception", PERCEPTION_SILENCE_S)
+        perception.on_frame = lambda: watchdog.alive("perception")
+        perception.on_failed = lambda: self._background(missions.land_here("perception is gone", lost=True),
+                                                        "perception-lost")
+        self.state = "active"
+        self.notifier.ready("active")
+        log.info("service active")
+        try:
+            await self._serve_until_stopped(stop, status, watchdog, guard, watch)
+        finally:
+            self.state = "stopped"
+            self.report.flight_log_rows = flight_log.rows
+            self.report.mission_error = missions.error
+            if self.runner is not None:
+                self.report.legs = list(self.runner.reports)
+                self.report.plan_ms = [ms for r in self.runner.reports for ms in r.plan_ms]
+
+    def _perception_overran(self, why: str) -> None:
+        self._stop_overran(why)
+        kill_workers(self._workers[:1])  # its last map save is lost; the checkpoint before it stays
 
     async def _close_planning(self, planning: PlanningService) -> None:
         """Stop the planner process (off the loop); past its bound, kill it."""

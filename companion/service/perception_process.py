@@ -387,10 +387,10 @@ class PerceptionProcess:
         if self._supervisor is not None:
             await stop_tasks([self._supervisor], TASK_STOP_TIMEOUT_S, "stopping the perception supervisor")
             self._supervisor = None
-        child, self._child = self._child, None
-        if child is not None:
-            # A child that is not ready yet has no newer map than the checkpoint: no need to wait.
+        child = self._child  # kept until it has stopped: a stop that overran its bound kills it
+        if child is not None:  # one not ready yet has no newer map than the checkpoint: no wait
             await self._stop_child(child, kill=not child.ready.is_set())
+        self._child = None
 
     async def _stop_child(self, child: _Child, *, kill: bool) -> None:
         """Stop one child (the stop pipe's close never blocks; it saves the map); ``kill``: at once."""
