@@ -88,7 +88,12 @@ async def stop_tasks(tasks: Iterable[asyncio.Task[Any]], timeout_s: float, what:
         remaining = deadline - loop.time()
         if remaining <= 0.0:
             break
-        _, pending = await asyncio.wait(pending, timeout=min(RECANCEL_PERIOD_S, remaining))
+        try:
+            _, pending = await asyncio.wait(pending, timeout=min(RECANCEL_PERIOD_S, remaining))
+        except asyncio.CancelledError:
+            for task in pending:  # the caller is going: these get one more cancellation on the way
+                task.cancel()
+            raise
     stuck = sorted(pending, key=lambda t: t.get_name())
     for task in stuck:
         log.error("%s: task %r did not end within %.1f s of being cancelled; it is left running at:\n%s",
