@@ -5,6 +5,10 @@ A part opens its :class:`BackgroundTasks` in ``__aenter__``, starts its loops wi
 :class:`asyncio.TaskGroup`: a loop that fails cancels the task that opened the part, so a part
 whose loop died is never left looking alive. The group is left with ``(None, None, None)``, so
 an exception from the owner's own ``async with`` body is not wrapped into an ExceptionGroup.
+
+A part with a single loop ends it with :func:`end_task`; :func:`stop_tasks` ends any tasks
+within a bound, cancelling again those that swallowed a cancellation and naming (with their
+stacks) those that still run.
 """
 
 from __future__ import annotations
