@@ -5,13 +5,21 @@ A part opens its :class:`BackgroundTasks` in ``__aenter__``, starts its loops wi
 :class:`asyncio.TaskGroup`: a loop that fails cancels the task that opened the part, so a part
 whose loop died is never left looking alive. The group is left with ``(None, None, None)``, so
 an exception from the owner's own ``async with`` body is not wrapped into an ExceptionGroup.
+
+A part with a single loop ends it with :func:`end_task`; :func:`stop_tasks` ends any tasks
+within a bound, cancelling again those that swallowed a cancellation and naming (with their
+stacks) those that still run.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Coroutine
+import io
+import logging
+from collections.abc import Coroutine, Iterable
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 
 class BackgroundTasks:
@@ -52,3 +60,56 @@ class BackgroundTasks:
             task.cancel()
         if tg is not None:
             await tg.__aexit__(None, None, None)
+
+
+#: How long a cancelled task may take to end before it is left behind (and logged).
+TASK_STOP_TIMEOUT_S = 5.0
+#: A task that has not ended is cancelled again this often: one that swallowed a cancellation
+#: (a ``suppress(CancelledError)`` around an await) usually ends on the next.
+RECANCEL_PERIOD_S = 1.0
+
+
+def task_stack(task: asyncio.Task[Any]) -> str:
+    """Where ``task`` is suspended now (its coroutine's stack), for a log line."""
+    buf = io.StringIO()
+    task.print_stack(file=buf)
+    return buf.getvalue().rstrip()
+
+
+async def stop_tasks(tasks: Iterable[asyncio.Task[Any]], timeout_s: float, what: str) -> list[asyncio.Task[Any]]:
+    """Cancel ``tasks`` and wait up to ``timeout_s`` for them to end, cancelling again every
+    :data:`RECANCEL_PERIOD_S`. Returns the ones still running, each logged with its stack
+    (``what`` names the step); a task's own error is left for its owner to read.
+
+    The caller's own cancellation is never swallowed (unlike ``suppress(CancelledError)``
+    around ``await task``)."""
+    pending = {t for t in tasks if not t.done()}
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout_s
+    while pending:
+        for task in pending:
+            task.cancel()
+        remaining = deadline - loop.time()
+        if remaining <= 0.0:
+            break
+        try:
+            _, pending = await asyncio.wait(pending, timeout=min(RECANCEL_PERIOD_S, remaining))
+        except asyncio.CancelledError:
+            for task in pending:  # the caller is going: these get one more cancellation on the way
+                task.cancel()
+            raise
+    stuck = sorted(pending, key=lambda t: t.get_name())
+    for task in stuck:
+        log.error("%s: task %r did not end within %.1f s of being cancelled; it is left running at:\n%s",
+                  what, task.get_name(), timeout_s, task_stack(task))
+    return stuck
+
+
+async def end_task(task: asyncio.Task[Any] | None, what: str, timeout_s: float = TASK_STOP_TIMEOUT_S) -> None:
+    """Cancel a part's loop and wait (bounded, :func:`stop_tasks`) for it to end; raises what
+    the loop raised other than its cancellation."""
+    if task is None:
+        return
+    await stop_tasks([task], timeout_s, what)
+    if task.done() and not task.cancelled() and task.exception() is not None:
+        raise task.exception()  # type: ignore[misc]

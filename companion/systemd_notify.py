@@ -23,13 +23,14 @@ silent longer than its ``max_silence_s``, so a hung coroutine is also restarted 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import os
 import socket
 import time
 from collections.abc import Callable, Mapping
 from types import TracebackType
+
+from companion.background import end_task
 
 
 def _address(notify_socket: str) -> str | None:
@@ -244,8 +245,5 @@ class Watchdog:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
-            self._task = None
+        task, self._task = self._task, None
+        await end_task(task, "the systemd watchdog's pinger")

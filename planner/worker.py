@@ -215,6 +215,11 @@ class PlanningService:
     def running(self) -> bool:
         return self._proc is not None and self._proc.is_alive()
 
+    @property
+    def worker(self) -> WorkerProcess | None:
+        """The worker process now (None when none runs), for a stop's diagnostics."""
+        return self._proc
+
     # --- requests -------------------------------------------------------------------
 
     def _abandon(self) -> None:

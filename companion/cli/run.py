@@ -16,6 +16,7 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import os
 import signal
 from typing import Any
 
@@ -47,6 +48,7 @@ def _run(args: argparse.Namespace) -> int:
 
 async def _serve(cfg: Any, fly_mission: bool, out: str | None) -> None:
     from companion.service.app import CompanionService
+    from companion.service.shutdown import HUNG_STOP_EXIT_CODE
     from companion.sources import make_frame_source
 
     stop = asyncio.Event()
@@ -74,6 +76,8 @@ async def _serve(cfg: Any, fly_mission: bool, out: str | None) -> None:
             source = make_frame_source(cfg)
         service = CompanionService(cfg, source, out_dir=out, object_classes=object_classes,
                                    fly_mission=fly_mission, land_after_mission=False)
+        # A stop the event loop cannot end ends this process (systemd restarts a failed unit).
+        service.hung_stop_exit_code = HUNG_STOP_EXIT_CODE
         if world_px4 is not None:
             follower = world_px4
 
@@ -83,4 +87,11 @@ async def _serve(cfg: Any, fly_mission: bool, out: str | None) -> None:
 
             service.on_active = follow
         log.info("companion service starting (camera %s, link %s)", cfg.camera.source, cfg.link.url)
-        await service.run(stop)
+        report = await service.run(stop)
+        if report.stop_overruns:
+            # Tasks that ignored their cancellation are still alive: asyncio.run's own clean-up
+            # would wait for them for good.
+            log.critical("the stop overran (%s): ending the process with exit code %d",
+                         "; ".join(report.stop_overruns), HUNG_STOP_EXIT_CODE)
+            logging.shutdown()
+            os._exit(HUNG_STOP_EXIT_CODE)

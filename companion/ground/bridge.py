@@ -25,7 +25,6 @@ from the event loop's thread.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import random
 import ssl
@@ -42,6 +41,7 @@ from numpy.typing import NDArray
 from paho.mqtt.subscribeoptions import SubscribeOptions
 from pydantic import BaseModel, ValidationError
 
+from companion.background import TASK_STOP_TIMEOUT_S, end_task, stop_tasks
 from companion.config import CompanionConfig, MqttConfig
 from companion.errors import GroundLinkError
 from companion.ground import connection
@@ -176,12 +176,9 @@ class MqttBridge:
                 )
             except (aiomqtt.MqttError, asyncio.TimeoutError) as err:
                 self._log.warning("ground link: could not publish offline: %s", err)
-        for task in self._tasks:
-            task.cancel()
-        for task in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-        self._tasks = []
+        tasks, self._tasks = self._tasks, []
+        for task in tasks:
+            await end_task(task, f"the ground link's {task.get_name()} loop")
 
     @property
     def connected(self) -> bool:
@@ -484,11 +481,13 @@ class MqttBridge:
         try:
             done, _ = await asyncio.wait((receiver, sender), return_when=asyncio.FIRST_COMPLETED)
         finally:
+            # Cancelled again until they end: Python 3.11's wait_for (in aiomqtt's publish)
+            # swallows a cancellation that arrives together with the PUBACK.
+            await stop_tasks((receiver, sender), TASK_STOP_TIMEOUT_S, "ending the ground link's session")
             for task in (receiver, sender):
-                task.cancel()
-            for task in (receiver, sender):
-                with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
-                    await task
+                exc = task.exception() if task.done() and not task.cancelled() else None
+                if exc is not None and not isinstance(exc, aiomqtt.MqttError):
+                    raise exc
         for task in done:
             task.result()  # re-raise what ended the session (usually MqttError)
 

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.background import end_task
 from companion.errors import LinkError
 from companion.mavlink.link import MavlinkLink
 from semmap.frames import R_NED_ENU, Transform, ned_pose_from_map, quaternion_wxyz_from_rotation
@@ -154,12 +155,7 @@ class VisionStream:
     async def __aexit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                         tb: TracebackType | None) -> None:
         task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            try:
-                await task
-            except asyncio.CancelledError:
-                pass
+        await end_task(task, "the vision stream")
 
     def send_once(self) -> bool:
         """Send the current pose now; False when there is none (or the link refused it)."""

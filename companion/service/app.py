@@ -5,13 +5,15 @@
 * ``configure()`` builds everything from the config without touching the world: the semantic
   map (restored from the last checkpoint), the perception pipeline and the planning service;
 * ``activate()`` (inside :meth:`run`) opens every long-lived part as an async context manager
-  under one exit stack and a TaskGroup: the planner process, the perception process (camera,
+  under one exit stack, and starts the service's loops: the planner process, the perception process (camera,
   detector, tracker, semantic map and its checkpoints; :mod:`.perception_process`), the
   MAVLink vehicle (setpoint stream, telemetry, OBSTACLE_DISTANCE), the flight log, the MQTT
   bridge and the systemd watchdog. The service process itself only runs the event loop, so
   the setpoint stream never waits for perception's share of the GIL;
 * ``deactivate()`` (when ``stop`` is set, e.g. on SIGTERM) holds or lands first
-  (``service.on_sigterm``), then stops streaming, and the checkpointer saves the map.
+  (``service.on_sigterm``), then stops streaming, and the checkpointer saves the map. Every
+  step of the stop is bounded (:mod:`.shutdown`): what does not end in time is logged with its
+  stack and the worker processes' state, and left behind, so the service always ends.
 
 With ``fly_mission`` the autopilot's mission is downloaded and flown leg by leg with the
 semantic planner (:mod:`companion.service.mission_runner`); goals and mission commands also
@@ -30,11 +32,12 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.background import TASK_STOP_TIMEOUT_S, stop_tasks
 from companion.config import CompanionConfig
 from companion.ground import MqttBridge
 from companion.mavlink.obstacle_distance import ObstacleDistanceInput
@@ -45,12 +48,21 @@ from companion.service.flight_log import FlightLog
 from companion.service.latency import LatencyStats
 from companion.service.mission_control import MissionControl
 from companion.service.mission_runner import LegReport, MissionRunner
+from companion.service.perception_process import STOP_TIMEOUT_S as PERCEPTION_STOP_TIMEOUT_S
 from companion.service.perception_process import PerceptionProcess
 from companion.service.perception_worker import (
     PerceptionPipeline,
     new_semantic_map,
 )
 from companion.service.position_source import ServiceLocalization
+from companion.service.shutdown import (
+    BoundedExit,
+    ShutdownWatch,
+    Worker,
+    bounded,
+    dump_state,
+    kill_workers,
+)
 from companion.service.status import StatusPublisher
 from companion.service.vision_loss import VisionLossGuard
 from companion.sources.base import FrameSource
@@ -63,12 +75,24 @@ from semmap.semantic_map import SemanticMap
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")
+
 #: GIL switch interval while the service runs (Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001
 #: The systemd watchdog stops pinging when no frame went through perception for this long.
 PERCEPTION_SILENCE_S = 15.0
 #: On stop with ``service.on_sigterm: land``: wait this long for the touchdown before exiting.
 LAND_WAIT_S = 30.0
+#: The stop's bounds: the hand-over (mission cancelled, hold or land commanded, touchdown),
+#: the service's loops and flight task once cancelled, each part's close, the perception
+#: process's (its last map save; it kills the child itself past its own bound).
+DEACTIVATE_TIMEOUT_S = LAND_WAIT_S + 20.0
+PART_CLOSE_TIMEOUT_S = 10.0
+PERCEPTION_CLOSE_TIMEOUT_S = PERCEPTION_STOP_TIMEOUT_S + 20.0
+#: Past this from the stop's start the watch thread dumps the state, kills the worker
+#: processes and (``companion run``) ends the process: the sum of the bounds above and a margin.
+SHUTDOWN_TIMEOUT_S = (DEACTIVATE_TIMEOUT_S + TASK_STOP_TIMEOUT_S + 6 * PART_CLOSE_TIMEOUT_S
+                      + PERCEPTION_CLOSE_TIMEOUT_S + 15.0)
 
 
 @contextlib.contextmanager
@@ -113,6 +137,8 @@ class ServiceReport:
     latency: dict[str, dict[str, float | int]] = field(default_factory=dict)
     #: SLAM counters when ``service.localization`` is ``slam`` (see :class:`ServiceLocalization`).
     localization: dict[str, float | int | str] = field(default_factory=dict)
+    #: The steps of the stop that overran their bound (their state was logged), in order.
+    stop_overruns: list[str] = field(default_factory=list)
 
 
 class CompanionService:
@@ -161,6 +187,10 @@ class CompanionService:
         self._t0 = time.monotonic()
         #: Called once the service is active (tests inject faults from here).
         self.on_active: Callable[[CompanionService], Any] | None = None
+        #: ``companion run`` sets an exit code: a stop the event loop cannot end ends the process.
+        self.hung_stop_exit_code: int | None = None
+        self._workers = [Worker("perception", lambda: self.perception.worker if self.perception else None),
+                         Worker("planner", lambda: self.planning.worker if self.planning else None)]
 
     # --- lifecycle ----------------------------------------------------------------------
 
@@ -175,8 +205,9 @@ class CompanionService:
         log.info("service configured (%s map)", "restored" if self.restored else "new")
 
     async def run(self, stop: asyncio.Event) -> ServiceReport:
-        """Activate, run until ``stop`` is set (or the mission ends when ``fly_mission``),
-        deactivate. Returns the run's report."""
+        """Activate, run until ``stop`` is set (a caller that flies one mission sets it once
+        :attr:`mission_done` is) or one of the service's loops fails, deactivate. Returns the
+        run's report; a loop's failure is raised once the service has stopped."""
         if self.state != "configured":
             self.configure()
         assert self.smap is not None
@@ -195,82 +226,138 @@ class CompanionService:
         # A frame that comes without a pose gets the autopilot's at its stamp (telemetry).
         posed = TelemetryPosedSource(self.frame_source, self.pose_history, cfg.camera.extrinsics.T_body_camera())
         perception = self.perception = PerceptionProcess(cfg, loc.source(posed), self.object_classes)
-        async with contextlib.AsyncExitStack() as stack:
-            planning = self.planning = PlanningService(cfg.planner)
-            await asyncio.to_thread(planning.start)
-            # Joining the worker waits up to seconds: off the loop (MQTT and the link stay served).
-            stack.push_async_callback(asyncio.to_thread, planning.close)
-            await stack.enter_async_context(perception)
-            # OBSTACLE_DISTANCE from the flight-band costmap lets PX4's collision prevention
-            # (CP_DIST) stop the vehicle short of what the map holds, whoever flies it.
-            self.vehicle = await stack.enter_async_context(Vehicle(cfg.link, is_map_fresh=perception.is_fresh,
-                                                                   is_pose_fresh=self._pose_fresh,
-                                                                   obstacle_source=self._obstacle_input))
-            recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component,
-                                             remote_to_local=self.vehicle.autopilot_clock.to_local,
-                                             map_frame=lambda: self.vehicle.snapshot().map_frame if self.vehicle else None)
-            stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
-            await stack.enter_async_context(loc.vision_stream(self.vehicle.link))
-            vehicle = self.vehicle
-            missions = self.missions
-            guard = loc.loss_guard(vehicle.link, lambda: vehicle.snapshot().in_air,
-                                   lambda: missions.land_here("the SLAM pose (PX4's position source) is lost"),
-                                   height_m=lambda: vehicle.snapshot().height_above_floor_m)
-            flight_log = await stack.enter_async_context(FlightLog(self.out_dir / "flight_log.csv", self.vehicle))
-            self.ground = await stack.enter_async_context(MqttBridge.from_config(cfg))
-            self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,
-                                        on_path=missions.on_path, capture_time=perception.capture_time)
-            missions.bind(self.vehicle, self.runner, self.ground)
-            status = self.status = StatusPublisher(cfg, self.vehicle, self.ground, perception, self.runner, loc,
-                                                   self.notifier, state=lambda: self.state, map_spec=self.smap.spec,
-                                                   started_at=self._t0)
-            status.update_goal_fence()
-            watchdog = await stack.enter_async_context(Watchdog(self.notifier))
-            watchdog.register("status-loop", 5.0)
-            # A hung perception process (or camera) stops the pings: systemd restarts us.
-            watchdog.register("perception", PERCEPTION_SILENCE_S)
-            perception.on_frame = lambda: watchdog.alive("perception")
-            perception.on_failed = lambda: self._background(missions.land_here("perception is gone", lost=True),
-                                                            "perception-lost")
-            self.state = "active"
-            self.notifier.ready("active")
-            log.info("service active")
-            try:
-                await self._serve_until_stopped(stop, status, watchdog, guard)
-            finally:
-                self.state = "stopped"
-                self.report.flight_log_rows = flight_log.rows
-                self.report.mission_error = missions.error
-                if self.runner is not None:
-                    self.report.legs = list(self.runner.reports)
-                    self.report.plan_ms = [ms for r in self.runner.reports for ms in r.plan_ms]
+        watch = ShutdownWatch(SHUTDOWN_TIMEOUT_S, self._workers, exit_code=self.hung_stop_exit_code)
+        try:
+            await self._run_parts(stop, perception, watch)
+        finally:
+            watch.disarm()
         # The perception process has stopped and saved the map: its final state.
         self._record_perception(perception)
         log.info("service stopped")
         return self.report
 
-    async def _serve_until_stopped(self, stop: asyncio.Event, status: StatusPublisher, watchdog: Watchdog,
-                                   guard: VisionLossGuard | None) -> None:
-        """Run the status and ground-command loops (the vision-loss guard, the mission and the
-        ``on_active`` hook when there are) until ``stop``; then deactivate and end them."""
+    def _bounded(self, cm: contextlib.AbstractAsyncContextManager[T], what: str,
+                 timeout_s: float = PART_CLOSE_TIMEOUT_S) -> BoundedExit[T]:
+        """A part whose close is bounded; an overrun is logged with the service's state."""
+        return BoundedExit(cm, timeout_s, what, on_overrun=self._stop_overran)
+
+    def _stop_overran(self, why: str) -> None:
+        self.report.stop_overruns.append(why)
+        dump_state(why, self._workers)
+
+    async def _run_parts(self, stop: asyncio.Event, perception: PerceptionProcess, watch: ShutdownWatch) -> None:
+        """Open every part under one exit stack, serve until ``stop``, close them (each close
+        bounded); ``watch`` is armed before they close, however the run ends."""
+        async with contextlib.AsyncExitStack() as stack:
+            try:
+                await self._open_and_serve(stack, stop, perception, watch)
+            finally:
+                watch.arm()
+
+    async def _open_and_serve(self, stack: contextlib.AsyncExitStack, stop: asyncio.Event,
+                              perception: PerceptionProcess, watch: ShutdownWatch) -> None:
+        cfg = self.cfg
+        loc = self.localization
+        assert self.smap is not None
+        planning = self.planning = PlanningService(cfg.planner)
+        await asyncio.to_thread(planning.start)
+        # Joining the worker waits up to seconds: off the loop (MQTT and the link stay served).
+        stack.push_async_callback(self._close_planning, planning)
+        await stack.enter_async_context(BoundedExit(perception, PERCEPTION_CLOSE_TIMEOUT_S, "the perception process",
+                                                    on_overrun=self._perception_overran))
+        # OBSTACLE_DISTANCE from the flight-band costmap lets PX4's collision prevention
+        # (CP_DIST) stop the vehicle short of what the map holds, whoever flies it.
+        self.vehicle = await stack.enter_async_context(self._bounded(
+            Vehicle(cfg.link, is_map_fresh=perception.is_fresh, is_pose_fresh=self._pose_fresh,
+                    obstacle_source=self._obstacle_input), "the MAVLink vehicle"))
+        recorder = TelemetryPoseRecorder(self.pose_history, cfg.link.target_system, cfg.link.target_component,
+                                         remote_to_local=self.vehicle.autopilot_clock.to_local,
+                                         map_frame=lambda: self.vehicle.snapshot().map_frame if self.vehicle else None)
+        stack.callback(self.vehicle.link.add_listener(recorder.handle, recorder.MESSAGES))
+        await stack.enter_async_context(self._bounded(loc.vision_stream(self.vehicle.link), "the vision stream"))
+        vehicle = self.vehicle
         missions = self.missions
-        async with asyncio.TaskGroup() as tg:
-            loops = [tg.create_task(status.run(watchdog), name="status"),
-                     tg.create_task(missions.command_loop(), name="ground-commands")]
-            if guard is not None:
-                loops.append(tg.create_task(guard.run(), name="vision-loss"))
-            if self.fly_mission:
-                missions.start_mission(tg)
-            if self.on_active is not None:
-                res = self.on_active(self)
-                if asyncio.iscoroutine(res):
-                    loops.append(tg.create_task(res, name="on-active"))
-            await stop.wait()
+        guard = loc.loss_guard(vehicle.link, lambda: vehicle.snapshot().in_air,
+                               lambda: missions.land_here("the SLAM pose (PX4's position source) is lost"),
+                               height_m=lambda: vehicle.snapshot().height_above_floor_m)
+        flight_log = await stack.enter_async_context(
+            self._bounded(FlightLog(self.out_dir / "flight_log.csv", self.vehicle), "the flight log"))
+        self.ground = await stack.enter_async_context(self._bounded(MqttBridge.from_config(cfg), "the MQTT bridge"))
+        self.runner = MissionRunner(self.vehicle, planning, perception.costmap, cfg.planner,
+                                    on_path=missions.on_path, capture_time=perception.capture_time)
+        missions.bind(self.vehicle, self.runner, self.ground)
+        status = self.status = StatusPublisher(cfg, self.vehicle, self.ground, perception, self.runner, loc,
+                                               self.notifier, state=lambda: self.state, map_spec=self.smap.spec,
+                                               started_at=self._t0)
+        status.update_goal_fence()
+        watchdog = await stack.enter_async_context(self._bounded(Watchdog(self.notifier), "the systemd watchdog"))
+        watchdog.register("status-loop", 5.0)
+        # A hung perception process (or camera) stops the pings: systemd restarts us.
+        watchdog.register("perception", PERCEPTION_SILENCE_S)
+        perception.on_frame = lambda: watchdog.alive("perception")
+        perception.on_failed = lambda: self._background(missions.land_here("perception is gone", lost=True),
+                                                        "perception-lost")
+        self.state = "active"
+        self.notifier.ready("active")
+        log.info("service active")
+        try:
+            await self._serve_until_stopped(stop, status, watchdog, guard, watch)
+        finally:
+            self.state = "stopped"
+            self.report.flight_log_rows = flight_log.rows
+            self.report.mission_error = missions.error
+            if self.runner is not None:
+                self.report.legs = list(self.runner.reports)
+                self.report.plan_ms = [ms for r in self.runner.reports for ms in r.plan_ms]
+
+    def _perception_overran(self, why: str) -> None:
+        self._stop_overran(why)
+        kill_workers(self._workers[:1])  # its last map save is lost; the checkpoint before it stays
+
+    async def _close_planning(self, planning: PlanningService) -> None:
+        """Stop the planner process (off the loop); past its bound, kill it."""
+        ended, _ = await bounded(asyncio.to_thread(planning.close), PART_CLOSE_TIMEOUT_S, "closing the planner process")
+        if not ended:
+            self._stop_overran(f"closing the planner process overran {PART_CLOSE_TIMEOUT_S:.0f} s")
+            kill_workers(self._workers[1:])
+
+    async def _serve_until_stopped(self, stop: asyncio.Event, status: StatusPublisher, watchdog: Watchdog,
+                                   guard: VisionLossGuard | None, watch: ShutdownWatch) -> None:
+        """Run the status and ground-command loops (the vision-loss guard, the mission and the
+        ``on_active`` hook when there are) until ``stop`` or until one of them fails; then
+        arm ``watch``, deactivate and end them, each step bounded. A failure is raised after."""
+        missions = self.missions
+        tasks = [asyncio.create_task(status.run(watchdog), name="status"),
+                 asyncio.create_task(missions.command_loop(), name="ground-commands")]
+        if guard is not None:
+            tasks.append(asyncio.create_task(guard.run(), name="vision-loss"))
+        if self.fly_mission:
+            tasks.append(missions.start_mission())
+        if self.on_active is not None:
+            res = self.on_active(self)
+            if asyncio.iscoroutine(res):
+                tasks.append(asyncio.create_task(res, name="on-active"))
+        failure: BaseException | None = None
+        try:
+            failure = await _stopped_or_failed(stop, tasks)
+        finally:
+            watch.arm()
             self.state = "stopping"
             self.notifier.stopping("stopping")
-            await self.deactivate()
-            for t in loops:
-                t.cancel()
+            await self._stop_flying(tasks)
+        if failure is not None:
+            raise failure
+
+    async def _stop_flying(self, tasks: list[asyncio.Task[Any]]) -> None:
+        """Hand the vehicle over (:meth:`deactivate`), then end the service's tasks, the flight
+        task and the background landings; each step bounded, an overrun logged with the state."""
+        ended, _ = await bounded(self.deactivate(), DEACTIVATE_TIMEOUT_S, "the hand-over (hold or land)")
+        if not ended:
+            self._stop_overran(f"the hand-over overran {DEACTIVATE_TIMEOUT_S:.0f} s")
+        flight = self.missions.task
+        everything = [*tasks, *([flight] if flight is not None else []), *self._background_tasks]
+        if await stop_tasks(everything, TASK_STOP_TIMEOUT_S, "stopping the service's tasks"):
+            self._stop_overran(f"stopping the service's tasks overran {TASK_STOP_TIMEOUT_S:.0f} s")
 
     def _record_perception(self, perception: PerceptionProcess) -> None:
         """Copy the stopped perception process's counters, timings and final map, and the
@@ -367,3 +454,23 @@ class CompanionService:
     def path_xy_m(self) -> NDArray[np.float64]:
         """The latest planned path (K, 2), map frame."""
         return self.missions.path_xy_m
+
+
+async def _stopped_or_failed(stop: asyncio.Event, tasks: list[asyncio.Task[Any]]) -> BaseException | None:
+    """Wait for ``stop``; the first of ``tasks`` to fail ends the wait too (its error, logged,
+    is returned). A task that ends normally (a hook, the mission) is no reason to stop."""
+    stopped = asyncio.ensure_future(stop.wait())
+    pending: set[asyncio.Future[Any]] = {stopped, *tasks}
+    try:
+        while True:
+            done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
+            if stopped in done:
+                return None
+            for task in done:
+                exc = None if task.cancelled() else task.exception()
+                if exc is not None:
+                    name = task.get_name() if isinstance(task, asyncio.Task) else repr(task)
+                    log.error("service task %r failed (%r): stopping the service", name, exc)
+                    return exc
+    finally:
+        stopped.cancel()

@@ -11,6 +11,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import TextIO
 
+from companion.background import end_task
 from companion.mavlink.vehicle import Vehicle
 from semmap.frames import ned_to_enu, yaw_ned_to_enu
 
@@ -46,15 +47,13 @@ class FlightLog:
 
     async def __aexit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                         tb: TracebackType | None) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
-        if self._file is not None:
-            self._file.close()
-            self._file = None
+        task, self._task = self._task, None
+        try:
+            await end_task(task, "the flight log's writer")
+        finally:
+            if self._file is not None:
+                self._file.close()
+                self._file = None
         log.info("flight log: %d rows in %s", self.rows, self.path)
 
     def write_row(self) -> None:

@@ -15,6 +15,7 @@ import logging
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.background import TASK_STOP_TIMEOUT_S, stop_tasks
 from companion.config import CompanionConfig
 from companion.errors import MissionError
 from companion.ground import MqttBridge
@@ -71,17 +72,21 @@ class MissionControl:
         """A mission or a goal is being flown."""
         return self._task is not None and not self._task.done()
 
-    def start_mission(self, tg: asyncio.TaskGroup) -> None:
-        """Fly the autopilot's mission in ``tg`` (the service's task group)."""
+    @property
+    def task(self) -> asyncio.Task[None] | None:
+        """The flight task (mission or goal) started last, ended or not."""
+        return self._task
+
+    def start_mission(self) -> asyncio.Task[None]:
+        """Fly the autopilot's mission; returns its task (the service stops it with its loops)."""
         self.landing_here = False
-        self._task = tg.create_task(self._mission(), name="mission")
+        self._task = asyncio.create_task(self._mission(), name="mission")
+        return self._task
 
     async def cancel(self) -> None:
-        """Cancel the flight task and wait for it to end."""
-        if self._task is not None and not self._task.done():
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._task
+        """Cancel the flight task and wait (at most ``TASK_STOP_TIMEOUT_S``) for it to end."""
+        if self._task is not None:
+            await _end(self._task, "cancelling the flight task")
 
     def on_path(self, path_xy_m: NDArray[np.float64]) -> None:
         """A new planned path: kept and published to the ground station at the flight altitude."""
@@ -119,8 +124,7 @@ class MissionControl:
                 log.error("%s and landing could not be commanded (%s)", why, exc)
         finally:
             if mission is not None:
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await mission
+                await _end(mission, "the flight task after a landing was commanded")
 
     # --- the mission and goals ----------------------------------------------------------
 
@@ -229,8 +233,7 @@ class MissionControl:
         if busy:
             assert self._task is not None
             self.paused = action == "pause" and self._task.get_name() == "mission"
-            self._task.cancel()
-            await asyncio.wait({self._task})
+            await _end(self._task, f"the flight task on a mission {action}")
         if action == "abort":
             self.paused = False
             self.legs_left = []
@@ -240,3 +243,11 @@ class MissionControl:
             self._runner.hold_at(pos[:2], float(pos[2]))
         log.info("mission %s: holding at the current position%s", "paused" if action == "pause" else "aborted",
                  f" ({len(self.legs_left)} legs left)" if action == "pause" else "")
+
+
+async def _end(task: asyncio.Task[None], what: str) -> None:
+    """Cancel ``task`` and wait for it to end (bounded; the caller's own cancellation is not
+    swallowed). What it raised other than its cancellation is logged: it has ended anyway."""
+    await stop_tasks([task], TASK_STOP_TIMEOUT_S, what)
+    if task.done() and not task.cancelled() and task.exception() is not None:
+        log.error("%s: it had failed: %r", what, task.exception())

@@ -38,6 +38,7 @@ from multiprocessing.connection import Connection
 from types import TracebackType
 from typing import Literal
 
+from companion.background import TASK_STOP_TIMEOUT_S, stop_tasks
 from companion.config import CompanionConfig
 from companion.service.checkpoint import Checkpointer, checkpoint_path, restore_map
 from companion.service.perception_worker import (
@@ -77,10 +78,9 @@ PERCEPTION_NICE = 5
 
 
 def perception_nice(cfg: CompanionConfig) -> int:
-    """The perception process's nice increment: :data:`PERCEPTION_NICE`, or 0 when the SLAM
-    runs in it (``service.localization: slam``). The SLAM thread shares the process's GIL
-    with detection and mapping; a niced thread preempted while it holds the GIL stalls the
-    SLAM for as long as it waits for a CPU, and the SLAM pose is PX4's position without GPS."""
+    """The perception process's nice increment: :data:`PERCEPTION_NICE`, or 0 when the SLAM runs in it
+    (``service.localization: slam``): a niced thread preempted while holding the GIL it shares with
+    detection and mapping stalls the SLAM, and the SLAM pose is PX4's position without GPS."""
     return 0 if cfg.service.localization == "slam" else PERCEPTION_NICE
 
 
@@ -325,8 +325,7 @@ class PerceptionProcess:
         path = checkpoint_path(self.cfg)
         if path.is_file():
             try:
-                self.final_map = await asyncio.to_thread(SemanticMap.load, path,
-                                                         object_map=new_object_map(self.cfg))
+                self.final_map = await asyncio.to_thread(SemanticMap.load, path, object_map=new_object_map(self.cfg))
             except MapError as exc:
                 log.error("the perception process's final map %s cannot be loaded: %s", path, exc)
 
@@ -344,6 +343,9 @@ class PerceptionProcess:
         ready, ended = asyncio.ensure_future(child.ready.wait()), asyncio.ensure_future(child.ended.wait())
         try:
             await asyncio.wait({ready, ended}, timeout=START_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED)
+        except BaseException:
+            proc.kill()  # cancelled while it starts: it ignores the SIGTERM multiprocessing's exit sends
+            raise
         finally:
             ready.cancel()
             ended.cancel()
@@ -383,19 +385,15 @@ class PerceptionProcess:
 
     async def _shutdown(self) -> None:
         self._stopping = True
-        if self._supervisor is not None:
-            self._supervisor.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._supervisor
-            self._supervisor = None
-        child, self._child = self._child, None
-        if child is not None:
-            # A child that is not ready yet has no newer map than the checkpoint: no need to wait.
+        supervisor, self._supervisor = self._supervisor, None
+        await stop_tasks([supervisor] if supervisor else [], TASK_STOP_TIMEOUT_S, "stopping the perception supervisor")
+        child = self._child  # kept until it has stopped: a stop that overran its bound kills it
+        if child is not None:  # one not ready yet has no newer map than the checkpoint: no wait
             await self._stop_child(child, kill=not child.ready.is_set())
+        self._child = None
 
     async def _stop_child(self, child: _Child, *, kill: bool) -> None:
-        """Stop one child: closing the stop pipe never blocks, whether the child lives or not
-        (it saves the map and exits); ``kill`` does not wait for that."""
+        """Stop one child (the stop pipe's close never blocks; it saves the map); ``kill``: at once."""
         proc = child.proc
         proc.request_stop()
         if kill and proc.is_alive():
@@ -480,6 +478,10 @@ class PerceptionProcess:
     @property
     def running(self) -> bool:
         return self._child is not None and self._child.ready.is_set() and self._child.proc.is_alive()
+
+    @property
+    def worker(self) -> WorkerProcess | None:  # the child now (for a stop's diagnostics)
+        return self._child.proc if self._child is not None else None
 
     def is_fresh(self) -> bool:
         """True while frames keep being integrated (within ``map.stale_after_s``)."""

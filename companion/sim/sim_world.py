@@ -12,7 +12,6 @@ autopilot's pose would give them.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import multiprocessing as mp
 import time
@@ -23,6 +22,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.background import end_task
 from companion.config import CompanionConfig
 from companion.errors import SimulationError
 from companion.geo import GeoOrigin
@@ -290,11 +290,10 @@ class SimWorld:
     async def __aexit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                         tb: TracebackType | None) -> None:
         task, self._pose_task = self._pose_task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-        await self.autopilot.__aexit__(exc_type, exc, tb)
+        try:
+            await end_task(task, "the simulated camera's pose loop")
+        finally:
+            await self.autopilot.__aexit__(exc_type, exc, tb)
 
     def _publish_pose(self) -> None:
         _, T_map_body, T_est = self.autopilot.poses_map_body()

@@ -19,7 +19,6 @@ Faults for tests are set on :attr:`MockAutopilot.faults` while it runs.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import time
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.background import end_task
 from companion.errors import SimulationError
 from companion.geo import GeoOrigin
 from companion.px4 import FlightMode, decode_param_value, encode_param_value, param_id_str
@@ -239,11 +239,10 @@ class MockAutopilot:
     async def stop(self) -> None:
         """Stop the loop and close the socket (idempotent)."""
         task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-        self._link.close()
+        try:
+            await end_task(task, "the mock autopilot's loop")
+        finally:
+            self._link.close()
 
     async def serve_forever(self) -> None:
         """Run until cancelled (the CLI's main loop)."""
