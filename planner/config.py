@@ -34,6 +34,11 @@ class PlannerConfig(StageConfig):
     replan_time_limit_s: float = Field(default=0.02, gt=0.0, le=60.0)
     flight_altitude_m: float = Field(default=0.6, gt=0.0, le=20.0)
     vehicle_radius_m: float = Field(default=0.25, gt=0.0, le=5.0)
+    #: Kept beyond the vehicle radius from every obstacle, mapped object or not: PX4 flies a
+    #: few centimetres off its setpoints in corners and gusts, and a depth-mapped edge can be
+    #: off by a cell. Objects also keep their class margin; walls and unclassified clutter
+    #: have only this. More closes narrow passages (two 0.35 m keep-outs at 0.1 m).
+    tracking_margin_m: float = Field(default=0.05, ge=0.0, le=1.0)
     vehicle_height_m: float = Field(default=0.15, gt=0.0, le=5.0)
     #: Added above and below the vehicle's vertical band when deciding if an object blocks.
     vertical_margin_m: float = Field(default=0.10, ge=0.0)
@@ -86,6 +91,11 @@ class PlannerConfig(StageConfig):
                 f"({self.max_altitude_m}): every goal at the flight altitude would be refused"
             )
         return self
+
+    @property
+    def keepout_m(self) -> float:
+        """How far the vehicle's centre stays from any obstacle: radius plus tracking margin."""
+        return self.vehicle_radius_m + self.tracking_margin_m
 
     def band_at(self, altitude_m: float | None = None) -> VerticalBand:
         """The heights the vehicle occupies at ``altitude_m`` (default: the flight altitude),

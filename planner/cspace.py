@@ -16,7 +16,8 @@ so replanning after a new object appears does not pay for the whole map again.
 Clearance is conservative: ``clearance_m`` of a cell is a lower bound on the horizontal
 distance from *any* point of the cell to the nearest blocked cell's square (centre distance
 minus one cell diagonal), and a point is free when that bound is at least the vehicle radius
-plus a quarter cell (the largest gap between motion samples spaced half a cell apart).
+plus the tracking margin plus a quarter cell (the largest gap between motion samples spaced
+half a cell apart).
 """
 
 from __future__ import annotations
@@ -51,19 +52,27 @@ XYLike = NDArray[np.floating] | Sequence[float] | tuple[float, float]
 class CSpaceParams:
     """How a costmap becomes a configuration space.
 
-    ``vehicle_radius_m``: horizontal radius of the vehicle. ``unknown_cost`` (0..1): cost of
-    an unknown cell relative to the highest traversable cost; 1 forbids unknown space.
-    ``geofence_xy_m``: the vehicle (its whole radius) stays inside it.
+    ``vehicle_radius_m``: horizontal radius of the vehicle. ``tracking_margin_m``: kept beyond
+    the radius from every blocked cell, because the autopilot flies a few centimetres off the
+    commanded path. ``unknown_cost`` (0..1): cost of an unknown cell relative to the highest
+    traversable cost; 1 forbids unknown space. ``geofence_xy_m``: the vehicle (its whole
+    radius) stays inside it.
     """
 
     vehicle_radius_m: float
+    tracking_margin_m: float = 0.0
     unknown_cost: float = 0.5
     #: [x_min, y_min, x_max, y_max] in the map frame; cells outside it are blocked.
     geofence_xy_m: tuple[float, float, float, float] | None = None
 
+    @property
+    def keepout_m(self) -> float:
+        """How far the vehicle's centre stays from any blocked cell: radius plus tracking margin."""
+        return self.vehicle_radius_m + self.tracking_margin_m
+
     def influence_m(self, clearance_decay_m: float) -> float:
         """Beyond this clearance a cell's cost and freedom no longer depend on obstacles."""
-        return self.vehicle_radius_m + 8.0 * clearance_decay_m + 0.5
+        return self.keepout_m + 8.0 * clearance_decay_m + 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,7 +105,7 @@ class CSpace:
     @property
     def free_threshold_m(self) -> float:
         """Smallest cell clearance at which a sampled point counts as free."""
-        return self.params.vehicle_radius_m + self.spec.resolution_m / 4.0
+        return self.params.keepout_m + self.spec.resolution_m / 4.0
 
     @property
     def motion_step_m(self) -> float:
@@ -268,7 +277,7 @@ def _fields(
         dist = ndimage.distance_transform_edt(~blocked, sampling=resolution_m)
     # Lower bound from any point of this cell to any point of the nearest blocked cell.
     clearance = np.minimum(dist - math.sqrt(2.0) * resolution_m, params.influence_m(decay_m)).astype(np.float32)
-    threshold = params.vehicle_radius_m + resolution_m / 4.0
+    threshold = params.keepout_m + resolution_m / 4.0
     free = clearance >= threshold
     proximity = cost_decay(clearance - threshold, decay_m)
     soft = np.zeros(blocked.shape, dtype=np.float32)
@@ -284,6 +293,8 @@ def build_cspace(costmap: Costmap, params: CSpaceParams, version: int = 0) -> CS
     """Precompute the configuration space of ``costmap`` for a vehicle of ``params``."""
     if params.vehicle_radius_m <= 0.0:
         raise PlanningError(f"vehicle_radius_m must be > 0 (got {params.vehicle_radius_m})")
+    if not params.tracking_margin_m >= 0.0:
+        raise PlanningError(f"tracking_margin_m must be >= 0 (got {params.tracking_margin_m})")
     decay = costmap.clearance_decay_m
     blocked = _blocked_mask(costmap, params)
     clearance, free, cost = _fields(blocked, costmap.cost, costmap.spec.resolution_m, params, decay)

@@ -54,6 +54,7 @@ class Planner:
         self.config = config
         self.params = CSpaceParams(
             vehicle_radius_m=config.vehicle_radius_m,
+            tracking_margin_m=config.tracking_margin_m,
             unknown_cost=config.unknown_cost,
             geofence_xy_m=config.geofence_xy_m,
         )
@@ -187,7 +188,8 @@ class Planner:
                     return res
             return fail(PlanStatus.DISCONNECTED,
                         f"no free path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, {goal[1]:.2f}) m "
-                        f"for a vehicle of radius {cfg.vehicle_radius_m:.2f} m at {cfg.flight_altitude_m:.2f} m "
+                        f"for a vehicle of radius {cfg.vehicle_radius_m:.2f} m (+ tracking margin {cfg.tracking_margin_m:.2f} m) "
+                        f"at {cfg.flight_altitude_m:.2f} m "
                         "altitude: they are in separate free regions")
         path, used_factor = first
         t_first = time.perf_counter()
@@ -254,7 +256,8 @@ class Planner:
             return None
         clr = float(cs.clearance_at(xy.reshape(1, 2))[0])
         return (status, f"{name} ({xy[0]:.2f}, {xy[1]:.2f}) m is blocked: clearance {clr:.2f} m < "
-                        f"vehicle radius {self.config.vehicle_radius_m:.2f} m")
+                        f"vehicle radius {self.config.vehicle_radius_m:.2f} m + tracking margin "
+                        f"{self.config.tracking_margin_m:.2f} m")
 
     def _first_path(self, start: NDArray[np.float64],
                     goal: NDArray[np.float64]) -> tuple[NDArray[np.float64], int] | None:

@@ -222,3 +222,45 @@ def test_a_new_decay_rebuilds_the_whole_space() -> None:
     full = build_cspace(slower, CSpaceParams(vehicle_radius_m=0.25), version=1)
     assert window == (0, SPEC.rows, 0, SPEC.cols)
     np.testing.assert_allclose(cs1.cost, full.cost)
+
+
+def _wall_costmap(band: VerticalBand) -> Costmap:
+    """Unclassified occupancy (a wall or clutter, no class margin) along x = 2.0..2.1 m."""
+    cost = np.full(SPEC.shape_rc, FREE_SPACE, dtype=np.uint8)
+    cost[:, 40:42] = LETHAL_OBSTACLE
+    return Costmap(SPEC, cost, band)
+
+
+def test_px4_sitl_seed1_cabinet_graze_unclassified_obstacles_keep_the_tracking_margin() -> None:
+    # PX4 flew a path that kept only the vehicle radius from a cabinet held as occupancy, a
+    # few cm inside it: a cell just beyond radius + a quarter cell must not be free any more.
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cm = _wall_costmap(band)
+    radius_only = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25))
+    tracked = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25, tracking_margin_m=0.1))
+    # Cell centre x = 1.625 m: 0.375 m from the wall face, 0.35 to the nearest blocked centre
+    # minus a cell diagonal bound 0.279 m, enough for the radius alone.
+    near = np.array([[1.625, 2.0]])
+    assert radius_only.is_free(near)[0]
+    assert not tracked.is_free(near)[0]
+    # Every free point of the tracked space keeps radius + margin from the wall's true face.
+    rows, cols = np.nonzero(tracked.free)
+    x_m = (cols + 0.5) * SPEC.resolution_m
+    gap_m = np.where(x_m < 2.0, 2.0 - x_m, x_m - 2.1)
+    assert gap_m.min() >= 0.25 + 0.1
+
+
+def test_tracking_margin_counts_in_thresholds_and_escape() -> None:
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    cs = build_cspace(_wall_costmap(band), CSpaceParams(vehicle_radius_m=0.25, tracking_margin_m=0.1))
+    assert cs.free_threshold_m == pytest.approx(0.25 + 0.1 + SPEC.resolution_m / 4)
+    esc = cs.escape_point(np.array([1.9, 2.0]))
+    assert esc is not None and 2.0 - esc[0] >= 0.35
+
+
+def test_negative_tracking_margin_is_refused() -> None:
+    from semmap.errors import PlanningError
+
+    band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
+    with pytest.raises(PlanningError, match="tracking_margin_m"):
+        build_cspace(_wall_costmap(band), CSpaceParams(vehicle_radius_m=0.25, tracking_margin_m=-0.1))

@@ -215,3 +215,23 @@ def test_snapped_plan_is_kept_for_the_same_requested_goal() -> None:
     assert not replanned and kept is first
     _, replanned = pl.replan((1.0, 1.5), (4.5, 2.5), first)
     assert replanned
+
+
+def test_px4_sitl_seed1_cabinet_graze_default_plans_keep_a_tracking_margin_from_occupancy() -> None:
+    # A cabinet held only as occupancy (no class, no margin) beside the straight line: with
+    # the default settings the path must pass it with more than the vehicle radius to spare,
+    # because PX4 flies a few centimetres off its setpoints.
+    cfg = PlannerConfig(flight_altitude_m=0.6, time_limit_s=0.15)
+    assert cfg.tracking_margin_m >= 0.05
+    pl = Planner(cfg)
+    cm = base_map(pl)
+    cost = cm.cost.copy()
+    cost[:30, 56:64] = LETHAL_OBSTACLE  # x 2.8..3.2 m, y 0..1.5 m: the cabinet
+    pl.set_base_map(Costmap(SPEC, cost, pl.band), [])
+    r = pl.plan((1.0, 1.6), (5.0, 1.6))
+    _assert_free_path(pl, r)
+    pts = pl.cspace.densify(r.path_xy_m)
+    dx = np.maximum(np.maximum(2.8 - pts[:, 0], pts[:, 0] - 3.2), 0.0)
+    dy = np.maximum(pts[:, 1] - 1.5, 0.0)
+    gap_m = np.hypot(dx, dy)
+    assert gap_m.min() >= cfg.vehicle_radius_m + cfg.tracking_margin_m
