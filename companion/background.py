@@ -53,13 +53,20 @@ class BackgroundTasks:
 
     async def close(self) -> None:
         """Cancel every task and wait for them to end; raises (as an ExceptionGroup) what a
-        task raised other than its cancellation. Closing twice, or before open, does nothing."""
+        task raised other than its cancellation. Closing twice, or before open, does nothing.
+
+        The tasks are ended with :func:`stop_tasks` first, so one that swallows a cancellation
+        is cancelled again and, if it still runs after :data:`TASK_STOP_TIMEOUT_S`, logged
+        with its stack before the group waits for it."""
         tg, self._tg = self._tg, None
         tasks, self._tasks = self._tasks, []
-        for task in tasks:
-            task.cancel()
-        if tg is not None:
-            await tg.__aexit__(None, None, None)
+        try:
+            await stop_tasks(tasks, TASK_STOP_TIMEOUT_S, "closing background tasks")
+        finally:
+            # Also when a task's failure cancelled this (the group's owner): the group's exit
+            # takes that cancellation back and raises the failure instead.
+            if tg is not None:
+                await tg.__aexit__(None, None, None)
 
 
 #: How long a cancelled task may take to end before it is left behind (and logged).
@@ -105,11 +112,15 @@ async def stop_tasks(tasks: Iterable[asyncio.Task[Any]], timeout_s: float, what:
     return stuck
 
 
-async def end_task(task: asyncio.Task[Any] | None, what: str, timeout_s: float = TASK_STOP_TIMEOUT_S) -> None:
+async def end_task(task: asyncio.Task[Any] | None, what: str, timeout_s: float = TASK_STOP_TIMEOUT_S,
+                   *, log_error: bool = False) -> None:
     """Cancel a part's loop and wait (bounded, :func:`stop_tasks`) for it to end; raises what
-    the loop raised other than its cancellation."""
+    the loop raised other than its cancellation, or with ``log_error`` logs it (for a task
+    whose failure its owner has already acted on: it has ended either way)."""
     if task is None:
         return
     await stop_tasks([task], timeout_s, what)
     if task.done() and not task.cancelled() and task.exception() is not None:
-        raise task.exception()  # type: ignore[misc]
+        if not log_error:
+            raise task.exception()  # type: ignore[misc]
+        log.error("%s: it had failed: %r", what, task.exception())

@@ -15,7 +15,7 @@ import logging
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.background import TASK_STOP_TIMEOUT_S, stop_tasks
+from companion.background import end_task
 from companion.config import CompanionConfig
 from companion.errors import MissionError
 from companion.ground import MqttBridge
@@ -84,9 +84,9 @@ class MissionControl:
         return self._task
 
     async def cancel(self) -> None:
-        """Cancel the flight task and wait (at most ``TASK_STOP_TIMEOUT_S``) for it to end."""
+        """Cancel the flight task and wait (bounded, :func:`~companion.background.end_task`) for it to end."""
         if self._task is not None:
-            await _end(self._task, "cancelling the flight task")
+            await end_task(self._task, "cancelling the flight task", log_error=True)
 
     def on_path(self, path_xy_m: NDArray[np.float64]) -> None:
         """A new planned path: kept and published to the ground station at the flight altitude."""
@@ -124,7 +124,7 @@ class MissionControl:
                 log.error("%s and landing could not be commanded (%s)", why, exc)
         finally:
             if mission is not None:
-                await _end(mission, "the flight task after a landing was commanded")
+                await end_task(mission, "the flight task after a landing was commanded", log_error=True)
 
     # --- the mission and goals ----------------------------------------------------------
 
@@ -233,7 +233,7 @@ class MissionControl:
         if busy:
             assert self._task is not None
             self.paused = action == "pause" and self._task.get_name() == "mission"
-            await _end(self._task, f"the flight task on a mission {action}")
+            await end_task(self._task, f"the flight task on a mission {action}", log_error=True)
         if action == "abort":
             self.paused = False
             self.legs_left = []
@@ -245,9 +245,3 @@ class MissionControl:
                  f" ({len(self.legs_left)} legs left)" if action == "pause" else "")
 
 
-async def _end(task: asyncio.Task[None], what: str) -> None:
-    """Cancel ``task`` and wait for it to end (bounded; the caller's own cancellation is not
-    swallowed). What it raised other than its cancellation is logged: it has ended anyway."""
-    await stop_tasks([task], TASK_STOP_TIMEOUT_S, what)
-    if task.done() and not task.cancelled() and task.exception() is not None:
-        log.error("%s: it had failed: %r", what, task.exception())

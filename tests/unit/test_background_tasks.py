@@ -7,7 +7,7 @@ import builtins
 
 import pytest
 
-from companion.background import BackgroundTasks
+from companion.background import BackgroundTasks, end_task
 
 
 async def _forever(ticks: list[int]) -> None:
@@ -95,3 +95,64 @@ def test_start_before_open_is_refused_and_open_twice_too() -> None:
         await bg.close()
 
     asyncio.run(main())
+
+
+def test_close_cancels_again_a_loop_that_swallowed_its_cancellation() -> None:
+    async def stubborn(ended: list[bool]) -> None:
+        try:
+            await asyncio.sleep(10.0)
+        except asyncio.CancelledError:
+            pass  # swallowed once, as a careless ``suppress`` would
+        await asyncio.sleep(10.0)  # the second cancellation ends it
+        ended.append(False)
+
+    async def main() -> list[bool]:
+        ended: list[bool] = []
+        bg = BackgroundTasks()
+        await bg.open()
+        task = bg.start(stubborn(ended), name="stubborn")
+        await asyncio.sleep(0.01)
+        await asyncio.wait_for(bg.close(), 3.0)
+        assert task.cancelled()
+        return ended
+
+    assert asyncio.run(main()) == []
+
+
+def test_a_loop_failing_while_being_closed_is_raised_by_close() -> None:
+    async def fails_on_cancel() -> None:
+        try:
+            await asyncio.sleep(10.0)
+        except asyncio.CancelledError:
+            raise OSError("socket gone while closing") from None
+
+    async def main() -> BaseException | None:
+        bg = BackgroundTasks()
+        await bg.open()
+        bg.start(fails_on_cancel(), name="flaky")
+        await asyncio.sleep(0.01)
+        try:
+            async with asyncio.timeout(3.0):  # close from the owner's own task, as a part does
+                await bg.close()
+        except BaseException as exc:
+            return exc
+        return None
+
+    err = asyncio.run(main())
+    assert isinstance(err, builtins.ExceptionGroup)
+    assert any(isinstance(e, OSError) for e in err.exceptions)
+
+
+def test_end_task_raises_or_logs_the_loops_failure(caplog: pytest.LogCaptureFixture) -> None:
+    async def failed() -> None:
+        raise ValueError("leg failed")
+
+    async def main(log_error: bool) -> None:
+        task = asyncio.create_task(failed())
+        await asyncio.sleep(0)
+        await end_task(task, "the flight task", log_error=log_error)
+
+    with pytest.raises(ValueError, match="leg failed"):
+        asyncio.run(main(False))
+    asyncio.run(main(True))
+    assert "the flight task: it had failed" in caplog.text
