@@ -107,17 +107,17 @@ def pick_scenario(index: int, room: Room, cfg: CompanionConfig, altitude_m: floa
         # of walls; the start also at every height up to the flight band (take-off).
         ok = True
         for o in room.objects:
-            need = p.keepout_m + margins.get(o.class_name, 0.0) + 0.15
+            need = p.keepout_m(margins.get(o.class_name, 0.0)) + 0.15
             if np.any(_polygon_distance_m(o.footprint_xy_m(), ends) < need):
                 ok = False
                 break
         if not ok:
             continue
         start3 = np.array([[a[0], a[1], h] for h in np.arange(0.05, band.z_max_m + 0.05, 0.1)])
-        if np.any(clearance_m(room, start3, 0.1) < p.keepout_m + 0.15):
+        if np.any(clearance_m(room, start3, 0.1) < p.keepout_m() + 0.15):
             continue
         goal3 = np.array([[b[0], b[1], altitude_m]])
-        if np.any(clearance_m(room, goal3, band.z_max_m - band.z_min_m) < p.keepout_m + 0.15):
+        if np.any(clearance_m(room, goal3, band.z_max_m - band.z_min_m) < p.keepout_m() + 0.15):
             continue
         # The target must lie well ahead of the start: the camera sees it before it matters.
         if _polygon_distance_m(target.footprint_xy_m(), a[None])[0] < 0.8:

@@ -34,10 +34,10 @@ class PlannerConfig(StageConfig):
     replan_time_limit_s: float = Field(default=0.02, gt=0.0, le=60.0)
     flight_altitude_m: float = Field(default=0.6, gt=0.0, le=20.0)
     vehicle_radius_m: float = Field(default=0.25, gt=0.0, le=5.0)
-    #: Kept beyond the vehicle radius from every obstacle, mapped object or not: PX4 flies a
-    #: few centimetres off its setpoints in corners and gusts, and a depth-mapped edge can be
-    #: off by a cell. Objects also keep their class margin; walls and unclassified clutter
-    #: have only this. More closes narrow passages (two 0.35 m keep-outs at 0.1 m).
+    #: Kept beyond the vehicle radius from walls and unclassified clutter, which have no class
+    #: margin: PX4 flies a few centimetres off its setpoints in corners and gusts, and a
+    #: depth-mapped edge can be off by a cell. An object keeps its class margin, or this if
+    #: that is smaller.
     tracking_margin_m: float = Field(default=0.05, ge=0.0, le=1.0)
     vehicle_height_m: float = Field(default=0.15, gt=0.0, le=5.0)
     #: Added above and below the vehicle's vertical band when deciding if an object blocks.
@@ -92,10 +92,10 @@ class PlannerConfig(StageConfig):
             )
         return self
 
-    @property
-    def keepout_m(self) -> float:
-        """How far the vehicle's centre stays from any obstacle: radius plus tracking margin."""
-        return self.vehicle_radius_m + self.tracking_margin_m
+    def keepout_m(self, class_margin_m: float = 0.0) -> float:
+        """How far the vehicle's centre stays from an obstacle with this class margin (0 for a
+        wall or unclassified clutter): the radius plus the margin or the tracking margin."""
+        return self.vehicle_radius_m + max(class_margin_m, self.tracking_margin_m)
 
     def band_at(self, altitude_m: float | None = None) -> VerticalBand:
         """The heights the vehicle occupies at ``altitude_m`` (default: the flight altitude),

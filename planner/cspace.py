@@ -15,9 +15,9 @@ so replanning after a new object appears does not pay for the whole map again.
 
 Clearance is conservative: ``clearance_m`` of a cell is a lower bound on the horizontal
 distance from *any* point of the cell to the nearest blocked cell's square (centre distance
-minus one cell diagonal), and a point is free when that bound is at least the vehicle radius
-plus the tracking margin plus a quarter cell (the largest gap between motion samples spaced
-half a cell apart).
+minus one cell diagonal; from a blocked cell outside a class margin, less the tracking
+margin too), and a point is free when that bound is at least the vehicle radius plus a quarter
+cell (the largest gap between motion samples spaced half a cell apart).
 """
 
 from __future__ import annotations
@@ -53,8 +53,10 @@ class CSpaceParams:
     """How a costmap becomes a configuration space.
 
     ``vehicle_radius_m``: horizontal radius of the vehicle. ``tracking_margin_m``: kept beyond
-    the radius from every blocked cell, because the autopilot flies a few centimetres off the
-    commanded path. ``unknown_cost`` (0..1): cost of an unknown cell relative to the highest
+    the radius from every blocked cell outside an object's class margin (walls, unclassified
+    clutter, the geofence), because the autopilot flies a few centimetres off the commanded
+    path; a class margin already keeps the vehicle that far from its object when it is at
+    least this wide. ``unknown_cost`` (0..1): cost of an unknown cell relative to the highest
     traversable cost; 1 forbids unknown space. ``geofence_xy_m``: the vehicle (its whole
     radius) stays inside it.
     """
@@ -67,7 +69,8 @@ class CSpaceParams:
 
     @property
     def keepout_m(self) -> float:
-        """How far the vehicle's centre stays from any blocked cell: radius plus tracking margin."""
+        """How far the vehicle's centre stays from a blocked cell that is not inside a class
+        margin: radius plus tracking margin."""
         return self.vehicle_radius_m + self.tracking_margin_m
 
     def influence_m(self, clearance_decay_m: float) -> float:
@@ -105,7 +108,7 @@ class CSpace:
     @property
     def free_threshold_m(self) -> float:
         """Smallest cell clearance at which a sampled point counts as free."""
-        return self.params.keepout_m + self.spec.resolution_m / 4.0
+        return self.params.vehicle_radius_m + self.spec.resolution_m / 4.0
 
     @property
     def motion_step_m(self) -> float:
@@ -264,20 +267,30 @@ def _blocked_mask(costmap: Costmap, params: CSpaceParams) -> NDArray[np.bool_]:
     return blocked
 
 
+def _distance_m(blocked: NDArray[np.bool_], resolution_m: float) -> NDArray[np.float64]:
+    """Distance from each cell centre to the nearest blocked cell centre, metres."""
+    if blocked.all():
+        return np.zeros(blocked.shape)
+    if not blocked.any():
+        return np.full(blocked.shape, np.inf)
+    return ndimage.distance_transform_edt(~blocked, sampling=resolution_m)
+
+
 def _fields(
     blocked: NDArray[np.bool_], source_cost: NDArray[np.uint8], resolution_m: float,
     params: CSpaceParams, decay_m: float,
 ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32]]:
-    """Clearance, free and cost fields of one window (arrays of the same shape)."""
-    if blocked.all():
-        dist = np.zeros(blocked.shape)
-    elif not blocked.any():
-        dist = np.full(blocked.shape, np.inf)
-    else:
-        dist = ndimage.distance_transform_edt(~blocked, sampling=resolution_m)
+    """Clearance, free and cost fields of one window (arrays of the same shape).
+
+    Clearance is what is left beyond the keep-outs: the distance to the nearest blocked cell,
+    and to the nearest blocked cell outside a class margin less the tracking margin."""
+    dist = _distance_m(blocked, resolution_m)
+    if params.tracking_margin_m > 0.0:
+        hard = blocked & (source_cost != INSCRIBED_INFLATED_OBSTACLE)
+        dist = np.minimum(dist, _distance_m(hard, resolution_m) - params.tracking_margin_m)
     # Lower bound from any point of this cell to any point of the nearest blocked cell.
     clearance = np.minimum(dist - math.sqrt(2.0) * resolution_m, params.influence_m(decay_m)).astype(np.float32)
-    threshold = params.keepout_m + resolution_m / 4.0
+    threshold = params.vehicle_radius_m + resolution_m / 4.0
     free = clearance >= threshold
     proximity = cost_decay(clearance - threshold, decay_m)
     soft = np.zeros(blocked.shape, dtype=np.float32)
@@ -333,7 +346,7 @@ def update_cspace(
     if changed is None:
         return dataclasses.replace(cs, version=version), None
     res = cs.spec.resolution_m
-    reach = int(math.ceil(cs.influence_m / res)) + 2
+    reach = int(math.ceil((cs.influence_m + cs.params.tracking_margin_m) / res)) + 2
     rows, cols = cs.spec.shape_rc
     r0, r1, c0, c1 = changed
     # Cells whose clearance can change lie within ``reach`` of a changed cell; computing their

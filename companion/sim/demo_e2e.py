@@ -152,10 +152,10 @@ def crossing_waypoints_room(placement: SimPlacement, cfg: CompanionConfig) -> li
     cand = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, p.flight_altitude_m)])
     # Clear of walls and of every object's whole footprint (with its class margin), as the
     # semantic map will see them; a waypoint under a table would be unreachable.
-    ok = clearance_m(placement.room, cand, 2.0 * p.flight_altitude_m) >= p.keepout_m + 0.3
+    ok = clearance_m(placement.room, cand, 2.0 * p.flight_altitude_m) >= p.keepout_m() + 0.3
     for o in room.objects:
         poly = o.footprint_xy_m().astype(np.float32)
-        need = p.keepout_m + margins.get(o.class_name, 0.0) + 0.3
+        need = p.keepout_m(margins.get(o.class_name, 0.0)) + 0.3
         d = np.array([-cv2.pointPolygonTest(poly, (float(x), float(y)), True) for x, y in cand[:, :2]])
         ok &= d >= need
     if not np.any(ok):

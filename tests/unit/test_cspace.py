@@ -131,13 +131,19 @@ def test_geofence_blocks_outside() -> None:
 
 
 @settings(max_examples=15, deadline=None)
-@given(st.floats(0.5, 4.0), st.floats(0.5, 3.0), st.floats(0.1, 0.8), st.floats(0.1, 0.8))
-def test_window_update_equals_full_rebuild(x: float, y: float, w: float, h: float) -> None:
+@given(st.floats(0.5, 4.0), st.floats(0.5, 3.0), st.floats(0.1, 0.8), st.floats(0.1, 0.8),
+       st.sampled_from([0.0, 0.1]))
+def test_window_update_equals_full_rebuild(x: float, y: float, w: float, h: float, tracking_m: float) -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
-    params = CSpaceParams(vehicle_radius_m=0.25)
+    params = CSpaceParams(vehicle_radius_m=0.25, tracking_margin_m=tracking_m)
     before = paint_objects(empty_costmap(band), [desk()], band)
     new_obj = ObjectFootprint(9, "chair", rect(x, y, x + w, y + h), 0.0, 0.9)
     after = paint_objects(empty_costmap(band), [desk(), new_obj], band)
+    # Unclassified occupancy appears too (it keeps the tracking margin, the chair its class's).
+    r, c = SPEC.cell_of(np.array([[min(x + 0.5, 4.9), y]]))[0]
+    occupied = after.cost.copy()
+    occupied[r:r + 3, c:c + 3] = LETHAL_OBSTACLE
+    after = Costmap(SPEC, occupied, band)
     cs0 = build_cspace(before, params, version=1)
     updated, window = update_cspace(cs0, after, version=2)
     full = build_cspace(after, params, version=2)
@@ -253,7 +259,7 @@ def test_px4_sitl_seed1_cabinet_graze_unclassified_obstacles_keep_the_tracking_m
 def test_tracking_margin_counts_in_thresholds_and_escape() -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
     cs = build_cspace(_wall_costmap(band), CSpaceParams(vehicle_radius_m=0.25, tracking_margin_m=0.1))
-    assert cs.free_threshold_m == pytest.approx(0.25 + 0.1 + SPEC.resolution_m / 4)
+    assert cs.free_threshold_m == pytest.approx(0.25 + SPEC.resolution_m / 4)
     esc = cs.escape_point(np.array([1.9, 2.0]))
     assert esc is not None and 2.0 - esc[0] >= 0.35
 
@@ -264,3 +270,20 @@ def test_negative_tracking_margin_is_refused() -> None:
     band = VerticalBand.for_altitude(0.5, 0.15, 0.1)
     with pytest.raises(PlanningError, match="tracking_margin_m"):
         build_cspace(_wall_costmap(band), CSpaceParams(vehicle_radius_m=0.25, tracking_margin_m=-0.1))
+
+
+def test_a_class_margin_wider_than_the_tracking_margin_is_not_widened() -> None:
+    # The tracking margin is for obstacles without a class margin: an object's own margin
+    # (0.2 m for a coffee table) already keeps the vehicle that far off.
+    band = VerticalBand.for_altitude(0.3, 0.15, 0.1)
+    cm = paint_objects(empty_costmap(band), [coffee_table()], band, class_margins_m={"coffee_table": 0.2})
+    plain = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25))
+    tracked = build_cspace(cm, CSpaceParams(vehicle_radius_m=0.25, tracking_margin_m=0.1))
+    assert np.array_equal(plain.free, tracked.free)
+    cap = plain.influence_m  # the tracked space looks that much further before it caps
+    out = ~plain.blocked
+    assert np.allclose(np.minimum(tracked.clearance_m, cap)[out], plain.clearance_m[out])
+    # With no class margin the same table is kept the tracking margin further away.
+    bare = paint_objects(empty_costmap(band), [coffee_table()], band, class_margins_m={"coffee_table": 0.0})
+    assert build_cspace(bare, CSpaceParams(vehicle_radius_m=0.25, tracking_margin_m=0.1)).free.sum() < \
+        build_cspace(bare, CSpaceParams(vehicle_radius_m=0.25)).free.sum()

@@ -39,7 +39,7 @@ def _cfg() -> CompanionConfig:
 
 def _needed_gap_m(cfg: CompanionConfig) -> float:
     sofa = next(c for c in cfg.classes if c.name == "sofa")
-    return 2 * (cfg.planner.keepout_m + sofa.margin_m)
+    return 2 * cfg.planner.keepout_m(sofa.margin_m)
 
 
 def test_a_passage_a_perfect_map_allows_is_refused_with_the_map_error_allowed_for() -> None:
