@@ -149,6 +149,11 @@ def _paint_max(out: NDArray[np.uint8], where: NDArray[np.bool_], value: NDArray[
     out[where] = np.where(cur == NO_INFORMATION, new, np.maximum(cur, new))
 
 
+#: A cell this close to an object's class margin counts as inside it: distance fields in
+#: float32 put a cell exactly at the margin a hair beyond it.
+MARGIN_TOLERANCE_M = 1e-6
+
+
 def cost_decay(beyond_m: NDArray[np.floating] | float, decay_m: float) -> NDArray[np.float64]:
     """Cost fraction 0..1 at ``beyond_m`` metres outside a keep-out zone: 1 at its edge (and
     inside), falling by e every ``decay_m`` (nav2's inflation curve)."""
@@ -232,7 +237,8 @@ class SafetyMarginLayer(_ObjectLayer):
             m = r.footprint.resolved_margin_m
             scale = existence_scale(r.footprint.existence, self.existence_confirm)
             soft = MAX_NON_OBSTACLE * cost_decay(d - m, decay)
-            cost = np.where(d <= m, float(INSCRIBED_INFLATED_OBSTACLE), soft) * scale
+            # A cell exactly at the margin is inside it (the safe side of float rounding).
+            cost = np.where(d <= m + MARGIN_TOLERANCE_M, float(INSCRIBED_INFLATED_OBSTACLE), soft) * scale
             cost_u8 = np.rint(cost).astype(np.uint8)
             _paint_max(out[dst], (d <= self.rasters.reach_m(r.footprint)) & (cost_u8 > 0), cost_u8)
         return out

@@ -141,7 +141,8 @@ def crossing_waypoints_room(placement: SimPlacement, cfg: CompanionConfig) -> li
     ground truth, but the straight legs between them cross furniture freely: the mission
     author knows the room's doorways, not its furniture."""
     room = placement.room
-    start = placement.offset_xy_m
+    # Where the vehicle stands, not the map origin: on PX4 a landing away from home moves them apart.
+    start = start_point_room_m(room)
     if len(room.doorways) >= 2:
         goal = room.doorways[1].inside_point_m(START_INSIDE_M)
     else:
