@@ -255,9 +255,9 @@ class Planner:
         if bool(cs.is_free(xy.reshape(1, 2))[0]):
             return None
         clr = float(cs.clearance_at(xy.reshape(1, 2))[0])
-        return (status, f"{name} ({xy[0]:.2f}, {xy[1]:.2f}) m is blocked: clearance {clr:.2f} m < "
-                        f"vehicle radius {self.config.vehicle_radius_m:.2f} m + tracking margin "
-                        f"{self.config.tracking_margin_m:.2f} m")
+        # The clearance field already has the class and tracking margins taken off.
+        return (status, f"{name} ({xy[0]:.2f}, {xy[1]:.2f}) m is blocked: clearance beyond the margins "
+                        f"{clr:.2f} m < vehicle radius {self.config.vehicle_radius_m:.2f} m")
 
     def _first_path(self, start: NDArray[np.float64],
                     goal: NDArray[np.float64]) -> tuple[NDArray[np.float64], int] | None:
