@@ -239,6 +239,9 @@ class OffboardController:
             link, rate_hz, self._tick, sender.target_system, sender.target_component
         )
         self._engage_lock = asyncio.Lock()
+        #: When OFFBOARD was requested (clock seconds), each engage: PX4 switches after the
+        #: request and reports it in a heartbeat up to a second later.
+        self.mode_requests_s: list[float] = []
 
     async def __aenter__(self) -> "OffboardController":
         await self.streamer.__aenter__()
@@ -313,6 +316,7 @@ class OffboardController:
                                                 ready_timeout_s, ready_what or "the vehicle to be ready for OFFBOARD")
                     self._check_still_engaging()
                 log.info("requesting OFFBOARD after %d setpoints", self.streamer.stats.sent)
+                self.mode_requests_s.append(self._clock())
                 await self.commands.set_mode(FlightMode.OFFBOARD)
                 await self.tracker.wait_for(
                     lambda s: s.flight_mode is FlightMode.OFFBOARD or not self.failsafe.state.streams,

@@ -60,6 +60,8 @@ class Px4Flight:
     uorb_hz: dict[str, list[float]] = field(default_factory=dict)
     #: Mode, arming and landed-state changes as PX4 reported them on the service's link.
     timeline: FlightTimeline = field(default_factory=FlightTimeline)
+    #: When the service asked PX4 for OFFBOARD (monotonic seconds, as the timeline's).
+    offboard_requests_s: list[float] = field(default_factory=list)
 
 
 async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | None = None,
@@ -145,8 +147,10 @@ async def fly_px4(cfg: CompanionConfig, out_dir: str | Path, *, sitl: Px4Sitl | 
     # Each plan's frame-to-setpoint latency (a flight has a handful): benchmarks pool them.
     s["frame_to_setpoint_ms"] = [round(v, 1) for v in service.runner.frame_to_setpoint_ms] \
         if service.runner is not None else []
+    if service.vehicle is not None:
+        flight.offboard_requests_s = list(service.vehicle.offboard.mode_requests_s)
     engaged_ok, engaged = engage_check(flight.timeline.events, cfg.planner.flight_altitude_m,
-                                       path=flight.timeline.path)
+                                       path=flight.timeline.path, requests_s=flight.offboard_requests_s)
     s["engage"] = {"ok": engaged_ok, "detail": engaged}
     s["modes"] = [f"{e.mode} {'armed' if e.armed else 'disarmed'} {e.landed}" +
                   ("" if e.xyz_map_m is None else f" z={e.xyz_map_m[2]:.2f}") for e in flight.timeline.events]

@@ -78,7 +78,8 @@ PX4_EVENT_PATTERN = (r"WARN|ERROR|[Ff]ailsafe|[Aa]rm|[Dd]isarm|[Ll]and|[Tt]akeof
 
 
 def engage_check(events: list[FlightEvent], altitude_m: float, tolerance_m: float = 0.05,
-                 path: list[tuple[float, float, float, float]] | None = None) -> tuple[bool, str]:
+                 path: list[tuple[float, float, float, float]] | None = None,
+                 requests_s: list[float] | None = None) -> tuple[bool, str]:
     """Whether the vehicle was first reported armed in OFFBOARD while in the air, clear of the
     floor by the service's engage height for a take-off to ``altitude_m`` less ``tolerance_m``
     (:func:`~companion.service.mission_runner.min_engage_height_m`: PX4's take-off aims at its
@@ -86,18 +87,26 @@ def engage_check(events: list[FlightEvent], altitude_m: float, tolerance_m: floa
     OFFBOARD; False also when it never was engaged). OFFBOARD
     while disarmed (PX4 keeps the mode a landing left) is not an engagement. PX4 reports modes
     in its 1 Hz heartbeat, so with the flight's ``path`` ((t_s, x, y, z) samples) the lowest
-    height in the :data:`HEARTBEAT_LAG_S` before that report counts: the engagement happened
-    somewhere in there."""
+    height between the heartbeat before that report (at most :data:`HEARTBEAT_LAG_S` before
+    it) and the report counts: the engagement happened somewhere in there. ``requests_s``
+    (monotonic seconds the service asked for OFFBOARD) narrows that to after the last request
+    before the report: PX4 cannot switch before it is asked."""
     first = next((e for e in events if e.mode == "OFFBOARD" and e.armed), None)
     if first is None:
         return False, "never armed in OFFBOARD"
     z = None if first.xyz_map_m is None else first.xyz_map_m[2]
-    window = [p[3] for p in path or () if first.t_s - HEARTBEAT_LAG_S <= p[0] <= first.t_s]
+    since_s = first.t_s - HEARTBEAT_LAG_S
+    if first.after_t_s is not None:
+        since_s = max(since_s, first.after_t_s)
+    asked_s = [t for t in requests_s or () if t <= first.t_s]
+    if asked_s:
+        since_s = max(since_s, asked_s[-1])
+    window = [p[3] for p in path or () if since_s <= p[0] <= first.t_s]
     if z is not None and window:
         z = min(z, *window)
     where = "unknown height" if z is None else f"{z:.2f} m above the floor"
     if window:
-        where = f"lowest {where} in the {HEARTBEAT_LAG_S:.1f} s before the report"
+        where = f"lowest {where} in the {first.t_s - since_s:.1f} s before the report"
     if first.height_above_home_m is not None:
         where += f" ({first.height_above_home_m:.2f} m above home at the report)"
     need = min_engage_height_m(altitude_m)

@@ -62,6 +62,9 @@ class FlightEvent:
     xyz_map_m: tuple[float, float, float] | None
     height_above_home_m: float | None = None
     range_m: float | None = None
+    #: For a change a heartbeat reported: when the heartbeat before it came (the change
+    #: happened after that); None otherwise.
+    after_t_s: float | None = None
 
 
 class FlightTimeline:
@@ -92,6 +95,7 @@ class FlightTimeline:
         self.range_m: float | None = None
         self.xyz_map_m: tuple[float, float, float] | None = None
         self.ned_m: tuple[float, float, float] | None = None
+        self._heartbeat_t_s: float | None = None
 
     def attach(self, link: LinkLike) -> Callable[[], None]:
         return link.add_listener(self.handle, self.MESSAGES)
@@ -104,7 +108,9 @@ class FlightTimeline:
             if msg.type == mavlink.MAV_TYPE_GCS:
                 return
             d = decode_heartbeat(msg.base_mode, msg.custom_mode)
-            self._update(d.mode.name if d.mode else f"main{d.main_mode}/sub{d.sub_mode}", d.armed, self.landed)
+            previous, self._heartbeat_t_s = self._heartbeat_t_s, time.monotonic()
+            self._update(d.mode.name if d.mode else f"main{d.main_mode}/sub{d.sub_mode}", d.armed, self.landed,
+                         after_t_s=previous)
         elif mtype == "EXTENDED_SYS_STATE":
             self._update(self.mode, self.armed, LandedState.from_mavlink(msg.landed_state).name)
         elif mtype == "HOME_POSITION" and math.isfinite(msg.z):
@@ -127,12 +133,12 @@ class FlightTimeline:
             if not self.path or now - self.path[-1][0] >= self.path_period_s:
                 self.path.append((now, *self.xyz_map_m))
 
-    def _update(self, mode: str, armed: bool, landed: str) -> None:
+    def _update(self, mode: str, armed: bool, landed: str, after_t_s: float | None = None) -> None:
         if (mode, armed, landed) != (self.mode, self.armed, self.landed):
             self.mode, self.armed, self.landed = mode, armed, landed
             above_home = None if self.ned_m is None or self.home_down_m is None else self.home_down_m - self.ned_m[2]
             self.events.append(FlightEvent(time.monotonic(), mode, armed, landed, self.xyz_map_m, above_home,
-                                           self.range_m))
+                                           self.range_m, after_t_s))
             log.info("timeline: %s, %s, %s at %s", mode, "armed" if armed else "disarmed", landed,
                      "?" if self.xyz_map_m is None else "({:.2f}, {:.2f}, {:.2f}) m".format(*self.xyz_map_m))
 

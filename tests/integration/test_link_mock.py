@@ -254,6 +254,8 @@ async def test_pilot_switching_mode_is_not_fought(flight: Flight) -> None:
         # Told to, we take over again.
         await ctl.engage()
         assert flight.ap.mode is FlightMode.OFFBOARD and ctl.state is OffboardState.ACTIVE
+        # Each request is dated, for judging where PX4 switched (it reports it a heartbeat later).
+        assert len(ctl.mode_requests_s) == 2 and ctl.mode_requests_s[0] < ctl.mode_requests_s[1]
 
 
 @pytest.mark.asyncio

@@ -106,7 +106,7 @@ def test_service_engages_offboard_only_airborne_at_takeoff_height(rearm: tuple[A
     _, flight = rearm
     assert flight is not None, rearm[0].detail
     ok, detail = engage_check(flight.timeline.events, _service_cfg().planner.flight_altitude_m,
-                              path=flight.timeline.path)
+                              path=flight.timeline.path, requests_s=flight.offboard_requests_s)
     assert ok, detail
 
 

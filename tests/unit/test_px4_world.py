@@ -65,6 +65,17 @@ def test_range_finder_sets_the_floor_when_present() -> None:
     assert tl.xyz_map_m[2] == pytest.approx(0.90)  # 0.80 m measured at d=-1.0, then 0.1 m higher
 
 
+def test_a_mode_change_is_dated_after_the_heartbeat_before_it() -> None:
+    tl = FlightTimeline()
+    tl.handle(_heartbeat(FlightMode.HOLD, True))
+    hold_s = tl.events[-1].t_s
+    assert tl.events[-1].after_t_s is None  # nothing reported before the first heartbeat
+    tl.handle(_heartbeat(FlightMode.HOLD, True))  # unchanged: no event, but a later bound
+    tl.handle(_heartbeat(FlightMode.OFFBOARD, True))
+    assert tl.events[-1].mode == "OFFBOARD" and hold_s < tl.events[-1].after_t_s <= tl.events[-1].t_s
+    assert len(tl.events) == 2
+
+
 def test_other_senders_are_ignored() -> None:
     tl = FlightTimeline()
     gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
@@ -114,3 +125,11 @@ def test_engage_judged_over_the_heartbeat_lag() -> None:
     assert engage_check([offboard], 0.6, path=hovering)[0]
     left_over = FlightEvent(1.0, "OFFBOARD", False, "ON_GROUND", (0.0, 0.0, 0.0))
     assert engage_check([left_over, offboard], 0.6, path=hovering)[0]  # disarmed OFFBOARD is no engagement
+    # A heartbeat 0.5 s before the report still said Hold: the climb before it was PX4's, not ours.
+    after_hold = FlightEvent(10.0, "OFFBOARD", True, "IN_AIR", (0.0, 0.0, 0.61), after_t_s=9.5)
+    assert engage_check([after_hold], 0.6, path=climbing)[0]
+    sank = [(9.6, 0.0, 0.0, 0.1), (10.0, 0.0, 0.0, 0.61)]
+    assert not engage_check([after_hold], 0.6, path=sank)[0]
+    # Asked for OFFBOARD 0.2 s before the report: PX4 switched after that, above the floor.
+    assert engage_check([after_hold], 0.6, path=sank, requests_s=[1.0, 9.8])[0]
+    assert not engage_check([after_hold], 0.6, path=sank, requests_s=[9.55])[0]
