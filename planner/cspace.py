@@ -67,15 +67,11 @@ class CSpaceParams:
     #: [x_min, y_min, x_max, y_max] in the map frame; cells outside it are blocked.
     geofence_xy_m: tuple[float, float, float, float] | None = None
 
-    @property
-    def keepout_m(self) -> float:
-        """How far the vehicle's centre stays from a blocked cell that is not inside a class
-        margin: radius plus tracking margin."""
-        return self.vehicle_radius_m + self.tracking_margin_m
-
     def influence_m(self, clearance_decay_m: float) -> float:
-        """Beyond this clearance a cell's cost and freedom no longer depend on obstacles."""
-        return self.keepout_m + 8.0 * clearance_decay_m + 0.5
+        """Beyond this clearance a cell's cost and freedom no longer depend on obstacles: a
+        wall's keep-out (:meth:`planner.config.PlannerConfig.keepout_m`) plus eight decay
+        lengths and half a metre."""
+        return self.vehicle_radius_m + self.tracking_margin_m + 8.0 * clearance_decay_m + 0.5
 
 
 @dataclass(frozen=True, eq=False)
