@@ -29,12 +29,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner.config import PlannerConfig
-from planner.cspace import CSpace, CSpaceParams, build_cspace, update_cspace
+from planner.cspace import CSpace, build_cspace, update_cspace
 from planner.gridsearch import GridGraph, refine_vertices, shortcut
 from planner.ompl_backend import ompl_solve
 from planner.types import PlanResult, PlanStatus, path_length_m
 from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import PlanningError
+from semmap.inflation import InflationParams
 from semmap.layers import paint_objects
 
 log = logging.getLogger(__name__)
@@ -52,7 +53,7 @@ class Planner:
 
     def __init__(self, config: PlannerConfig) -> None:
         self.config = config
-        self.params = CSpaceParams(
+        self.params = InflationParams(
             vehicle_radius_m=config.vehicle_radius_m,
             tracking_margin_m=config.tracking_margin_m,
             unknown_cost=config.unknown_cost,

@@ -9,11 +9,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planner.cspace import CSpaceParams, build_cspace
+from planner.cspace import build_cspace
 from planner.ompl_backend import PLANNERS, informed_bounds, ompl_solve
 from semmap.costmap import FREE_SPACE, Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import PlanningError
 from semmap.grid import GridSpec
+from semmap.inflation import InflationParams
 from semmap.layers import paint_objects
 
 SPEC = GridSpec(0.05, (0.0, 0.0), (60, 100))
@@ -24,7 +25,7 @@ def _cspace():
     wall = np.array([[2.3, 0.0], [2.7, 0.0], [2.7, 2.2], [2.3, 2.2]])
     base = Costmap(SPEC, np.full(SPEC.shape_rc, FREE_SPACE, np.uint8), BAND)
     cm = paint_objects(base, [ObjectFootprint(1, "desk", wall, 0.0, 0.75)], BAND)
-    return build_cspace(cm, CSpaceParams(vehicle_radius_m=0.2))
+    return build_cspace(cm, InflationParams(vehicle_radius_m=0.2))
 
 
 @pytest.mark.parametrize("algorithm", sorted(PLANNERS))
