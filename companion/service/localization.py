@@ -47,7 +47,7 @@ from companion.sources.base import FrameSource, WrappedSource
 from semmap.costmap import VerticalBand
 from semmap.frames import invert, pose_from_xyz_rpy, rpy_from_rotation
 from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth
-from semmap.slam.pose2d import compose, inverse, relative
+from semmap.slam.pose2d import compose, from_matrix4, inverse, relative
 from semmap.types import CameraIntrinsics, Frame
 
 log = logging.getLogger(__name__)
@@ -239,7 +239,7 @@ class Localizer:
         last pose handed over, so the prior stays continuous."""
         T = frame.T_odom_body
         if T is not None and np.all(np.isfinite(T)):
-            raw = np.array([T[0, 3], T[1, 3], math.atan2(T[1, 0], T[0, 0])], dtype=np.float64)
+            raw = from_matrix4(T)
             source = "odometry"
         else:
             raw = np.asarray(estimate_xy_yaw, dtype=np.float64)

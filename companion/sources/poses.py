@@ -52,6 +52,7 @@ from semmap.frames import (
     rpy_from_rotation,
     wrap_angle_rad,
 )
+from semmap.slam.pose2d import from_matrix4
 from semmap.types import Frame
 
 log = logging.getLogger(__name__)
@@ -184,7 +185,7 @@ class SharedPoseHistory:
         xyz = np.column_stack([odo[:, :2], np.zeros(len(odo))])
         T = PoseTrack.from_quaternions(near[:, 0], xyz, Rotation.from_euler("z", odo[:, 2:3]).as_quat(),
                                        max_gap_s).at(stamp_s)
-        return None if T is None else np.array([T[0, 3], T[1, 3], math.atan2(T[1, 0], T[0, 0])])
+        return None if T is None else from_matrix4(T)
 
     def _around(self, stamp_s: float) -> NDArray[np.float64]:
         """The (up to two) rows around ``stamp_s``, oldest first."""
@@ -308,9 +309,10 @@ class TelemetryPoseRecorder:
     def _dead_reckon(self, t_s: float, T_map_body: Transform, velocity_enu_m_s: tuple[float, float],  # noqa: N803
                      yaw_rate_enu_rad_s: float) -> tuple[float, float, float]:
         """The odometry pose at ``t_s`` (see the class docstring)."""
-        yaw_map = math.atan2(T_map_body[1, 0], T_map_body[0, 0])
+        pose_map = from_matrix4(T_map_body)
+        yaw_map = float(pose_map[2])
         if self._odo is None:
-            self._odo = np.array([T_map_body[0, 3], T_map_body[1, 3], yaw_map], dtype=np.float64)
+            self._odo = pose_map
             self._odo_t = t_s
         if t_s > self._odo_t:
             dt = min(t_s - self._odo_t, self.max_position_age_s)
