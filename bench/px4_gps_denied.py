@@ -94,6 +94,8 @@ def main() -> int:
                     help="the SLAM pose's position 1-sigma sent to PX4 (m; default link.vision_position_std_m)")
     ap.add_argument("--camera-scale", type=float, default=1.0,
                     help="scale the camera's resolution and intrinsics (0.5: 320x240), for a loaded machine")
+    ap.add_argument("--camera-rate-hz", type=float, default=None,
+                    help="the camera's frame rate, and so the SLAM's (default camera.rate_hz; a D455 streams 30)")
     ap.add_argument("--weak-prior", action="store_true",
                     help="the SLAM trusts its motion prior less (wider search, weaker pull): without GPS that prior, "
                          "dead-reckoned from PX4's velocity, is itself built on the vision PX4 fuses")
@@ -111,6 +113,8 @@ def main() -> int:
         cfg = cfg.model_copy(update={"camera": c.model_copy(update={
             "width_px": int(c.width_px * k), "height_px": int(c.height_px * k), "fx_px": c.fx_px * k,
             "fy_px": c.fy_px * k, "cx_px": c.cx_px * k, "cy_px": c.cy_px * k})})
+    if args.camera_rate_hz is not None:
+        cfg = cfg.model_copy(update={"camera": cfg.camera.model_copy(update={"rate_hz": args.camera_rate_hz})})
     if args.weak_prior:
         cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update=WEAK_PRIOR)})
     if args.vision_std_m is not None:

@@ -193,7 +193,7 @@ class SihTruth:
         if self.odometry is None:
             self.shared.set_pose(local_s, T)
         elif self._estimate is not None and self._floor_down_m is not None:
-            self.shared.set_pose(local_s, T, self._estimate_pose(), self._odometry_pose(local_s, T, yaw))
+            self.shared.set_pose(local_s, T, self._estimate_pose(T), self._odometry_pose(local_s, T, yaw))
         x, y, z = (float(v) for v in T[:3, 3])
         self.samples.append(TruthSample(px4_s, local_s, x, y, z, yaw))
 
@@ -213,10 +213,16 @@ class SihTruth:
 
         return link.add_listener(handle, ("LOCAL_POSITION_NED", "ATTITUDE"))
 
-    def _estimate_pose(self) -> NDArray[np.float64]:
+    def _estimate_pose(self, T_true: NDArray[np.float64]) -> NDArray[np.float64]:  # noqa: N803
+        """PX4's position and heading for a frame rendered at ``T_true``, with the true roll and
+        pitch: PX4 levels its attitude on its IMU, not on our vision, to a fraction of a degree;
+        its latest ATTITUDE message lags the render by up to a telemetry period, in which a
+        vehicle starting a leg tilts by degrees, and a scan levelled with that lag is not level."""
         assert self._estimate is not None and self._floor_down_m is not None
-        (n, e, d), rpy = self._estimate
-        T = map_pose_from_ned((n, e, d), rpy)
+        (n, e, d), (_, _, yaw_ned) = self._estimate
+        roll, pitch, _ = rpy_from_rotation(T_true[:3, :3])
+        T = map_pose_from_ned((n, e, d), (0.0, 0.0, yaw_ned))
+        T[:3, :3] = pose_from_xyz_rpy(0.0, 0.0, 0.0, roll, pitch, rpy_from_rotation(T[:3, :3])[2])[:3, :3]
         T[2, 3] = self._floor_down_m - d + STANDING_HEIGHT_M  # above the floor, as the truth's z
         return T
 

@@ -46,6 +46,7 @@ from companion.sim.px4_gps_denied import (
 )
 from companion.sim.px4_sitl import Px4SitlError
 from companion.sim.sim_world import SharedSimState
+from semmap.slam.pose2d import from_matrix4
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +157,7 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     origin = GeoOrigin(s.home_lat_deg, s.home_lon_deg, 0.0)
     wps_map = [placement.room_to_map_xy(w) for w in await asyncio.to_thread(crossing_waypoints_room, placement, cfg)]
     est = EstimateRecorder(cfg.link.target_system)
-    slam: list[tuple[float, float, float]] = []  # our s, x, y
+    slam: list[tuple[float, ...]] = []  # our s, x, y, yaw (rad), generation, loop closures
     scans: list[tuple[float, float, int, float]] = []  # capture s, published s, status code, localize ms
     uorb_hz: list[float] = []
     new_pose_rate: list[float] = []
@@ -185,7 +186,8 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
                     scans.append((st.stamp_s, time.monotonic() - st.age_s, SCAN_STATUS_CODES.get(st.status, -1),
                                   st.localize_ms))
                     if st.status == "ok":
-                        slam.append((st.stamp_s, float(st.T_map_body[0, 3]), float(st.T_map_body[1, 3])))
+                        slam.append((st.stamp_s, *(float(v) for v in from_matrix4(st.T_map_body)),
+                                     float(st.generation), float(st.loop_closures)))
                 await asyncio.sleep(SLAM_PERIOD_S)
 
         async def sample_uorb() -> None:
@@ -293,7 +295,7 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     # The tracks the figures come from, for a look afterwards (our clock, map frames unaligned).
     np.savez_compressed(out / "tracks.npz", truth=np.array([(t.local_s, t.x_m, t.y_m, t.z_m, t.yaw_rad)
                                                             for t in truth.samples]).reshape(-1, 5),
-                        px4_estimate=np.array(est.rows).reshape(-1, 5), slam=np.array(slam).reshape(-1, 3),
+                        px4_estimate=np.array(est.rows).reshape(-1, 5), slam=np.array(slam).reshape(-1, 6),
                         scans=np.array(scans).reshape(-1, 4))
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
     return summary
@@ -316,7 +318,7 @@ def landing_after_loss(samples: list[Any], lost_at_s: float) -> dict[str, Any]:
             "height_at_loss_m": round(float(after[0, 3]), 2)}
 
 
-def judge(truth: SihTruth, est: EstimateRecorder, slam: list[tuple[float, float, float]],
+def judge(truth: SihTruth, est: EstimateRecorder, slam: list[tuple[float, ...]],
           exclude_s: tuple[float, float] | None = None) -> dict[str, Any]:
     """PX4's estimate (at its arrival) and the SLAM pose (at its capture) against SIH's truth
     interpolated to those instants, airborne samples outside ``exclude_s`` (our clock: the

@@ -34,7 +34,7 @@ from semmap.config import SlamConfig
 from semmap.occupancy import ProbabilityTables
 from semmap.scan import BandScan
 from semmap.slam.correlative import real_time_correlative_match
-from semmap.slam.pose2d import Pose2, compose, relative, wrap
+from semmap.slam.pose2d import Pose2, compose, relative, transform_xy, wrap
 from semmap.slam.refine import refine_pose
 from semmap.slam.submaps import ActiveSubmaps, Submap
 
@@ -280,6 +280,7 @@ class LocalSlam:
             return pred, fallback, f"{len(pts)} scan points < {cfg.min_scan_points}", 0.0, 0.0
         grid = target.match_grid()
         init = relative(target.local_pose, pred)  # the submap frame has no rotation
+        pts = _seen_by(target, pts, init, cfg.min_scan_points)
         rt_pose, _ = real_time_correlative_match(
             grid, pts, init, cfg.correlative_linear_window_m,
             math.radians(cfg.correlative_angular_window_deg),
@@ -317,3 +318,15 @@ class LocalSlam:
             or float(np.hypot(pose[0] - p0[0], pose[1] - p0[1])) >= cfg.motion_filter_distance_m
             or abs(float(wrap(pose[2] - p0[2]))) >= math.radians(cfg.motion_filter_angle_deg)
         )
+
+
+def _seen_by(target: Submap, pts: NDArray[np.float64], pose_in_submap: Pose2, min_points: int) -> NDArray[np.float64]:
+    """The hits that land, at ``pose_in_submap``, where ``target`` has seen (:meth:`Submap.seen`;
+    all of them when fewer than ``min_points`` do).
+
+    A hit beyond what the submap has seen (the far end of a wall coming into view as the
+    vehicle turns) says nothing about the pose, yet the likelihood field pulls it back onto
+    the known end of that wall: in a turn every scan is rotated back a little, and the
+    heading lags the turn."""
+    seen = target.seen(transform_xy(pose_in_submap, pts))
+    return pts[seen] if int(seen.sum()) >= min_points else pts

@@ -16,6 +16,8 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
 
 from semmap.errors import MapError
 from semmap.grid import GridSpec
@@ -43,6 +45,7 @@ class Submap:
         self.blur_sigma_cells = float(blur_sigma_cells)
         self._hits: list[np.ndarray] = []  # (K, 2) hits of each scan, submap frame
         self._match: MatchGrid | None = None
+        self._seen: NDArray[np.bool_] | None = None
         self._bbs: BranchAndBoundMatcher | None = None
         self._lock = threading.Lock()
 
@@ -57,10 +60,12 @@ class Submap:
         self.n_scans += 1
         self.n_hits += len(rays.hits_xy_m)
         self._match = None
+        self._seen = None
 
     def finish(self) -> None:
         """Freeze the submap (loop closure may now match against it)."""
         self.finished = True
+        self._seen = None  # only the live scan matcher asks what was seen
 
     def match_grid(self) -> MatchGrid:
         """The grid the scan matchers score against (cached until the next insertion): the
@@ -72,6 +77,19 @@ class Submap:
             m = MatchGrid.from_hits(hits, self.grid.spec, self.blur_sigma_cells * self.grid.spec.resolution_m)
             self._match = m
         return m
+
+    def seen(self, xy_m: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """(N,) True where the (N, 2) submap-frame points lie on a cell a ray has crossed or
+        ended in, or on a cell beside one: range noise puts a wall's hits up to a cell behind
+        it, where no ray reached. Cached until the next insertion."""
+        spec = self.grid.spec
+        if self._seen is None:
+            self._seen = ndimage.binary_dilation(self.grid.known)
+        rc = spec.cell_of(xy_m)
+        inside = spec.contains_rc(rc)
+        out = np.zeros(len(rc), dtype=bool)
+        out[inside] = self._seen[rc[inside, 0], rc[inside, 1]]
+        return out
 
     def branch_and_bound(self, depth: int) -> BranchAndBoundMatcher:
         """The loop-closure matcher of a finished submap (built once, thread-safe)."""
@@ -126,3 +144,4 @@ class ActiveSubmaps:
                    self.tables, self.blur_sigma_cells)
         self.all.append(s)
         self.active.append(s)
+
