@@ -46,10 +46,11 @@ from semmap.frames import (
     R_FLU_FRD,
     R_NED_ENU,
     make_transform,
-    map_pose_from_ned,
+    ned_to_enu,
     pose_from_xyz_rpy,
     rpy_from_rotation,
     wrap_angle_rad,
+    yaw_ned_to_enu,
 )
 
 log = logging.getLogger(__name__)
@@ -221,10 +222,9 @@ class SihTruth:
         assert self._estimate is not None and self._floor_down_m is not None
         (n, e, d), (_, _, yaw_ned) = self._estimate
         roll, pitch, _ = rpy_from_rotation(T_true[:3, :3])
-        T = map_pose_from_ned((n, e, d), (0.0, 0.0, yaw_ned))
-        T[:3, :3] = pose_from_xyz_rpy(0.0, 0.0, 0.0, roll, pitch, rpy_from_rotation(T[:3, :3])[2])[:3, :3]
-        T[2, 3] = self._floor_down_m - d + STANDING_HEIGHT_M  # above the floor, as the truth's z
-        return T
+        x, y, _ = ned_to_enu(n, e, d)
+        z = self._floor_down_m - d + STANDING_HEIGHT_M  # above the floor, as the truth's z
+        return pose_from_xyz_rpy(x, y, z, roll, pitch, yaw_ned_to_enu(yaw_ned))
 
     def _odometry_pose(self, local_s: float, T: NDArray[np.float64], yaw: float) -> NDArray[np.float64]:
         assert self.odometry is not None
