@@ -128,7 +128,8 @@ class VisionStream:
     """Streams the latest pose from ``source`` as external-vision ODOMETRY at ``rate_hz``
     (async context manager). ``source()`` returns a :class:`VisionPose` or None (nothing to
     send now). Counts what it sent (:attr:`sent`), how many of those were new poses
-(:attr:`sent_new`: PX4's EKF2 fuses a stamp once) and what it skipped (:attr:`skipped`);
+(:attr:`sent_new`: PX4's EKF2 fuses a stamp once), what it skipped (:attr:`skipped`) and how
+often ``source()`` raised (:attr:`source_errors`);
 :attr:`last_sent_s` / :attr:`last_new_s` are when it last sent a pose / a new pose
 (``time.monotonic``, None before the first)."""
 
@@ -141,6 +142,7 @@ class VisionStream:
         self.sent = 0
         self.sent_new = 0
         self.skipped = 0
+        self.source_errors = 0
         self.last_sent_s: float | None = None
         self.last_new_s: float | None = None
         #: Capture time of the last new pose sent (its ``stamp_s``; None before the first).
@@ -158,8 +160,18 @@ class VisionStream:
         await end_task(task, "the vision stream")
 
     def send_once(self) -> bool:
-        """Send the current pose now; False when there is none (or the link refused it)."""
-        pose = self.source()
+        """Send the current pose now; False when there is none, the source failed or the
+        link refused it."""
+        try:
+            pose = self.source()
+        except Exception:
+            # PX4's only position source must outlive a failing pose source: nothing is sent
+            # this tick (PX4's vision-loss failsafe acts if it persists), the stream runs on.
+            self.source_errors += 1
+            if self.source_errors == 1 or self.source_errors % 100 == 0:
+                log.exception("external vision source failed (%d times); nothing sent this tick",
+                              self.source_errors)
+            return False
         if pose is None:
             self.skipped += 1
             return False

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
 
 import numpy as np
@@ -140,3 +141,28 @@ def test_vision_stream_counts_new_poses_apart_from_repeats() -> None:
     assert (stream.sent, stream.sent_new, stream.skipped) == (3, 2, 1)
     assert stream.last_sent_s is not None and stream.last_new_s is not None
     assert sent[-1].reset_counter == 2 and sent[-1].pose_covariance[0] == pytest.approx(0.0025)
+
+
+@pytest.mark.asyncio
+async def test_vision_stream_outlives_a_failing_pose_source() -> None:
+    # The stream is PX4's only position without GPS: a source that raises once must not end it.
+    link = MavlinkLink("udpout://127.0.0.1:9")
+    sent: list[mavlink.MAVLink_message] = []
+    link.send = sent.append  # type: ignore[method-assign]
+    calls = 0
+
+    def source() -> VisionPose:
+        nonlocal calls
+        calls += 1
+        if calls == 2:
+            raise RuntimeError("pose source bug")
+        return VisionPose(0.01 * calls, np.eye(4))
+
+    async def six_calls() -> None:
+        while calls < 6:
+            await asyncio.sleep(0.005)
+
+    async with VisionStream(link, source, 200.0) as stream:
+        await asyncio.wait_for(six_calls(), 5.0)
+    assert stream.source_errors == 1
+    assert len(sent) >= 4
