@@ -167,6 +167,7 @@ def extract_band_scan(
     fill_px: int = 4,
     free_sigma: float = 1.0,
     cluster_tol: float = 1.0,
+    recentre_hit: bool = False,
     stamp_s: float = 0.0,
     column_stride_px: int | None = None,
     recover_px: bool = True,
@@ -187,8 +188,13 @@ def extract_band_scan(
     The obstacle is placed at the mean range of the column's nearest cluster, the points
     within ``cluster_tol * tol`` of it with ``tol = range_tolerance_m +
     range_tolerance_per_m2 * r**2`` (about three sigma of a D455-like depth noise): the
-    nearest point alone is biased towards the sensor. Free space ends ``free_sigma`` noise
-    sigmas (``tol / 3``) before the obstacle, or at the nearest point if that is farther.
+    nearest point alone is biased towards the sensor. With ``recentre_hit`` the obstacle moves
+    once more, to the mean range of the points within ``tol`` either side of that mean: the
+    cluster's window starts at its nearest point, so its mean still sits about half a sigma
+    short of the surface. A map may keep that (it errs towards the vehicle); a scan matcher
+    may not, because the bias grows with range squared and so turns a wall seen obliquely by
+    an angle that changes with the viewpoint. Free space ends ``free_sigma`` noise sigmas
+    (``tol / 3``) before the obstacle, or at the nearest point if that is farther.
     """
     d, T = _checked_frame(depth_m, intrinsics, T_map_camera)
     H, W = d.shape
@@ -208,7 +214,7 @@ def extract_band_scan(
         dep, valid, xn, yn, R, tx, ty, tz, float(band.z_min_m), float(band.z_max_m),
         bool(band.z_min_m <= tz <= band.z_max_m), max(0, int(min_hit_points) - 1),
         float(range_tolerance_m), float(range_tolerance_per_m2), float(cluster_tol), float(free_sigma),
-        near, far, hit_xy, is_hit, ray_valid, hit_z,
+        bool(recentre_hit), near, far, hit_xy, is_hit, ray_valid, hit_z,
     )
     origin = np.array([tx, ty])
     return BandScan(
@@ -266,7 +272,7 @@ def _scan_columns(
     dep: NDArray[np.float32], valid: NDArray[np.bool_], xn: NDArray[np.float32], yn: NDArray[np.float32],
     R: NDArray[np.float32], tx: float, ty: float, tz: float, band_lo: float, band_hi: float,
     sensor_in_band: bool, min_support: int, range_tol: float, range_tol_per_m2: float,
-    cluster_tol: float, free_sigma: float,
+    cluster_tol: float, free_sigma: float, recentre_hit: bool,
     near: NDArray[np.float64], far: NDArray[np.float64], hit_xy: NDArray[np.float64],
     is_hit: NDArray[np.bool_], ray_valid: NDArray[np.bool_], hit_z: NDArray[np.float64],
 ) -> None:
@@ -308,6 +314,9 @@ def _scan_columns(
         r_near_f = r_near if hit else np.float32(0.0)
         tol = f(rt + f(rtp * f(r_near_f * r_near_f)))
         r_hit = _cluster_mean_range(hit_rng, c, r_near_f, f(r_near_f + f(cluster_tol * tol))) if hit else 0.0
+        if hit and recentre_hit:
+            tol_hit = f(rt + f(rtp * f(np.float32(r_hit) * np.float32(r_hit))))
+            r_hit = _cluster_mean_range(hit_rng, c, f(r_hit - tol_hit), f(r_hit + tol_hit))
         blocked = math.isfinite(q1)
         exit_row, near_row, med_row = _free_ends_and_hit_rows(hit_rng, c, rng, s_lo, s_hi, crosses, r_hit)
         far_row = first_row[c] if blocked else exit_row

@@ -38,10 +38,12 @@ def level_scan_from_depth(
     stamp_s: float = 0.0,
 ) -> BandScan:
     """The altitude-band scan of an (H, W) depth image (the same extraction the occupancy
-    grid uses, :func:`semmap.scan.extract_band_scan`) in the gravity-aligned body frame.
+    grid uses, :func:`semmap.scan.extract_band_scan`) in the gravity-aligned body frame,
+    with each hit re-centred on its surface (``recentre_hit``) for the scan matcher.
 
     ``band``: heights above the floor (metres); ``altitude_m``: the body's height above the
     floor; ``roll_rad``/``pitch_rad``: the autopilot's attitude (FLU, Z-Y-X Euler)."""
     T = T_level_camera(T_body_camera, roll_rad, pitch_rad, altitude_m)
     return extract_band_scan(depth_m, intrinsics, T, band, min_depth_m=min_depth_m,
-                             max_depth_m=max_depth_m, stride_px=stride_px, stamp_s=stamp_s)
+                             max_depth_m=max_depth_m, stride_px=stride_px, stamp_s=stamp_s,
+                             recentre_hit=True)

@@ -133,3 +133,23 @@ def test_bad_input_is_named() -> None:
         extract_band_scan(np.ones((10, 10), np.float32), K, T, VerticalBand(0.4, 0.8))
     with pytest.raises(FrameError, match="T_map_camera"):
         extract_band_scan(np.ones((120, 160), np.float32), K, np.eye(3), VerticalBand(0.4, 0.8))
+
+
+def test_recentred_hit_sits_on_a_noisy_wall_where_the_nearest_cluster_falls_short() -> None:
+    # A wall at 4 m with D455-like noise (sigma = 0.005 * z**2 = 8 cm): the nearest cluster's
+    # mean is pulled towards the sensor, the re-centred mean is not.
+    T = camera_pose(0.0, 0.0, 0.6)
+    wall_m = 4.0
+    rng = np.random.default_rng(3)
+    depth = (wall_m + rng.normal(0.0, 0.005 * wall_m**2, (K.height_px, K.width_px))).astype(np.float32)
+    band = VerticalBand(0.2, 1.0)
+    nearest = extract_band_scan(depth, K, T, band, stride_px=1)
+    centred = extract_band_scan(depth, K, T, band, stride_px=1, recentre_hit=True)
+    # Per column, the wall's horizontal range along the ray is depth * |(x, 1)|.
+    xn = (np.arange(K.width_px) - K.cx_px) / K.fx_px
+    truth_m = wall_m * np.hypot(xn, 1.0)
+    bias_nearest = np.mean(np.hypot(*nearest.hits_xy_m.T) - truth_m)
+    bias_centred = np.mean(np.hypot(*centred.hits_xy_m.T) - truth_m)
+    assert bias_nearest < -0.02
+    assert abs(bias_centred) < 0.01
+    assert np.array_equal(nearest.is_hit, centred.is_hit)
