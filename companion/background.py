@@ -1,7 +1,8 @@
 """The loops a long-lived part runs while it is open (a setpoint stream, a heartbeat, a feed).
 
 A part opens its :class:`BackgroundTasks` in ``__aenter__``, starts its loops with
-:meth:`BackgroundTasks.start`, and closes it in ``__aexit__``. They run in an
+:meth:`BackgroundTasks.start`, and closes it in ``__aexit__``; a part that does nothing else
+on entry and exit subclasses :class:`BackgroundPart` and only starts its loops. They run in an
 :class:`asyncio.TaskGroup`: a loop that fails cancels the task that opened the part, so a part
 whose loop died is never left looking alive. The group is left with ``(None, None, None)``, so
 an exception from the owner's own ``async with`` body is not wrapped into an ExceptionGroup.
@@ -13,11 +14,13 @@ stacks) those that still run.
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import io
 import logging
 from collections.abc import Coroutine, Iterable
-from typing import Any
+from types import TracebackType
+from typing import Any, Self
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +70,26 @@ class BackgroundTasks:
             # takes that cancellation back and raises the failure instead.
             if tg is not None:
                 await tg.__aexit__(None, None, None)
+
+
+class BackgroundPart(abc.ABC):
+    """An async context manager that runs the loops :meth:`_start` starts while it is open."""
+
+    def __init__(self) -> None:
+        self._background = BackgroundTasks()
+
+    @abc.abstractmethod
+    def _start(self) -> None:
+        """Start the part's loops with ``self._background.start``."""
+
+    async def __aenter__(self) -> Self:
+        await self._background.open()
+        self._start()
+        return self
+
+    async def __aexit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                        tb: TracebackType | None) -> None:
+        await self._background.close()
 
 
 #: How long a cancelled task may take to end before it is left behind (and logged).

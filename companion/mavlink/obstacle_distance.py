@@ -26,13 +26,12 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
 
 import numpy as np
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.background import BackgroundTasks
+from companion.background import BackgroundPart
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.state import VehicleState
 from semmap.costmap import LETHAL_OBSTACLE, NO_INFORMATION, Costmap
@@ -179,7 +178,7 @@ class ObstacleDistanceInput:
         return cls(costmap, (x_east, y_north), yaw_ned_to_enu(state.yaw_ned_rad))
 
 
-class ObstacleDistanceFeed:
+class ObstacleDistanceFeed(BackgroundPart):
     """Sends OBSTACLE_DISTANCE at ``rate_hz`` from ``source()`` (async context manager).
 
     ``source`` returns the latest :class:`ObstacleDistanceInput`, or None when there is no
@@ -208,20 +207,10 @@ class ObstacleDistanceFeed:
         self.errors = 0
         self.last_scan: ObstacleDistanceScan | None = None
         self._boot_s = time.monotonic()
-        self._background = BackgroundTasks()
+        super().__init__()
 
-    async def __aenter__(self) -> "ObstacleDistanceFeed":
-        await self._background.open()
+    def _start(self) -> None:
         self._background.start(self._run(), name="obstacle-distance")
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self._background.close()
 
     async def _run(self) -> None:
         next_s = time.monotonic()

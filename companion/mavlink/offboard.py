@@ -31,7 +31,7 @@ from types import TracebackType
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.background import BackgroundTasks
+from companion.background import BackgroundPart
 from companion.errors import LinkError
 from companion.mavlink.commands import VehicleCommands
 from companion.mavlink.failsafe import OffboardFailsafe, OffboardState, PositionSetpoint, Transition
@@ -89,7 +89,7 @@ class StreamerStats:
     last_sent_s: float | None
 
 
-class SetpointStreamer:
+class SetpointStreamer(BackgroundPart):
     """Sends ``source()`` at ``rate_hz`` on absolute ``time.monotonic`` deadlines (async context manager).
 
     ``source`` returns the setpoint to send now, or None to send nothing this tick. It must
@@ -112,7 +112,7 @@ class SetpointStreamer:
         self.source = source
         self.target_system = target_system
         self.target_component = target_component
-        self._background = BackgroundTasks()
+        super().__init__()
         self._ticks = 0
         self._sent = 0
         self._skipped = 0
@@ -122,18 +122,8 @@ class SetpointStreamer:
         #: Optional hook called with the send time of each setpoint (benchmarks, tests).
         self.on_sent: Callable[[float], None] | None = None
 
-    async def __aenter__(self) -> "SetpointStreamer":
-        await self._background.open()
+    def _start(self) -> None:
         self._background.start(self._run(), name="setpoint-streamer")
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self._background.close()
 
     @property
     def stats(self) -> StreamerStats:

@@ -94,19 +94,23 @@ def _pose_from_tum(values: list[float]) -> NDArray[np.float64]:
     return make_transform(quaternion_to_rotation(qx, qy, qz, qw), np.array([tx, ty, tz]))
 
 
-def read_pose_lines(path: Path, n_fields: int) -> list[list[float]]:
-    """Numeric rows of a whitespace-separated text file (``#`` comments and blank lines
-    skipped), each with exactly ``n_fields`` numbers. Raises :class:`DataError` naming the
-    file and line."""
+def _data_lines(path: Path) -> list[tuple[int, str]]:
+    """(line number, stripped line) of a text file's lines that are neither blank nor ``#``
+    comments. Raises :class:`DataError` naming the file when it cannot be read."""
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(f"{path}: cannot read: {exc}") from exc
+    lines = ((lineno, line.strip()) for lineno, line in enumerate(text.splitlines(), start=1))
+    return [(lineno, s) for lineno, s in lines if s and not s.startswith("#")]
+
+
+def read_pose_lines(path: Path, n_fields: int) -> list[list[float]]:
+    """Numeric rows of a whitespace-separated text file (``#`` comments and blank lines
+    skipped), each with exactly ``n_fields`` numbers. Raises :class:`DataError` naming the
+    file and line."""
     rows = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
+    for lineno, s in _data_lines(path):
         parts = s.split()
         try:
             nums = [float(p) for p in parts]
@@ -120,15 +124,8 @@ def read_pose_lines(path: Path, n_fields: int) -> list[list[float]]:
 
 def _read_list(path: Path) -> list[tuple[float, str]]:
     """TUM ``rgb.txt``/``depth.txt``: ``timestamp filename`` rows."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path}: cannot read: {exc}") from exc
     rows = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
+    for lineno, s in _data_lines(path):
         parts = s.split()
         try:
             rows.append((float(parts[0]), parts[1]))
