@@ -317,9 +317,20 @@ def object_in_box(
         if part is None:
             return None  # the box shows another object's top only
         obj_idx = part
-    obj_vox = clusters.vox[obj_idx]
-    if len(obj_vox) < params.min_cluster_points:
+    if len(obj_idx) < params.min_cluster_points:
         return None
+    return _observation(obj_idx, clusters, tab, T_map_camera, track, class_cfg, params, floor, stamp_s, rng,
+                        shape_prior, box.image_size_px)
+
+
+def _observation(
+    obj_idx: NDArray[np.intp], clusters: _Clusters, tab: NDArray[np.float64], T_map_camera: Transform, track: Track,
+    class_cfg: ClassConfig, params: GeometryConfig, floor: Plane, stamp_s: float, rng: np.random.Generator,
+    shape_prior: bool, image_size_px: tuple[int, int],
+) -> ObjectObservation:
+    """Steps 5-6 for the object's voxels ``obj_idx``: the observation with its heights above the
+    floor, top plane and footprint (map frame)."""
+    obj_vox = clusters.vox[obj_idx]
     in_obj = np.zeros(len(clusters.vox), dtype=bool)
     in_obj[obj_idx] = True
     on_obj = np.flatnonzero(in_obj[clusters.inverse])
@@ -334,23 +345,13 @@ def object_in_box(
                                  params.voxel_size_m / 2)
     cam_pos = T_map_camera[:3, 3]
     return ObjectObservation(
-        track_id=track.track_id,
-        class_name=track.class_name,
-        score=float(track.score),
-        stamp_s=float(stamp_s),
+        track_id=track.track_id, class_name=track.class_name, score=float(track.score), stamp_s=float(stamp_s),
         centroid_map_m=(float(centroid[0]), float(centroid[1]), float(centroid[2])),
-        footprint_xy_m=footprint,
-        points_xy_m=obj_vox[:, :2].copy(),
-        z_min_m=z_min,
-        z_max_m=z_max,
-        n_points=len(on_obj),
-        n_voxels=len(obj_vox),
-        range_m=float(np.linalg.norm(centroid - cam_pos)),
-        top_plane=top_plane,
-        top_height_m=top_height,
-        at_image_edge=_touches_image_edge(track.xyxy_px, box.image_size_px),
-        camera_xy_m=(float(cam_pos[0]), float(cam_pos[1])),
-        voxels_map_m=obj_vox,
+        footprint_xy_m=footprint, points_xy_m=obj_vox[:, :2].copy(),
+        z_min_m=z_min, z_max_m=z_max, n_points=len(on_obj), n_voxels=len(obj_vox),
+        range_m=float(np.linalg.norm(centroid - cam_pos)), top_plane=top_plane, top_height_m=top_height,
+        at_image_edge=_touches_image_edge(track.xyxy_px, image_size_px),
+        camera_xy_m=(float(cam_pos[0]), float(cam_pos[1])), voxels_map_m=obj_vox,
     )
 
 
