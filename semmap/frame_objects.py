@@ -93,22 +93,7 @@ def observe_frame(
             if behind is not None:
                 out.append(behind)
             continue
-        foreign: list[NDArray[np.float64]] = []
-        shown = False
-        for j, (other, p) in enumerate(zip(tracks, first, strict=True)):
-            if j == i or p is None or not _boxes_overlap(tr.xyxy_px, other.xyxy_px):
-                continue
-            nearer = p.range_m < o.range_m - NEARER_BY_M
-            fuller = p.n_voxels > o.n_voxels or (o.at_image_edge and not p.at_image_edge)
-            if not (nearer or fuller) or not _bounds_meet(o.voxels_map_m, p.voxels_map_m, 2 * params.voxel_size_m):
-                continue  # neither rule can apply: no need to look at the points
-            frac = float(np.count_nonzero(within_a_voxel(o.voxels_map_m, p.voxels_map_m, params.voxel_size_m)))
-            frac /= max(1, len(o.voxels_map_m))
-            # Mostly another box's object, seen more fully there (more of it, or not cut).
-            shows_other = frac >= SHARED_FRAC and fuller
-            if (nearer and frac >= MIN_FOREIGN_FRAC) or shows_other:
-                foreign.append(p.voxels_map_m)
-                shown = shown or shows_other
+        foreign, shown = _foreign_objects(i, o, tracks, first, params.voxel_size_m)
         if not foreign:
             out.append(o)
             continue
@@ -124,3 +109,29 @@ def observe_frame(
         if again is not None:
             out.append(again)
     return out
+
+
+def _foreign_objects(
+    i: int, o: ObjectObservation, tracks: Sequence[Track], first: Sequence[ObjectObservation | None],
+    voxel_size_m: float,
+) -> tuple[list[NDArray[np.float64]], bool]:
+    """(voxels (K, 3) map frame, shown): the other boxes' objects whose points in box ``i``'s
+    first look ``o`` are not its own, and whether ``o`` is mostly one of them (it shows it)."""
+    tr = tracks[i]
+    foreign: list[NDArray[np.float64]] = []
+    shown = False
+    for j, (other, p) in enumerate(zip(tracks, first, strict=True)):
+        if j == i or p is None or not _boxes_overlap(tr.xyxy_px, other.xyxy_px):
+            continue
+        nearer = p.range_m < o.range_m - NEARER_BY_M
+        fuller = p.n_voxels > o.n_voxels or (o.at_image_edge and not p.at_image_edge)
+        if not (nearer or fuller) or not _bounds_meet(o.voxels_map_m, p.voxels_map_m, 2 * voxel_size_m):
+            continue  # neither rule can apply: no need to look at the points
+        frac = float(np.count_nonzero(within_a_voxel(o.voxels_map_m, p.voxels_map_m, voxel_size_m)))
+        frac /= max(1, len(o.voxels_map_m))
+        # Mostly another box's object, seen more fully there (more of it, or not cut).
+        shows_other = frac >= SHARED_FRAC and fuller
+        if (nearer and frac >= MIN_FOREIGN_FRAC) or shows_other:
+            foreign.append(p.voxels_map_m)
+            shown = shown or shows_other
+    return foreign, shown
