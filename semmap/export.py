@@ -266,19 +266,11 @@ def _grey_image(probability: NDArray[np.floating]) -> NDArray[np.uint8]:
     return np.asarray(cv2.cvtColor(grey[::-1], cv2.COLOR_GRAY2BGR), np.uint8)
 
 
-def render_picture(
-    smap: SemanticMap, class_colors_rgb: Mapping[str, Sequence[int]] | None = None,
-    min_width_px: int = 900, crop_margin_m: float = 0.5,
-) -> NDArray[np.uint8]:
-    """(H, W, 3) BGR picture: the grid in grey, object footprints filled and outlined in
-    their class colour with "class #id existence" labels, the vehicle path, a scale bar.
-
-    Cropped to the observed area (plus ``crop_margin_m``) and upscaled to ``min_width_px``.
-    """
+def _crop_window_rc(smap: SemanticMap, crop_margin_m: float) -> tuple[int, int, int, int]:
+    """(r0, r1, c0, c1) grid cells to draw: the observed cells plus ``crop_margin_m``, grown to
+    hold every object and the path (the whole grid when nothing is observed)."""
     spec = smap.spec
-    prob = smap.grid.probability()
-    known = smap.grid.known
-    rows_any, cols_any = np.nonzero(known)
+    rows_any, cols_any = np.nonzero(smap.grid.known)
     if len(rows_any):
         m = int(math.ceil(crop_margin_m / spec.resolution_m))
         r0, r1 = max(0, rows_any.min() - m), min(spec.rows, rows_any.max() + 1 + m)
@@ -292,6 +284,21 @@ def render_picture(
         rc = np.clip(spec.cell_of(pts_xy), 0, [spec.rows - 1, spec.cols - 1])
         r0, r1 = max(0, min(r0, int(rc[:, 0].min()) - 2)), min(spec.rows, max(r1, int(rc[:, 0].max()) + 3))
         c0, c1 = max(0, min(c0, int(rc[:, 1].min()) - 2)), min(spec.cols, max(c1, int(rc[:, 1].max()) + 3))
+    return r0, r1, c0, c1
+
+
+def render_picture(
+    smap: SemanticMap, class_colors_rgb: Mapping[str, Sequence[int]] | None = None,
+    min_width_px: int = 900, crop_margin_m: float = 0.5,
+) -> NDArray[np.uint8]:
+    """(H, W, 3) BGR picture: the grid in grey, object footprints filled and outlined in
+    their class colour with "class #id existence" labels, the vehicle path, a scale bar.
+
+    Cropped to the observed area (plus ``crop_margin_m``) and upscaled to ``min_width_px``.
+    """
+    spec = smap.spec
+    prob = smap.grid.probability()
+    r0, r1, c0, c1 = _crop_window_rc(smap, crop_margin_m)
     scale = max(1, int(math.ceil(min_width_px / max(1, c1 - c0))))
     img = _grey_image(prob[r0:r1, c0:c1])
     img = np.asarray(cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST), np.uint8)
