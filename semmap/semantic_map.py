@@ -411,19 +411,7 @@ class SemanticMap:
             out.grid.spec = spec
             out.grid.set_values(arrays["grid_values"])
             out.layers.sync_spec()
-            stamps = meta.get("stamps_s", {})
-            objects = [_footprint_from_dict(d) for d in meta["objects"]]
-            probs = {int(d["object_id"]): np.asarray(d["class_probs"], np.float32)
-                     for d in meta["objects"] if d.get("class_probs") is not None}
-            obj_stamp = stamps.get("objects")
-            if restore_objects:
-                objects = [replace(o, object_id=o.object_id + RESTORED_ID_OFFSET) for o in objects]
-                probs = {k + RESTORED_ID_OFFSET: v for k, v in probs.items()}
-                out._restored, out._restored_probs = list(objects), dict(probs)
-            out.set_objects(objects, float("-inf") if obj_stamp is None else obj_stamp, probs)
-            for layer in out.layers.layers:
-                st = stamps.get(layer.name)
-                layer.stamp_s = float("-inf") if st is None else float(st)
+            out._restore_layers(meta["objects"], meta.get("stamps_s", {}), restore_objects)
             out._path = [tuple(map(float, row)) for row in arrays["path"].reshape(-1, 4)]  # type: ignore[misc]
             out.frames_integrated = int(meta.get("frames_integrated", 0))
         except MapError:
@@ -431,6 +419,22 @@ class SemanticMap:
         except (KeyError, TypeError, ValueError, UnicodeDecodeError) as exc:
             raise MapError(f"{path}: corrupt map metadata ({type(exc).__name__}: {exc})") from exc
         return out
+
+    def _restore_layers(self, records: Sequence[Mapping[str, Any]], stamps_s: Mapping[str, Any],
+                        keep_apart: bool) -> None:
+        """Set the saved objects and layer times; ``keep_apart``: beside the object map, ids offset."""
+        objects = [_footprint_from_dict(d) for d in records]
+        probs = {int(d["object_id"]): np.asarray(d["class_probs"], np.float32)
+                 for d in records if d.get("class_probs") is not None}
+        obj_stamp = stamps_s.get("objects")
+        if keep_apart:
+            objects = [replace(o, object_id=o.object_id + RESTORED_ID_OFFSET) for o in objects]
+            probs = {k + RESTORED_ID_OFFSET: v for k, v in probs.items()}
+            self._restored, self._restored_probs = list(objects), dict(probs)
+        self.set_objects(objects, float("-inf") if obj_stamp is None else obj_stamp, probs)
+        for layer in self.layers.layers:
+            st = stamps_s.get(layer.name)
+            layer.stamp_s = float("-inf") if st is None else float(st)
 
 
 def _finite_or_none(x: float) -> float | None:
