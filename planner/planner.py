@@ -160,25 +160,15 @@ class Planner:
         "no path": the result's status and reason say why.
         """
         t0 = time.perf_counter()
-        cfg = self.config
-        budget = cfg.time_limit_s if time_limit_s is None else float(time_limit_s)
-        snap = cfg.snap_goal_to_free if snap_goal is None else bool(snap_goal)
-        use_ompl = cfg.refine_with_ompl if refine is None else bool(refine)
+        budget, snap, use_ompl = self._request_options(time_limit_s, snap_goal, refine)
         start = _xy(start_xy_m, "start")
         goal = _xy(goal_xy_m, "goal")
         requested = (float(goal[0]), float(goal[1]))
         version = self._version
 
-        def fail(status: PlanStatus, reason: str) -> PlanResult:
-            log.info("no path (%s): %s", status.value, reason)
-            return PlanResult.failure(status, reason, time.perf_counter() - t0, version)
-
-        start_problem = self._start_problem(start)
-        if start_problem is not None:
-            return fail(*start_problem)
-        goal, snapped, goal_failure = self._usable_goal(start, goal, snap)
-        if goal_failure is not None:
-            return fail(*goal_failure)
+        goal, snapped, problem = self._usable_endpoints(start, goal, snap)
+        if problem is not None:
+            return self._failure(problem, t0, version)
 
         t_search = time.perf_counter()
         first = self._first_path(start, goal)
@@ -187,11 +177,7 @@ class Planner:
                 res = self._plan_to_snapped_goal(start, goal, budget, t0, refine, requested)
                 if res is not None:
                     return res
-            return fail(PlanStatus.DISCONNECTED,
-                        f"no free path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, {goal[1]:.2f}) m "
-                        f"for a vehicle of radius {cfg.vehicle_radius_m:.2f} m (+ tracking margin {cfg.tracking_margin_m:.2f} m) "
-                        f"at {cfg.flight_altitude_m:.2f} m "
-                        "altitude: they are in separate free regions")
+            return self._failure(self._disconnected_problem(start, goal), t0, version)
         path, used_factor = first
         t_first = time.perf_counter()
         best, best_cost, source = self._polished_best(path, used_factor, start, goal, budget, t0)
@@ -202,7 +188,7 @@ class Planner:
             better = self._ompl_improvement(start, goal, remaining, best_cost)
             if better is not None:
                 best, best_cost = better
-                source, ompl_improved = f"ompl:{cfg.algorithm}", 1.0
+                source, ompl_improved = f"ompl:{self.config.algorithm}", 1.0
         t_end = time.perf_counter()
         return PlanResult(
             status=PlanStatus.OK,
@@ -210,14 +196,28 @@ class Planner:
             path_xy_m=best, length_m=path_length_m(best), cost=best_cost,
             planning_time_s=t_end - t0, first_solution_time_s=t_first - t0,
             goal_xy_m=(float(goal[0]), float(goal[1])), snapped_goal=snapped, source=source,
-            requested_goal_xy_m=requested,
-            map_version=version,
+            requested_goal_xy_m=requested, map_version=version,
             stats={
                 "search_s": t_first - t_search, "smooth_s": t_smooth - t_first,
                 "ompl_s": t_end - t_smooth, "ompl_improved": ompl_improved,
                 "first_length_m": path_length_m(path),
             },
         )
+
+    def _request_options(self, time_limit_s: float | None, snap_goal: bool | None,
+                         refine: bool | None) -> tuple[float, bool, bool]:
+        """(budget_s, snap, use_ompl): the request's options, the config's where they are None."""
+        cfg = self.config
+        budget = cfg.time_limit_s if time_limit_s is None else float(time_limit_s)
+        snap = cfg.snap_goal_to_free if snap_goal is None else bool(snap_goal)
+        use_ompl = cfg.refine_with_ompl if refine is None else bool(refine)
+        return budget, snap, use_ompl
+
+    def _failure(self, problem: tuple[PlanStatus, str], t0: float, version: int) -> PlanResult:
+        """The failure result for ``problem`` (status, reason), logged, timed from ``t0``."""
+        status, reason = problem
+        log.info("no path (%s): %s", status.value, reason)
+        return PlanResult.failure(status, reason, time.perf_counter() - t0, version)
 
     def _start_problem(self, start: NDArray[np.float64]) -> tuple[PlanStatus, str] | None:
         """Why the vehicle cannot start at ``start`` (status, reason), or None if it can."""
@@ -233,12 +233,15 @@ class Planner:
                     f"goal ({goal[0]:.2f}, {goal[1]:.2f}) m is outside the map/geofence {self._extent_text()}")
         return self._blocked_problem(goal, "goal", PlanStatus.GOAL_BLOCKED)
 
-    def _usable_goal(
+    def _usable_endpoints(
         self, start: NDArray[np.float64], goal: NDArray[np.float64], snap: bool,
     ) -> tuple[NDArray[np.float64], bool, tuple[PlanStatus, str] | None]:
-        """(goal, snapped, failure): ``goal`` itself when the vehicle can stop there, else with
-        ``snap`` the nearest free point reachable from ``start``; failure (status, reason)
-        when neither is possible."""
+        """(goal, snapped, failure): ``goal`` itself when the vehicle can start at ``start`` and
+        stop there, else with ``snap`` the nearest free point reachable from ``start``; failure
+        (status, reason) when the start is not usable or neither goal is possible."""
+        start_problem = self._start_problem(start)
+        if start_problem is not None:
+            return goal, False, start_problem
         goal_problem = self._goal_problem(goal)
         if goal_problem is None:
             return goal, False, None
@@ -259,6 +262,16 @@ class Planner:
         # The clearance field already has the class and tracking margins taken off.
         return (status, f"{name} ({xy[0]:.2f}, {xy[1]:.2f}) m is blocked: clearance beyond the margins "
                         f"{clr:.2f} m < vehicle radius {self.config.vehicle_radius_m:.2f} m")
+
+    def _disconnected_problem(self, start: NDArray[np.float64],
+                              goal: NDArray[np.float64]) -> tuple[PlanStatus, str]:
+        """(DISCONNECTED, reason) for a start and goal the grid proves in separate free regions."""
+        cfg = self.config
+        return (PlanStatus.DISCONNECTED,
+                f"no free path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, {goal[1]:.2f}) m "
+                f"for a vehicle of radius {cfg.vehicle_radius_m:.2f} m (+ tracking margin {cfg.tracking_margin_m:.2f} m) "
+                f"at {cfg.flight_altitude_m:.2f} m "
+                "altitude: they are in separate free regions")
 
     def _first_path(self, start: NDArray[np.float64],
                     goal: NDArray[np.float64]) -> tuple[NDArray[np.float64], int] | None:
