@@ -442,8 +442,11 @@ class SlamConfig(StageConfig):
     scans_per_submap: int = Field(default=60, ge=2)
     #: Hits closer than this to each other are merged before matching (voxel filter).
     voxel_filter_m: float = Field(default=0.05, ge=0.0)
-    #: Smoothing of the submap's probability for the least-squares matcher, in cells.
+    #: Sigma (cells) of a submap's likelihood field for loop closure, and for the live matcher
+    #: (half a cell at least): wider, it pulls a turning scan's new end of a wall back onto the
+    #: known end, and the heading lags every turn.
     blur_sigma_cells: float = Field(default=1.0, ge=0.0)
+    live_blur_sigma_cells: float = Field(default=0.75, ge=0.0)
     # Motion filter: a scan is inserted when one of these is exceeded since the last insert.
     motion_filter_distance_m: float = Field(default=0.1, ge=0.0)
     motion_filter_angle_deg: float = Field(default=5.0, ge=0.0)
@@ -456,10 +459,8 @@ class SlamConfig(StageConfig):
     # Least-squares refinement weights (Cartographer's ceres_scan_matcher).
     occupied_space_weight: float = Field(default=1.0, gt=0.0)
     translation_weight: float = Field(default=10.0, ge=0.0)
-    #: 10 with the odometry calibration below (the prior's yaw is then unbiased): a narrow
-    #: camera's scans constrain yaw weakly and the prior holds it between them. Without the
-    #: calibration a prior this strong follows the drifting heading (bench/slam, 160 px,
-    #: 2 deg/s: live ATE 0.25-0.76 m against 0.04-0.09 m with it).
+    #: Strong, as the odometry calibration below unbiases the prior's yaw: a narrow camera's
+    #: scans constrain yaw weakly and the prior holds it between them.
     rotation_weight: float = Field(default=10.0, ge=0.0)
     #: Seconds of matched scans over which the odometry's heading drift rate and distance
     #: scale are measured and taken out of its increments (0: use the increments as they are).
@@ -467,9 +468,9 @@ class SlamConfig(StageConfig):
     # Degeneracy: fall back to odometry when the scan does not constrain the pose.
     min_scan_points: int = Field(default=20, ge=3)
     #: Smallest eigenvalue of the translational information (mean squared probability
-    #: gradient, 1/m^2) a scan needs; below it the fit slides (a featureless corridor).
+    #: gradient, 1/m^2) a scan needs, and its ratio to the largest one; below either the fit
+    #: slides (a featureless corridor).
     min_translation_information: float = Field(default=10.0, ge=0.0)
-    #: ... and its ratio to the largest one.
     min_information_ratio: float = Field(default=0.1, ge=0.0, le=1.0)
     #: Mean probability under the matched hits below which the match is not trusted.
     min_match_score: float = Field(default=0.3, ge=0.0, le=1.0)

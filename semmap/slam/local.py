@@ -214,7 +214,8 @@ class LocalSlam:
     def __init__(self, cfg: SlamConfig, tables: ProbabilityTables | None = None) -> None:
         self.cfg = cfg
         self.submaps = ActiveSubmaps(cfg.scans_per_submap, cfg.resolution_m,
-                                     tables or ProbabilityTables(), cfg.blur_sigma_cells)
+                                     tables or ProbabilityTables(), cfg.blur_sigma_cells,
+                                     cfg.live_blur_sigma_cells)
         self._last_pose: Pose2 | None = None
         self._last_odom: Pose2 | None = None
         self._last_insert: tuple[float, Pose2] | None = None
@@ -278,7 +279,7 @@ class LocalSlam:
         fallback = SlamStatus.DEGENERATE_FALLBACK_ODOMETRY
         if len(pts) < cfg.min_scan_points:
             return pred, fallback, f"{len(pts)} scan points < {cfg.min_scan_points}", 0.0, 0.0
-        grid = target.match_grid()
+        grid = target.live_match_grid()
         init = relative(target.local_pose, pred)  # the submap frame has no rotation
         pts = _seen_by(target, pts, init, cfg.min_scan_points)
         rt_pose, _ = real_time_correlative_match(

@@ -32,7 +32,8 @@ class Submap:
     ``grid`` (a growing :class:`ProbabilityGrid` in the submap frame), scan count and state."""
 
     def __init__(self, index: int, origin_local_xy_m: tuple[float, float], resolution_m: float,
-                 tables: ProbabilityTables, blur_sigma_cells: float = 1.0) -> None:
+                 tables: ProbabilityTables, blur_sigma_cells: float = 1.0,
+                 live_blur_sigma_cells: float = 0.5) -> None:
         self.index = index
         self.local_pose = pose2(origin_local_xy_m[0], origin_local_xy_m[1], 0.0)
         half = 2.0
@@ -43,8 +44,10 @@ class Submap:
         self.n_hits = 0
         self.finished = False
         self.blur_sigma_cells = float(blur_sigma_cells)
+        self.live_blur_sigma_cells = float(live_blur_sigma_cells)
         self._hits: list[np.ndarray] = []  # (K, 2) hits of each scan, submap frame
         self._match: MatchGrid | None = None
+        self._live: MatchGrid | None = None
         self._seen: NDArray[np.bool_] | None = None
         self._bbs: BranchAndBoundMatcher | None = None
         self._lock = threading.Lock()
@@ -60,23 +63,36 @@ class Submap:
         self.n_scans += 1
         self.n_hits += len(rays.hits_xy_m)
         self._match = None
+        self._live = None
         self._seen = None
 
     def finish(self) -> None:
         """Freeze the submap (loop closure may now match against it)."""
         self.finished = True
-        self._seen = None  # only the live scan matcher asks what was seen
+        self._live = None  # only the live scan matcher uses these two
+        self._seen = None
 
     def match_grid(self) -> MatchGrid:
-        """The grid the scan matchers score against (cached until the next insertion): the
+        """The grid loop closure scores against (cached until the next insertion): the
         likelihood field of the inserted hits (:meth:`MatchGrid.from_hits`) with sigma
         ``blur_sigma_cells`` cells, over the probability grid's extent."""
-        m = self._match
-        if m is None:
-            hits = np.concatenate(self._hits) if self._hits else np.zeros((0, 2))
-            m = MatchGrid.from_hits(hits, self.grid.spec, self.blur_sigma_cells * self.grid.spec.resolution_m)
-            self._match = m
-        return m
+        if self._match is None:
+            self._match = self._field(self.blur_sigma_cells)
+        return self._match
+
+    def live_match_grid(self) -> MatchGrid:
+        """The grid the live scan matcher scores against: the same field with sigma
+        ``live_blur_sigma_cells``. Narrower, because a turning scan's leading edge lies beyond
+        the known end of a wall, and the field's tail there pulls it back (the heading lags
+        every turn); loop closure searches wide windows from far-off guesses and keeps the
+        wider basin."""
+        if self._live is None:
+            self._live = self._field(self.live_blur_sigma_cells)
+        return self._live
+
+    def _field(self, sigma_cells: float) -> MatchGrid:
+        hits = np.concatenate(self._hits) if self._hits else np.zeros((0, 2))
+        return MatchGrid.from_hits(hits, self.grid.spec, sigma_cells * self.grid.spec.resolution_m)
 
     def seen(self, xy_m: NDArray[np.float64]) -> NDArray[np.bool_]:
         """(N,) True where the (N, 2) submap-frame points lie on a cell a ray has crossed or
@@ -105,13 +121,14 @@ class ActiveSubmaps:
     """The two active submaps and every submap made so far (``all``, by index)."""
 
     def __init__(self, scans_per_submap: int, resolution_m: float, tables: ProbabilityTables,
-                 blur_sigma_cells: float = 1.0) -> None:
+                 blur_sigma_cells: float = 1.0, live_blur_sigma_cells: float = 0.5) -> None:
         if scans_per_submap < 2:
             raise MapError(f"scans_per_submap must be >= 2 (got {scans_per_submap})")
         self.scans_per_submap = int(scans_per_submap)
         self.resolution_m = float(resolution_m)
         self.tables = tables
         self.blur_sigma_cells = blur_sigma_cells
+        self.live_blur_sigma_cells = live_blur_sigma_cells
         self.all: list[Submap] = []
         self.active: list[Submap] = []
 
@@ -141,7 +158,7 @@ class ActiveSubmaps:
 
     def _start(self, pose_local: Pose2) -> None:
         s = Submap(len(self.all), (float(pose_local[0]), float(pose_local[1])), self.resolution_m,
-                   self.tables, self.blur_sigma_cells)
+                   self.tables, self.blur_sigma_cells, self.live_blur_sigma_cells)
         self.all.append(s)
         self.active.append(s)
 

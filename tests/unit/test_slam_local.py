@@ -143,10 +143,10 @@ def test_odometry_calibration_waits_for_enough_matches() -> None:
     assert cal.heading_drift_rad_s == 0.0 and cal.scale_error == 0.0
 
 
-def _spin_heading_error_deg(rate_deg_per_scan: float, scans: int) -> float:
+def _spin_heading_error_deg(rate_deg_per_scan: float, scans: int, seed: int) -> float:
     """Heading error after spinning in place (perfect odometry, 1 cm range noise, a
     camera-wide 87 deg field of view) in the synthetic room."""
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(seed)
     x, y = 4.0, 3.0
     with Slam2D(SlamConfig(), background=False) as slam:
         for i in range(scans):
@@ -161,7 +161,8 @@ def test_px4_gps_denied_seed1_spin_heading_does_not_lag_the_turn(rate_deg_per_sc
     # Turning at 70 deg/s in front of the camera, each scan's leading edge holds the next
     # stretch of wall, which the submap has not seen yet. The likelihood field pulled those
     # hits back onto the known end of the wall, so every match rotated the scan back a little:
-    # the heading lagged the turn.
-    # Two revolutions: 1.24 and 0.55 deg off without the fix, 0.42 and 0.27 with it.
-    error_deg = _spin_heading_error_deg(rate_deg_per_scan, 320)
-    assert abs(error_deg) < 0.5
+    # the heading lagged the turn. Two revolutions; the lag is the mean over three noise
+    # seeds (one run's error also holds the random part).
+    lag_deg = [-math.copysign(1.0, rate_deg_per_scan) * _spin_heading_error_deg(rate_deg_per_scan, 320, seed)
+               for seed in (7, 8, 9)]
+    assert float(np.mean(lag_deg)) < 0.3
