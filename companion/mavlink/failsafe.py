@@ -13,6 +13,11 @@ clock. The rules:
   the vehicle's current position (latched when the hold starts). Once both are fresh again
   the planner's setpoints are used again, but only one produced after the hold began: a
   setpoint computed from the stale inputs is never flown.
+* **The autopilot's position jumps** (it moved over ``POSITION_JUMP_M`` farther between two
+  reports than its velocity explains: the estimate was reset, as PX4 does when external
+  vision comes back after a loss or jumps with a loop closure) -> ``HOLDING`` where the
+  vehicle now is, with :attr:`OffboardFailsafe.position_reset` set: the setpoints were
+  planned in the old estimate, and flying to them would be an unplanned straight line.
 * **The vehicle does not follow** (farther than ``tracking_error_m`` from the setpoint we
   send for longer than ``tracking_timeout_s``: it is still on the ground, blocked, or another
   controller flies it) -> ``HOLDING`` the same way, with :attr:`OffboardFailsafe.tracking_fault`
@@ -80,6 +85,14 @@ class Transition:
     reason: str
 
 
+#: How much farther than its velocity explains the reported position may move between two
+#: reports before it counts as a reset of the estimate, not motion (metres).
+POSITION_JUMP_M = 0.15
+#: Reports farther apart than this are not compared (an acceleration over a long gap would
+#: look like a jump).
+POSITION_JUMP_MAX_GAP_S = 0.3
+
+
 class OffboardFailsafe:
     """Chooses the setpoint to send each tick. See the module docstring for the rules."""
 
@@ -92,7 +105,11 @@ class OffboardFailsafe:
         #: Set when a hold was started because the vehicle did not follow its setpoints;
         #: cleared when the planner's setpoints are flown again.
         self.tracking_fault = False
+        #: Set when a hold was started because the autopilot's position estimate jumped;
+        #: cleared likewise.
+        self.position_reset = False
         self._off_track_since_s: float | None = None
+        self._last_report: tuple[float, tuple[float, float, float]] | None = None
         self.state = OffboardState.IDLE
         self.reason = "not engaged"
         self.transitions: list[Transition] = []
@@ -139,6 +156,7 @@ class OffboardFailsafe:
         """Stop commanding on purpose (we handed the vehicle to another mode)."""
         self._hold = None
         self.tracking_fault = False
+        self.position_reset = False
         self._off_track_since_s = None
         self._go(OffboardState.IDLE, now_s, reason)
 
@@ -167,8 +185,15 @@ class OffboardFailsafe:
                      level=logging.WARNING)
             return None
         fresh = pose_fresh and map_fresh
+        jump_m = self._position_jump_m(now_s, vehicle)
         off_track = self._off_track_s(now_s, vehicle) if st is OffboardState.ACTIVE else None
-        if st is OffboardState.ACTIVE and not fresh:
+        if jump_m is not None and jump_m > POSITION_JUMP_M and st in (OffboardState.ACTIVE, OffboardState.HOLDING):
+            self._latch_hold(now_s, vehicle)
+            self.position_reset = True
+            self._off_track_since_s = None
+            self._go(OffboardState.HOLDING, now_s, f"position estimate jumped {jump_m:.2f} m: holding where "
+                     "the vehicle now is", level=logging.WARNING)
+        elif st is OffboardState.ACTIVE and not fresh:
             what = " and ".join(n for n, ok in (("pose", pose_fresh), ("map", map_fresh)) if not ok)
             self._latch_hold(now_s, vehicle)
             self._go(OffboardState.HOLDING, now_s, f"stale {what}: holding position",
@@ -182,12 +207,30 @@ class OffboardFailsafe:
         elif st is OffboardState.HOLDING and fresh and self._setpoint_s > self._hold_since_s:
             self._hold = None
             self.tracking_fault = False
+            self.position_reset = False
             self._off_track_since_s = None
             self._go(OffboardState.ACTIVE, now_s, "pose and map fresh again: resuming")
         sp = self._choose()
         if sp is not None:
             self._last_sent = sp
         return sp
+
+    def _position_jump_m(self, now_s: float, vehicle: VehicleState) -> float | None:
+        """How much farther (horizontally) the reported position moved since the previous
+        report than the reported velocity explains; None without two reports to compare."""
+        pos, age = vehicle.position_ned_m, vehicle.position_age_s
+        if pos is None or age is None:
+            return None
+        t = now_s - age
+        prev = self._last_report
+        if prev is not None and t - prev[0] < 1e-3:
+            return None  # the same report again
+        self._last_report = (t, pos)
+        if prev is None or t - prev[0] > POSITION_JUMP_MAX_GAP_S:
+            return None
+        vn, ve, _ = vehicle.velocity_ned_m_s or (0.0, 0.0, 0.0)
+        dt = t - prev[0]
+        return math.hypot(pos[0] - prev[1][0] - vn * dt, pos[1] - prev[1][1] - ve * dt)
 
     def _off_track_s(self, now_s: float, vehicle: VehicleState) -> float | None:
         """How long the vehicle has been farther than ``tracking_error_m`` from the setpoint

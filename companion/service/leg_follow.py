@@ -100,14 +100,21 @@ class LegFollow:
     async def advance(self, now: float) -> str | None:
         """Advance trajectory time by the time flown in OFFBOARD since the last tick; an
         outcome when the controller is not flying our setpoints: "tracking" (held for a
-        vehicle that did not follow), "invalid" (the link is back after PX4's failsafe moved
-        the vehicle: re-plan from where it is)."""
+        vehicle that did not follow), "invalid" (the position estimate jumped, or the link is
+        back after PX4's failsafe moved the vehicle: re-plan from where it is)."""
         ctl = self.runner.vehicle.offboard
         st = ctl.state
         if st is OffboardState.ACTIVE:
             self.t_traj = min(self.t_traj + now - self.last, self.t_cap)
         elif st is OffboardState.HOLDING and ctl.failsafe.tracking_fault:
             return "tracking"
+        elif st is OffboardState.HOLDING and ctl.failsafe.position_reset:
+            # The rest of this trajectory was planned in the estimate before the jump.
+            pos = position_enu(self.runner.vehicle.snapshot())
+            if pos is not None:
+                self.runner.hold_at(pos[:2], self.leg.altitude_m)
+            log.warning("leg %d: the position estimate jumped; re-planning from where the vehicle is", self.leg.seq)
+            return "invalid"
         elif st is OffboardState.LINK_LOST and self.runner.vehicle.connected:
             await self.runner._reengage(self.leg)
             return "invalid"

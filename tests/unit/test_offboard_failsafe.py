@@ -130,7 +130,7 @@ def test_stale_inputs_hold_the_current_position(pose_fresh: bool, map_fresh: boo
     assert f"stale {what}" in fs.reason
     assert sp == PositionSetpoint((3.0, 1.0, -1.6), yaw_rad=0.3)
     # The hold is latched: the vehicle drifting does not drag the setpoint along.
-    v2 = dataclasses.replace(v, position_ned_m=(3.2, 1.1, -1.6))
+    v2 = dataclasses.replace(v, position_ned_m=(3.08, 1.04, -1.6))
     assert fs.step(2.1, v2, pose_fresh, map_fresh) == sp
     # Fresh again, but the planner's last setpoint predates the hold: keep holding.
     assert fs.step(2.2, v2, True, True) == sp
@@ -252,3 +252,41 @@ def test_tracking_monitor_tolerates_a_vehicle_that_lags_within_the_distance() ->
         fs.set_setpoint(PositionSetpoint((1.8, 2.0, -1.5)), t)
         fs.step(t, _vehicle(flight_mode=FlightMode.OFFBOARD), True, True)
     assert fs.state is OffboardState.ACTIVE
+
+
+def test_a_jump_of_the_position_estimate_holds_where_the_vehicle_now_is() -> None:
+    # PX4 resets its position to our vision pose when it comes back after a loss: the
+    # setpoints were planned in the old estimate, and flying on to them would be a straight,
+    # unplanned line (PX4 SITL: into a chair 0.5 m away).
+    fs = _engaged()
+    v = _vehicle(flight_mode=FlightMode.OFFBOARD, position_ned_m=(3.0, 1.0, -1.6))
+    assert fs.step(2.0, v, True, True) == PositionSetpoint((5.0, 0.0, -1.5), yaw_rad=0.0)
+    jumped = dataclasses.replace(v, position_ned_m=(3.4, 1.3, -1.6))
+    sp = fs.step(2.05, jumped, True, True)
+    assert fs.state is OffboardState.HOLDING and fs.position_reset
+    assert "jumped 0.50 m" in fs.reason
+    assert sp == PositionSetpoint((3.4, 1.3, -1.6), yaw_rad=0.3)
+    # A plan made after the jump takes over.
+    new = PositionSetpoint((6.0, 0.0, -1.5))
+    fs.set_setpoint(new, 2.1)
+    assert fs.step(2.12, jumped, True, True) == new
+    assert fs.state is OffboardState.ACTIVE and not fs.position_reset
+
+
+def test_motion_its_velocity_explains_is_no_jump() -> None:
+    fs = _engaged()
+    for k in range(40):  # 1.2 m/s along north, a report every 50 ms
+        v = _vehicle(flight_mode=FlightMode.OFFBOARD, position_ned_m=(1.0 + 0.06 * k, 2.0, -1.5),
+                     velocity_ned_m_s=(1.2, 0.0, 0.0))
+        fs.step(2.0 + 0.05 * k, v, True, True)
+        assert fs.state is OffboardState.ACTIVE
+
+
+def test_a_jump_during_a_hold_moves_the_hold_to_where_the_vehicle_now_is() -> None:
+    fs = _engaged()
+    v = _vehicle(flight_mode=FlightMode.OFFBOARD, position_ned_m=(3.0, 1.0, -1.6))
+    held = fs.step(2.0, v, False, True)
+    assert held == PositionSetpoint((3.0, 1.0, -1.6), yaw_rad=0.3)
+    jumped = dataclasses.replace(v, position_ned_m=(2.6, 1.0, -1.6))
+    assert fs.step(2.05, jumped, False, True) == PositionSetpoint((2.6, 1.0, -1.6), yaw_rad=0.3)
+    assert fs.state is OffboardState.HOLDING and fs.position_reset
