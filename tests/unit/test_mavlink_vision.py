@@ -150,19 +150,18 @@ async def test_vision_stream_outlives_a_failing_pose_source() -> None:
     sent: list[mavlink.MAVLink_message] = []
     link.send = sent.append  # type: ignore[method-assign]
     calls = 0
+    six_calls = asyncio.Event()
 
     def source() -> VisionPose:
         nonlocal calls
         calls += 1
+        if calls == 6:
+            six_calls.set()
         if calls == 2:
             raise RuntimeError("pose source bug")
         return VisionPose(0.01 * calls, np.eye(4))
 
-    async def six_calls() -> None:
-        while calls < 6:
-            await asyncio.sleep(0.005)
-
     async with VisionStream(link, source, 200.0) as stream:
-        await asyncio.wait_for(six_calls(), 5.0)
+        await asyncio.wait_for(six_calls.wait(), 5.0)
     assert stream.source_errors == 1
     assert len(sent) >= 4
