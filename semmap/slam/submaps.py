@@ -33,7 +33,7 @@ class Submap:
 
     def __init__(self, index: int, origin_local_xy_m: tuple[float, float], resolution_m: float,
                  tables: ProbabilityTables, blur_sigma_cells: float = 1.0,
-                 live_blur_sigma_cells: float = 0.5) -> None:
+                 live_blur_sigma_cells: float = 0.75) -> None:
         self.index = index
         self.local_pose = pose2(origin_local_xy_m[0], origin_local_xy_m[1], 0.0)
         half = 2.0
@@ -121,7 +121,7 @@ class ActiveSubmaps:
     """The two active submaps and every submap made so far (``all``, by index)."""
 
     def __init__(self, scans_per_submap: int, resolution_m: float, tables: ProbabilityTables,
-                 blur_sigma_cells: float = 1.0, live_blur_sigma_cells: float = 0.5) -> None:
+                 blur_sigma_cells: float = 1.0, live_blur_sigma_cells: float = 0.75) -> None:
         if scans_per_submap < 2:
             raise MapError(f"scans_per_submap must be >= 2 (got {scans_per_submap})")
         self.scans_per_submap = int(scans_per_submap)

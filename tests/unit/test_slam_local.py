@@ -161,8 +161,8 @@ def test_px4_gps_denied_seed1_spin_heading_does_not_lag_the_turn(rate_deg_per_sc
     # Turning at 70 deg/s in front of the camera, each scan's leading edge holds the next
     # stretch of wall, which the submap has not seen yet. The likelihood field pulled those
     # hits back onto the known end of the wall, so every match rotated the scan back a little:
-    # the heading lagged the turn. Two revolutions; the lag is the mean over three noise
-    # seeds (one run's error also holds the random part).
+    # the heading lagged the turn. Two revolutions; the mean over three noise seeds keeps the
+    # systematic lag and averages out each run's random error.
     lag_deg = [-math.copysign(1.0, rate_deg_per_scan) * _spin_heading_error_deg(rate_deg_per_scan, 320, seed)
                for seed in (7, 8, 9)]
     assert float(np.mean(lag_deg)) < 0.3
