@@ -18,8 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semmap.costmap import Costmap, VerticalBand
-from semmap.grid import GridSpec
-from semmap.inflation import InflatedCostmap, InflationParams, Window, inflate, reinflate
+from semmap.grid import Bounds, GridSpec
+from semmap.inflation import InflatedCostmap, InflationParams, inflate, reinflate
 
 #: A point (x, y) in the map frame, metres: a (2,) array or any pair of numbers.
 XYLike = NDArray[np.floating] | Sequence[float] | tuple[float, float]
@@ -206,10 +206,9 @@ def build_cspace(costmap: Costmap, params: InflationParams, version: int = 0) ->
     return CSpace(inflate(costmap, params), version)
 
 
-def update_cspace(cs: CSpace, costmap: Costmap, version: int) -> tuple[CSpace, Window | None]:
+def update_cspace(cs: CSpace, costmap: Costmap, version: int) -> tuple[CSpace, Bounds | None]:
     """The configuration space of ``costmap``, reusing ``cs`` outside the changed window.
 
-    Returns the new space and the window (r0, r1, c0, c1) whose fields changed (None when
-    nothing did)."""
+    Returns the new space and the window whose fields changed (None when nothing did)."""
     layer, window = reinflate(cs.layer, costmap)
     return CSpace(layer, version), window

@@ -26,6 +26,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from planner.cspace import CSpace
 from semmap.errors import PlanningError
+from semmap.grid import Bounds
 
 _OFFSETS = np.array(
     [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)], dtype=np.int64
@@ -125,14 +126,13 @@ class GridGraph:
         w = _STEP[None, :] * self.step_m * (1.0 + self.cost_weight * 0.5 * (nc[idx][:, None] + nc[nbr]))
         self._weights[idx] = np.where(ok, w, np.inf)
 
-    def update(self, cs: CSpace, window_rc: tuple[int, int, int, int] | None) -> None:
-        """Follow a changed configuration space; ``window_rc`` (fine cells) is what changed."""
+    def update(self, cs: CSpace, window: Bounds | None) -> None:
+        """Follow a changed configuration space; ``window`` (fine cells) is what changed."""
         self.cs = cs
-        if window_rc is None:
+        if window is None:
             return
         f = self.factor
-        r0, r1, c0, c1 = window_rc
-        self._refresh(cs, (r0 // f, -(-r1 // f), c0 // f, -(-c1 // f)))
+        self._refresh(cs, (window.r0 // f, -(-window.r1 // f), window.c0 // f, -(-window.c1 // f)))
 
     # --- queries --------------------------------------------------------------------
 

@@ -35,6 +35,7 @@ from planner.ompl_backend import ompl_solve
 from planner.types import PlanResult, PlanStatus, path_length_m
 from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import PlanningError
+from semmap.grid import Bounds
 from semmap.inflation import InflationParams
 from semmap.layers import paint_objects
 
@@ -91,19 +92,19 @@ class Planner:
         self.set_map(paint_objects(base, objects, self.band, existence_confirm=min_existence,
                                    class_margins_m=class_margins_m), version)
 
-    def set_map(self, costmap: Costmap, version: int | None = None) -> tuple[int, int, int, int] | None:
-        """Adopt a new costmap version; returns the window (r0, r1, c0, c1) whose fields changed.
+    def set_map(self, costmap: Costmap, version: int | None = None) -> Bounds | None:
+        """Adopt a new costmap version; returns the window whose fields changed.
 
         The first map (or one with a new grid geometry or band) is precomputed in full; later
         versions only recompute the window that changed.
         """
         t0 = time.perf_counter()
         self._version = self._version + 1 if version is None else int(version)
-        window: tuple[int, int, int, int] | None
+        window: Bounds | None
         if self._cs is None or self._cs.spec != costmap.spec or self._cs.band != costmap.band:
             self._cs = build_cspace(costmap, self.params, self._version)
             self._graphs = {}
-            window = (0, costmap.spec.rows, 0, costmap.spec.cols)
+            window = Bounds(0, 0, costmap.spec.rows, costmap.spec.cols)
         else:
             self._cs, window = update_cspace(self._cs, costmap, self._version)
             for g in self._graphs.values():

@@ -32,7 +32,7 @@ from semmap.costmap import (
     ObjectFootprint,
 )
 from semmap.errors import MapError
-from semmap.grid import GridSpec
+from semmap.grid import Bounds, GridSpec
 from semmap.semantic_map import SemanticMap, atomic_write_bytes
 
 #: PGM values map_saver writes in trinary mode.
@@ -266,25 +266,24 @@ def _grey_image(probability: NDArray[np.floating]) -> NDArray[np.uint8]:
     return np.asarray(cv2.cvtColor(grey[::-1], cv2.COLOR_GRAY2BGR), np.uint8)
 
 
-def _crop_window_rc(smap: SemanticMap, crop_margin_m: float) -> tuple[int, int, int, int]:
-    """(r0, r1, c0, c1) grid cells to draw: the observed cells plus ``crop_margin_m``, grown to
-    hold every object and the path (the whole grid when nothing is observed)."""
+def _crop_window(smap: SemanticMap, crop_margin_m: float) -> Bounds:
+    """The grid cells to draw: the observed cells plus ``crop_margin_m``, grown to hold every
+    object and the path (the whole grid when nothing is observed)."""
     spec = smap.spec
     rows_any, cols_any = np.nonzero(smap.grid.known)
     if len(rows_any):
-        m = int(math.ceil(crop_margin_m / spec.resolution_m))
-        r0, r1 = max(0, rows_any.min() - m), min(spec.rows, rows_any.max() + 1 + m)
-        c0, c1 = max(0, cols_any.min() - m), min(spec.cols, cols_any.max() + 1 + m)
+        window = Bounds(int(rows_any.min()), int(cols_any.min()), int(rows_any.max()) + 1, int(cols_any.max()) + 1)
+        window = window.grown(int(math.ceil(crop_margin_m / spec.resolution_m)))
     else:
-        r0, r1, c0, c1 = 0, spec.rows, 0, spec.cols
+        window = Bounds(0, 0, spec.rows, spec.cols)
     keep = [np.asarray(fp.polygon_xy_m).reshape(-1, 2) for fp in smap.objects]
     if len(smap.path_xyz_m):
         keep.append(smap.path_xyz_m[:, :2])
     for pts_xy in keep:  # never crop an object or the path away
         rc = np.clip(spec.cell_of(pts_xy), 0, [spec.rows - 1, spec.cols - 1])
-        r0, r1 = max(0, min(r0, int(rc[:, 0].min()) - 2)), min(spec.rows, max(r1, int(rc[:, 0].max()) + 3))
-        c0, c1 = max(0, min(c0, int(rc[:, 1].min()) - 2)), min(spec.cols, max(c1, int(rc[:, 1].max()) + 3))
-    return r0, r1, c0, c1
+        lo, hi = rc.min(axis=0), rc.max(axis=0)
+        window = window.union(Bounds(int(lo[0]), int(lo[1]), int(hi[0]) + 1, int(hi[1]) + 1).grown(2))
+    return window.clipped(spec.shape_rc)
 
 
 def render_picture(
@@ -298,7 +297,8 @@ def render_picture(
     """
     spec = smap.spec
     prob = smap.grid.probability()
-    r0, r1, c0, c1 = _crop_window_rc(smap, crop_margin_m)
+    window = _crop_window(smap, crop_margin_m)
+    r0, r1, c0, c1 = window.r0, window.r1, window.c0, window.c1
     scale = max(1, int(math.ceil(min_width_px / max(1, c1 - c0))))
     img = _grey_image(prob[r0:r1, c0:c1])
     img = np.asarray(cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST), np.uint8)

@@ -37,11 +37,8 @@ from semmap.costmap import (
     VerticalBand,
 )
 from semmap.errors import ConfigError
-from semmap.grid import GridSpec
+from semmap.grid import Bounds, GridSpec
 from semmap.layers import cost_decay
-
-#: A window of the grid: (r0, r1, c0, c1), end-exclusive.
-Window = tuple[int, int, int, int]
 
 
 @dataclass(frozen=True)
@@ -123,7 +120,7 @@ def inflate(costmap: Costmap, params: InflationParams) -> InflatedCostmap:
     )
 
 
-def reinflate(layer: InflatedCostmap, costmap: Costmap) -> tuple[InflatedCostmap, Window | None]:
+def reinflate(layer: InflatedCostmap, costmap: Costmap) -> tuple[InflatedCostmap, Bounds | None]:
     """The layer of ``costmap``, reusing ``layer`` outside the window a change can influence.
 
     Returns the new layer and the window whose fields were recomputed (None when the costmap
@@ -131,28 +128,21 @@ def reinflate(layer: InflatedCostmap, costmap: Costmap) -> tuple[InflatedCostmap
     """
     if (costmap.spec != layer.spec or costmap.band != layer.band
             or costmap.clearance_decay_m != layer.clearance_decay_m):
-        return inflate(costmap, layer.params), (0, layer.spec.rows, 0, layer.spec.cols)
+        return inflate(costmap, layer.params), Bounds(0, 0, layer.spec.rows, layer.spec.cols)
     params = layer.params
     blocked = blocked_cells(costmap, params)
-    changed = _union_window(
-        changed_window(blocked, layer.blocked), changed_window(costmap.cost, layer.source_cost)
-    )
-    if changed is None:
+    changed = changed_window(blocked, layer.blocked).union(changed_window(costmap.cost, layer.source_cost))
+    if changed.is_empty:
         return layer, None
     res = layer.spec.resolution_m
     reach = int(math.ceil((layer.influence_m + params.tracking_margin_m) / res)) + 2
-    rows, cols = layer.spec.shape_rc
-    r0, r1, c0, c1 = changed
     # Cells whose clearance can change lie within ``reach`` of a changed cell; computing their
     # distance transform needs the blocked cells within ``reach`` of those.
-    a = (max(0, r0 - reach), min(rows, r1 + reach), max(0, c0 - reach), min(cols, c1 + reach))
-    b = (max(0, a[0] - reach), min(rows, a[1] + reach), max(0, a[2] - reach), min(cols, a[3] + reach))
-    clr, fr, cst = _fields(
-        blocked[b[0]:b[1], b[2]:b[3]], costmap.cost[b[0]:b[1], b[2]:b[3]], res, params,
-        layer.clearance_decay_m,
-    )
-    inner = (slice(a[0] - b[0], a[1] - b[0]), slice(a[2] - b[2], a[3] - b[2]))
-    window = (slice(a[0], a[1]), slice(a[2], a[3]))
+    a = changed.grown(reach).clipped(layer.spec.shape_rc)
+    b = a.grown(reach).clipped(layer.spec.shape_rc)
+    clr, fr, cst = _fields(blocked[b.slices], costmap.cost[b.slices], res, params, layer.clearance_decay_m)
+    inner = a.shifted(-b.r0, -b.c0).slices
+    window = a.slices
     clearance = layer.clearance_m.copy()
     free = layer.free.copy()
     cost = layer.cost.copy()
@@ -182,14 +172,14 @@ def blocked_cells(costmap: Costmap, params: InflationParams) -> NDArray[np.bool_
     return blocked
 
 
-def changed_window(a: NDArray[np.generic], b: NDArray[np.generic]) -> Window | None:
-    """Bounding box (r0, r1, c0, c1), end-exclusive, of the cells where a != b; None if equal."""
+def changed_window(a: NDArray[np.generic], b: NDArray[np.generic]) -> Bounds:
+    """The window of the cells where a != b (empty if the arrays are equal)."""
     diff = a != b
     if not diff.any():
-        return None
+        return Bounds.empty()
     rows = np.flatnonzero(diff.any(axis=1))
     cols = np.flatnonzero(diff.any(axis=0))
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    return Bounds(int(rows[0]), int(cols[0]), int(rows[-1]) + 1, int(cols[-1]) + 1)
 
 
 def _distance_m(blocked: NDArray[np.bool_], resolution_m: float) -> NDArray[np.float64]:
@@ -225,11 +215,3 @@ def _fields(
     cost = np.maximum(proximity.astype(np.float32), soft)
     cost[~free] = 1.0
     return clearance, free, cost.astype(np.float32)
-
-
-def _union_window(a: Window | None, b: Window | None) -> Window | None:
-    if a is None:
-        return b
-    if b is None:
-        return a
-    return min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3])

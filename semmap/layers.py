@@ -48,9 +48,9 @@ from semmap.costmap import (
     VerticalBand,
 )
 from semmap.errors import MapError
-from semmap.grid import GridSpec
+from semmap.grid import Bounds, GridSpec
 from semmap.object_rasters import ObjectRasters
-from semmap.occupancy import Bounds, ProbabilityGrid
+from semmap.occupancy import ProbabilityGrid
 from semmap.scan import BandScan
 
 

@@ -15,8 +15,7 @@ from numpy.typing import NDArray
 
 from semmap.costmap import DEFAULT_CLEARANCE_DECAY_M, ObjectFootprint
 from semmap.errors import MapError
-from semmap.grid import GridSpec, rasterize_polygon
-from semmap.occupancy import Bounds
+from semmap.grid import Bounds, GridSpec, rasterize_polygon
 
 __all__ = ["ObjectRaster", "ObjectRasters"]
 

@@ -21,14 +21,13 @@ whole chunks when a scan reaches past its edge, unless it was built ``fixed_size
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from semmap.errors import MapError
-from semmap.grid import GridSpec
+from semmap.grid import Bounds, GridSpec
 
 log = logging.getLogger(__name__)
 
@@ -49,48 +48,6 @@ def probability_from_odds(odds_value: float | NDArray[np.float64]) -> NDArray[np
     """odds / (1 + odds)."""
     o = np.asarray(odds_value, dtype=np.float64)
     return o / (1.0 + o)
-
-
-@dataclass(frozen=True)
-class Bounds:
-    """A half-open window of cells ``rows [r0, r1) x cols [c0, c1)`` (empty when r1 <= r0)."""
-
-    r0: int
-    c0: int
-    r1: int
-    c1: int
-
-    @classmethod
-    def empty(cls) -> "Bounds":
-        return cls(0, 0, 0, 0)
-
-    @property
-    def is_empty(self) -> bool:
-        return self.r1 <= self.r0 or self.c1 <= self.c0
-
-    def union(self, other: "Bounds") -> "Bounds":
-        if self.is_empty:
-            return other
-        if other.is_empty:
-            return self
-        return Bounds(
-            min(self.r0, other.r0), min(self.c0, other.c0),
-            max(self.r1, other.r1), max(self.c1, other.c1),
-        )
-
-    def shifted(self, d_rows: int, d_cols: int) -> "Bounds":
-        if self.is_empty:
-            return self
-        return Bounds(self.r0 + d_rows, self.c0 + d_cols, self.r1 + d_rows, self.c1 + d_cols)
-
-    def clipped(self, shape_rc: tuple[int, int]) -> "Bounds":
-        r0, c0 = max(self.r0, 0), max(self.c0, 0)
-        r1, c1 = min(self.r1, shape_rc[0]), min(self.c1, shape_rc[1])
-        return Bounds(r0, c0, r1, c1) if (r1 > r0 and c1 > c0) else Bounds.empty()
-
-    @property
-    def slices(self) -> tuple[slice, slice]:
-        return slice(self.r0, self.r1), slice(self.c0, self.c1)
 
 
 class ProbabilityTables:

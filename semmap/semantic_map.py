@@ -32,10 +32,10 @@ from numpy.typing import NDArray
 from semmap.costmap import DEFAULT_CLEARANCE_DECAY_M, Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import MapError
 from semmap.geometry import ObjectObservation
-from semmap.grid import GridSpec
+from semmap.grid import Bounds, GridSpec
 from semmap.layers import LayeredCostmap
 from semmap.objects import CameraView, ObjectMap
-from semmap.occupancy import Bounds, ProbabilityGrid, ProbabilityTables
+from semmap.occupancy import ProbabilityGrid, ProbabilityTables
 from semmap.scan import BandScan, extract_band_scan
 from semmap.types import Frame
 
