@@ -197,32 +197,44 @@ def extract_band_scan(
     (``tol / 3``) before the obstacle, or at the nearest point if that is farther.
     """
     d, T = _checked_frame(depth_m, intrinsics, T_map_camera)
-    H, W = d.shape
     s = max(1, int(stride_px))
     sc = max(1, int(column_stride_px)) if column_stride_px is not None else s
     dep, valid = _subsampled_filled_depth(d, s, sc, min_depth_m, max_depth_m, fill_px, recover_px)
+    return _band_scan_of_filled_depth(
+        dep, valid, intrinsics, d.shape, s, sc, T, band, max(0, int(min_hit_points) - 1), range_tolerance_m,
+        range_tolerance_per_m2, cluster_tol, free_sigma, recentre_hit, stamp_s,
+    )
+
+
+def _band_scan_of_filled_depth(
+    dep: NDArray[np.float32], valid: NDArray[np.bool_], intrinsics: CameraIntrinsics, shape_px: tuple[int, ...],
+    s: int, sc: int, T_map_camera: NDArray[np.float64], band: VerticalBand, min_support: int,
+    range_tolerance_m: float, range_tolerance_per_m2: float, cluster_tol: float, free_sigma: float,
+    recentre_hit: bool, stamp_s: float,
+) -> BandScan:
+    """The :class:`BandScan` of ``dep``, every ``s``-th row and ``sc``-th column of an image of
+    ``shape_px`` (H, W), one ray per column from the compiled per-ray pass (:func:`_scan_columns`)."""
+    H, W = shape_px
     us = np.arange(0, W, sc, dtype=np.float32)
     vs = np.arange(0, H, s, dtype=np.float32)
     xn = (us - np.float32(intrinsics.cx_px)) / np.float32(intrinsics.fx_px)  # (w,)
     yn = (vs - np.float32(intrinsics.cy_px)) / np.float32(intrinsics.fy_px)  # (h,)
-    R = T[:3, :3].astype(np.float32)
-    tx, ty, tz = (float(v) for v in T[:3, 3])
+    R = T_map_camera[:3, :3].astype(np.float32)
+    tx, ty, tz = (float(v) for v in T_map_camera[:3, 3])
     w = dep.shape[1]
     near, far, hit_xy = np.empty((w, 2)), np.empty((w, 2)), np.empty((w, 2))
     is_hit, ray_valid, hit_z = np.empty(w, np.bool_), np.empty(w, np.bool_), np.empty(w)
     _scan_columns(
         dep, valid, xn, yn, R, tx, ty, tz, float(band.z_min_m), float(band.z_max_m),
-        bool(band.z_min_m <= tz <= band.z_max_m), max(0, int(min_hit_points) - 1),
+        bool(band.z_min_m <= tz <= band.z_max_m), min_support,
         float(range_tolerance_m), float(range_tolerance_per_m2), float(cluster_tol), float(free_sigma),
         bool(recentre_hit), near, far, hit_xy, is_hit, ray_valid, hit_z,
     )
-    origin = np.array([tx, ty])
     return BandScan(
-        stamp_s=stamp_s, band=band, origin_xy_m=origin,
+        stamp_s=stamp_s, band=band, origin_xy_m=np.array([tx, ty]),
         near_xy_m=near, far_xy_m=far, hit_xy_m=hit_xy, is_hit=is_hit & ray_valid, valid=ray_valid,
         hit_z_m=hit_z,
     )
-
 
 
 def _checked_frame(
