@@ -42,20 +42,20 @@ from companion.background import TASK_STOP_TIMEOUT_S, stop_tasks
 from companion.config import CompanionConfig
 from companion.service.checkpoint import Checkpointer, checkpoint_path, restore_map
 from companion.service.perception_worker import (
-    PerceptionPipeline,
     PerceptionWorker,
+    TimedPipeline,
+    TimedSource,
     flight_band,
     new_object_map,
     new_semantic_map,
 )
-from companion.sources.base import FrameSource, WrappedSource
+from companion.sources.base import FrameSource
 from planner.process import WorkerProcess
 from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import MapError, PerceptionError
 from semmap.grid import GridSpec
 from semmap.kernels import warm_up
 from semmap.semantic_map import SemanticMap
-from semmap.types import Frame
 
 log = logging.getLogger(__name__)
 
@@ -122,39 +122,6 @@ class _ChildSpec:
     log_level: int
 
 
-class _TimedSource(WrappedSource):
-    """A frame source that remembers when each frame was read (its capture time)."""
-
-    def __init__(self, inner: FrameSource) -> None:
-        super().__init__(inner)
-        self.read_mono_s: deque[tuple[int, float]] = deque(maxlen=64)
-
-    def read(self) -> Frame | None:
-        frame = self.inner.read()
-        if frame is not None:
-            self.read_mono_s.append((frame.index, time.monotonic()))
-        return frame
-
-    def capture_time(self, index: int) -> float | None:
-        for i, t in reversed(self.read_mono_s):
-            if i == index:
-                return t
-        return None
-
-
-class _TimedPipeline(PerceptionPipeline):
-    """The perception pipeline, remembering the capture time of the newest integrated frame."""
-
-    source: _TimedSource | None = None
-    capture_mono_s: float | None = None
-
-    def process(self, frame: Frame) -> dict[str, float]:
-        out = super().process(frame)
-        if out and self.source is not None:
-            self.capture_mono_s = self.source.capture_time(frame.index)
-        return out
-
-
 def _child_main(conn: Connection, stop: Connection, spec: _ChildSpec) -> None:
     """The perception process's entry point (``spawn``)."""
     # The service decides when perception stops (SIGTERM/Ctrl-C reach the whole process group).
@@ -190,8 +157,8 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
     log.info("map-update kernels ready in %.2f s", await asyncio.to_thread(warm_up))
     restored = restore_map(cfg, checkpoint_path(cfg))
     smap = restored if restored is not None else new_semantic_map(cfg)
-    source = _TimedSource(spec.source)
-    pipeline = _TimedPipeline.from_config(cfg, smap, spec.object_classes)
+    source = TimedSource(spec.source)
+    pipeline = TimedPipeline.from_config(cfg, smap, spec.object_classes)
     pipeline.source = source
     band = flight_band(cfg)
     loop = asyncio.get_running_loop()
