@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import os
 import signal
@@ -171,17 +172,7 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
                               queue_size=cfg.service.frame_queue_size, stale_after_s=cfg.map.stale_after_s)
     ckpt = Checkpointer(smap, checkpoint_path(cfg), cfg.service.checkpoint_interval_s, pipeline.lock)
 
-    def update(kind: Literal["ready", "frame", "final"], with_map: bool) -> PerceptionUpdate:
-        cm, cm_t, objs = None, None, None
-        if with_map:
-            cm_t = pipeline.capture_mono_s
-            with pipeline.lock:
-                cm = smap.costmap(band)
-                objs = smap.objects
-        return PerceptionUpdate(
-            kind, restored is not None, pipeline.frames_done, pipeline.frames_failed, worker.dropped_frames,
-            pipeline.last_frame_s, pipeline.capture_mono_s, dict(pipeline.timings.latest_ms),
-            pipeline.timings.summary(), ckpt.saves, pipeline.frames_unposed, cm, cm_t, objs, smap.spec)
+    update = functools.partial(_perception_update, pipeline, smap, band, worker, ckpt, restored is not None)
 
     async def send(u: PerceptionUpdate) -> None:
         await asyncio.to_thread(conn.send, u)
@@ -213,6 +204,24 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
     # The checkpointer saved the map on exit: tell the service it may load it.
     with contextlib.suppress(BrokenPipeError, OSError):
         await send(update("final", True))
+
+
+def _perception_update(
+    pipeline: TimedPipeline, smap: SemanticMap, band: VerticalBand, worker: PerceptionWorker, ckpt: Checkpointer,
+    restored: bool, kind: Literal["ready", "frame", "final"], with_map: bool,
+) -> PerceptionUpdate:
+    """The child's counters and timings now; ``with_map``: with the costmap at ``band`` and the
+    objects, taken under the pipeline's lock so they are one state of the map."""
+    cm, cm_t, objs = None, None, None
+    if with_map:
+        cm_t = pipeline.capture_mono_s
+        with pipeline.lock:
+            cm = smap.costmap(band)
+            objs = smap.objects
+    return PerceptionUpdate(
+        kind, restored, pipeline.frames_done, pipeline.frames_failed, worker.dropped_frames,
+        pipeline.last_frame_s, pipeline.capture_mono_s, dict(pipeline.timings.latest_ms),
+        pipeline.timings.summary(), ckpt.saves, pipeline.frames_unposed, cm, cm_t, objs, smap.spec)
 
 
 @dataclass
