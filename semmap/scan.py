@@ -197,32 +197,44 @@ def extract_band_scan(
     (``tol / 3``) before the obstacle, or at the nearest point if that is farther.
     """
     d, T = _checked_frame(depth_m, intrinsics, T_map_camera)
-    H, W = d.shape
     s = max(1, int(stride_px))
     sc = max(1, int(column_stride_px)) if column_stride_px is not None else s
     dep, valid = _subsampled_filled_depth(d, s, sc, min_depth_m, max_depth_m, fill_px, recover_px)
+    return _band_scan_of_filled_depth(
+        dep, valid, intrinsics, d.shape, s, sc, T, band, max(0, int(min_hit_points) - 1), range_tolerance_m,
+        range_tolerance_per_m2, cluster_tol, free_sigma, recentre_hit, stamp_s,
+    )
+
+
+def _band_scan_of_filled_depth(
+    dep: NDArray[np.float32], valid: NDArray[np.bool_], intrinsics: CameraIntrinsics, shape_px: tuple[int, ...],
+    s: int, sc: int, T_map_camera: NDArray[np.float64], band: VerticalBand, min_support: int,
+    range_tolerance_m: float, range_tolerance_per_m2: float, cluster_tol: float, free_sigma: float,
+    recentre_hit: bool, stamp_s: float,
+) -> BandScan:
+    """The :class:`BandScan` of ``dep``, every ``s``-th row and ``sc``-th column of an image of
+    ``shape_px`` (H, W), one ray per column from the compiled per-ray pass (:func:`_scan_columns`)."""
+    H, W = shape_px
     us = np.arange(0, W, sc, dtype=np.float32)
     vs = np.arange(0, H, s, dtype=np.float32)
     xn = (us - np.float32(intrinsics.cx_px)) / np.float32(intrinsics.fx_px)  # (w,)
     yn = (vs - np.float32(intrinsics.cy_px)) / np.float32(intrinsics.fy_px)  # (h,)
-    R = T[:3, :3].astype(np.float32)
-    tx, ty, tz = (float(v) for v in T[:3, 3])
+    R = T_map_camera[:3, :3].astype(np.float32)
+    tx, ty, tz = (float(v) for v in T_map_camera[:3, 3])
     w = dep.shape[1]
     near, far, hit_xy = np.empty((w, 2)), np.empty((w, 2)), np.empty((w, 2))
     is_hit, ray_valid, hit_z = np.empty(w, np.bool_), np.empty(w, np.bool_), np.empty(w)
     _scan_columns(
         dep, valid, xn, yn, R, tx, ty, tz, float(band.z_min_m), float(band.z_max_m),
-        bool(band.z_min_m <= tz <= band.z_max_m), max(0, int(min_hit_points) - 1),
+        bool(band.z_min_m <= tz <= band.z_max_m), min_support,
         float(range_tolerance_m), float(range_tolerance_per_m2), float(cluster_tol), float(free_sigma),
         bool(recentre_hit), near, far, hit_xy, is_hit, ray_valid, hit_z,
     )
-    origin = np.array([tx, ty])
     return BandScan(
-        stamp_s=stamp_s, band=band, origin_xy_m=origin,
+        stamp_s=stamp_s, band=band, origin_xy_m=np.array([tx, ty]),
         near_xy_m=near, far_xy_m=far, hit_xy_m=hit_xy, is_hit=is_hit & ray_valid, valid=ray_valid,
         hit_z_m=hit_z,
     )
-
 
 
 def _checked_frame(
@@ -306,27 +318,11 @@ def _scan_columns(
     for c in range(w):
         any_cross = _column_rays(dep, valid, xn, yn, R, c, tz32, z0, z1, sensor_in_band,
                                  ox, oy, zc, rng, s_lo, s_hi, crosses)
-        q1 = r1[c]
-        confirmed = _nearest_confirmed(r1, r2, c, rt, rtp, min_support)
-        r_near = q1 if confirmed else r2[c]
-        hit = math.isfinite(r_near)
-        hit_row = first_row[c] if confirmed else second_row[c]
-        r_near_f = r_near if hit else np.float32(0.0)
-        tol = f(rt + f(rtp * f(r_near_f * r_near_f)))
-        r_hit = _cluster_mean_range(hit_rng, c, r_near_f, f(r_near_f + f(cluster_tol * tol))) if hit else 0.0
-        if hit and recentre_hit:
-            tol_hit = f(rt + f(rtp * f(np.float32(r_hit) * np.float32(r_hit))))
-            r_hit = _cluster_mean_range(hit_rng, c, f(r_hit - tol_hit), f(r_hit + tol_hit))
-        blocked = math.isfinite(q1)
-        exit_row, near_row, med_row = _free_ends_and_hit_rows(hit_rng, c, rng, s_lo, s_hi, crosses, r_hit)
-        far_row = first_row[c] if blocked else exit_row
-        r_first = rng[first_row[c]]
-        r_free = max(np.float64(q1), r_hit - f(f(free_sigma * tol) / 3.0)) if hit else np.float64(q1)
-        far_s = r_free / r_first if blocked else np.float64(s_hi[far_row])
-        if not math.isfinite(far_s):
-            far_s = 0.0
-        near_s = np.float32(0.0) if sensor_in_band else s_lo[near_row]
-        ray_valid[c] = any_cross or blocked
+        hit, hit_row, tol, r_hit = _obstacle_range(hit_rng, r1, r2, first_row, second_row, c, rt, rtp,
+                                                   min_support, cluster_tol, recentre_hit)
+        far_row, far_s, near_row, near_s, med_row = _free_ends_and_hit_row(
+            hit_rng, c, rng, s_lo, s_hi, crosses, first_row[c], r1[c], hit, r_hit, tol, free_sigma, sensor_in_band)
+        ray_valid[c] = any_cross or math.isfinite(r1[c])
         far[c, 0] = tx + np.float64(ox[far_row]) * far_s
         far[c, 1] = ty + np.float64(oy[far_row]) * far_s
         scale = r_hit / np.float64(rng[med_row]) if hit else 1.0
@@ -338,6 +334,30 @@ def _scan_columns(
         near[c, 1] = ty + np.float64(f(oy[near_row] * near_s))
         is_hit[c] = hit
         hit_z[c] = np.float64(zc[hit_row]) if hit else np.nan
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _obstacle_range(
+    hit_rng: NDArray[np.float32], r1: NDArray[np.float32], r2: NDArray[np.float32], first_row: NDArray[np.int64],
+    second_row: NDArray[np.int64], c: int, rt: np.float32, rtp: np.float32, min_support: int,
+    cluster_tol: float, recentre_hit: bool,
+) -> tuple[bool, int, np.float32, float]:
+    """Column ``c``'s obstacle: whether it has one, the row of its nearest point (the nearest
+    in-band one if confirmed, else the second nearest), that point's range tolerance and the
+    obstacle's range (the nearest cluster's mean, recentred if asked; 0 without a hit)."""
+    f = _f32
+    q1 = r1[c]
+    confirmed = _nearest_confirmed(r1, r2, c, rt, rtp, min_support)
+    r_near = q1 if confirmed else r2[c]
+    hit = math.isfinite(r_near)
+    hit_row = first_row[c] if confirmed else second_row[c]
+    r_near_f = r_near if hit else np.float32(0.0)
+    tol = f(rt + f(rtp * f(r_near_f * r_near_f)))
+    r_hit = _cluster_mean_range(hit_rng, c, r_near_f, f(r_near_f + f(cluster_tol * tol))) if hit else 0.0
+    if hit and recentre_hit:
+        tol_hit = f(rt + f(rtp * f(np.float32(r_hit) * np.float32(r_hit))))
+        r_hit = _cluster_mean_range(hit_rng, c, f(r_hit - tol_hit), f(r_hit + tol_hit))
+    return hit, hit_row, tol, r_hit
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -445,12 +465,15 @@ def _cluster_mean_range(hit_rng: NDArray[np.float32], c: int, lower: np.float32,
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _free_ends_and_hit_rows(
+def _free_ends_and_hit_row(
     hit_rng: NDArray[np.float32], c: int, rng: NDArray[np.float32], s_lo: NDArray[np.float32],
-    s_hi: NDArray[np.float32], crosses: NDArray[np.bool_], r_hit: float,
-) -> tuple[int, int, int]:
-    """Rows of column ``c`` whose rays leave the band farthest and enter it nearest, and the
-    row whose in-band range is closest to ``r_hit``."""
+    s_hi: NDArray[np.float32], crosses: NDArray[np.bool_], first_row_c: int, q1: np.float32, hit: bool,
+    r_hit: float, tol: np.float32, free_sigma: float, sensor_in_band: bool,
+) -> tuple[int, float, int, np.float32, int]:
+    """Column ``c``'s free part as (row, ray fraction) where it ends and starts, and the row whose
+    in-band range is closest to ``r_hit``: it ends at the nearest in-band point ``q1`` or, when
+    farther, ``free_sigma`` noise sigmas short of the obstacle (with neither, where a ray leaves
+    the band farthest), and starts where a ray enters the band nearest (inside it, at the sensor)."""
     f = _f32
     inf32 = np.float32(np.inf)
     exit_row, exit_v = 0, np.float32(-np.inf)
@@ -466,4 +489,12 @@ def _free_ends_and_hit_rows(
         md = abs(np.float64(hit_rng[c, r]) - r_hit)
         if md < med_v:
             med_row, med_v = r, md
-    return exit_row, near_row, med_row
+    blocked = math.isfinite(q1)
+    far_row = first_row_c if blocked else exit_row
+    r_first = rng[first_row_c]
+    r_free = max(np.float64(q1), r_hit - f(f(free_sigma * tol) / 3.0)) if hit else np.float64(q1)
+    far_s = r_free / r_first if blocked else np.float64(s_hi[far_row])
+    if not math.isfinite(far_s):
+        far_s = 0.0
+    near_s = np.float32(0.0) if sensor_in_band else s_lo[near_row]
+    return far_row, far_s, near_row, near_s, med_row

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import os
 import signal
@@ -42,20 +43,20 @@ from companion.background import TASK_STOP_TIMEOUT_S, stop_tasks
 from companion.config import CompanionConfig
 from companion.service.checkpoint import Checkpointer, checkpoint_path, restore_map
 from companion.service.perception_worker import (
-    PerceptionPipeline,
     PerceptionWorker,
+    TimedPipeline,
+    TimedSource,
     flight_band,
     new_object_map,
     new_semantic_map,
 )
-from companion.sources.base import FrameSource, WrappedSource
+from companion.sources.base import FrameSource
 from planner.process import WorkerProcess
 from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import MapError, PerceptionError
 from semmap.grid import GridSpec
 from semmap.kernels import warm_up
 from semmap.semantic_map import SemanticMap
-from semmap.types import Frame
 
 log = logging.getLogger(__name__)
 
@@ -122,39 +123,6 @@ class _ChildSpec:
     log_level: int
 
 
-class _TimedSource(WrappedSource):
-    """A frame source that remembers when each frame was read (its capture time)."""
-
-    def __init__(self, inner: FrameSource) -> None:
-        super().__init__(inner)
-        self.read_mono_s: deque[tuple[int, float]] = deque(maxlen=64)
-
-    def read(self) -> Frame | None:
-        frame = self.inner.read()
-        if frame is not None:
-            self.read_mono_s.append((frame.index, time.monotonic()))
-        return frame
-
-    def capture_time(self, index: int) -> float | None:
-        for i, t in reversed(self.read_mono_s):
-            if i == index:
-                return t
-        return None
-
-
-class _TimedPipeline(PerceptionPipeline):
-    """The perception pipeline, remembering the capture time of the newest integrated frame."""
-
-    source: _TimedSource | None = None
-    capture_mono_s: float | None = None
-
-    def process(self, frame: Frame) -> dict[str, float]:
-        out = super().process(frame)
-        if out and self.source is not None:
-            self.capture_mono_s = self.source.capture_time(frame.index)
-        return out
-
-
 def _child_main(conn: Connection, stop: Connection, spec: _ChildSpec) -> None:
     """The perception process's entry point (``spawn``)."""
     # The service decides when perception stops (SIGTERM/Ctrl-C reach the whole process group).
@@ -190,8 +158,8 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
     log.info("map-update kernels ready in %.2f s", await asyncio.to_thread(warm_up))
     restored = restore_map(cfg, checkpoint_path(cfg))
     smap = restored if restored is not None else new_semantic_map(cfg)
-    source = _TimedSource(spec.source)
-    pipeline = _TimedPipeline.from_config(cfg, smap, spec.object_classes)
+    source = TimedSource(spec.source)
+    pipeline = TimedPipeline.from_config(cfg, smap, spec.object_classes)
     pipeline.source = source
     band = flight_band(cfg)
     loop = asyncio.get_running_loop()
@@ -204,17 +172,7 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
                               queue_size=cfg.service.frame_queue_size, stale_after_s=cfg.map.stale_after_s)
     ckpt = Checkpointer(smap, checkpoint_path(cfg), cfg.service.checkpoint_interval_s, pipeline.lock)
 
-    def update(kind: Literal["ready", "frame", "final"], with_map: bool) -> PerceptionUpdate:
-        cm, cm_t, objs = None, None, None
-        if with_map:
-            cm_t = pipeline.capture_mono_s
-            with pipeline.lock:
-                cm = smap.costmap(band)
-                objs = smap.objects
-        return PerceptionUpdate(
-            kind, restored is not None, pipeline.frames_done, pipeline.frames_failed, worker.dropped_frames,
-            pipeline.last_frame_s, pipeline.capture_mono_s, dict(pipeline.timings.latest_ms),
-            pipeline.timings.summary(), ckpt.saves, pipeline.frames_unposed, cm, cm_t, objs, smap.spec)
+    update = functools.partial(_perception_update, pipeline, smap, band, worker, ckpt, restored is not None)
 
     async def send(u: PerceptionUpdate) -> None:
         await asyncio.to_thread(conn.send, u)
@@ -246,6 +204,24 @@ async def _child(spec: _ChildSpec, conn: Connection, stop: Connection) -> None:
     # The checkpointer saved the map on exit: tell the service it may load it.
     with contextlib.suppress(BrokenPipeError, OSError):
         await send(update("final", True))
+
+
+def _perception_update(
+    pipeline: TimedPipeline, smap: SemanticMap, band: VerticalBand, worker: PerceptionWorker, ckpt: Checkpointer,
+    restored: bool, kind: Literal["ready", "frame", "final"], with_map: bool,
+) -> PerceptionUpdate:
+    """The child's counters and timings now; ``with_map``: with the costmap at ``band`` and the
+    objects, taken under the pipeline's lock so they are one state of the map."""
+    cm, cm_t, objs = None, None, None
+    if with_map:
+        cm_t = pipeline.capture_mono_s
+        with pipeline.lock:
+            cm = smap.costmap(band)
+            objs = smap.objects
+    return PerceptionUpdate(
+        kind, restored, pipeline.frames_done, pipeline.frames_failed, worker.dropped_frames,
+        pipeline.last_frame_s, pipeline.capture_mono_s, dict(pipeline.timings.latest_ms),
+        pipeline.timings.summary(), ckpt.saves, pipeline.frames_unposed, cm, cm_t, objs, smap.spec)
 
 
 @dataclass

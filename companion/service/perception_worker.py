@@ -14,13 +14,15 @@ import asyncio
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Self
 
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.sources.base import FrameSource
+from companion.sources.base import FrameSource, WrappedSource
 from companion.sources.stream import FrameStream
 from semmap.costmap import Costmap, VerticalBand
 from semmap.detection import Detector, detector_from_config
@@ -124,7 +126,7 @@ class PerceptionPipeline:
 
     @classmethod
     def from_config(cls, cfg: CompanionConfig, smap: SemanticMap,
-                    object_classes: Mapping[int, str] | None = None) -> PerceptionPipeline:
+                    object_classes: Mapping[int, str] | None = None) -> Self:
         """The configured detector (``builtin:`` models from the package) and tracker.
         ``object_classes``: the simulator's object id -> class (only the oracle detector uses it)."""
         detector = detector_from_config(cfg.detector, [c.name for c in cfg.classes],
@@ -150,6 +152,40 @@ class PerceptionPipeline:
         """The map's costmap at ``band`` (a consistent snapshot)."""
         with self.lock:
             return self.smap.costmap(band)
+
+
+class TimedSource(WrappedSource):
+    """A frame source that remembers when each frame was read (its capture time)."""
+
+    def __init__(self, inner: FrameSource) -> None:
+        super().__init__(inner)
+        self.read_mono_s: deque[tuple[int, float]] = deque(maxlen=64)
+
+    def read(self) -> Frame | None:
+        frame = self.inner.read()
+        if frame is not None:
+            self.read_mono_s.append((frame.index, time.monotonic()))
+        return frame
+
+    def capture_time(self, index: int) -> float | None:
+        for i, t in reversed(self.read_mono_s):
+            if i == index:
+                return t
+        return None
+
+
+class TimedPipeline(PerceptionPipeline):
+    """The perception pipeline, remembering the capture time of the newest integrated frame
+    (the perception process reports it with the costmap)."""
+
+    source: TimedSource | None = None
+    capture_mono_s: float | None = None
+
+    def process(self, frame: Frame) -> dict[str, float]:
+        out = super().process(frame)
+        if out and self.source is not None:
+            self.capture_mono_s = self.source.capture_time(frame.index)
+        return out
 
 
 class PerceptionWorker:

@@ -220,30 +220,14 @@ class TakeoffSteps:
         """Hold where the vehicle is and engage OFFBOARD; only in the air, clear of the floor
         (:func:`took_off`), with that hold near the vehicle, so OFFBOARD never starts on the
         ground or with a setpoint somewhere else."""
-        state = self.vehicle.snapshot()
-        pos = position_enu(state)
-        if pos is None:
-            raise MissionError("no vehicle position (or no floor height) to engage offboard from")
-        if not state.in_air or not took_off(state, altitude_m):
-            raise MissionError(f"not engaging offboard: the vehicle is not airborne clear of the floor "
-                               f"({'in the air' if state.in_air else 'on the ground'}, "
-                               f"{pos[2]:.2f} m above the floor, range below "
-                               f"{'none' if state.range_down_m is None else f'{state.range_down_m:.2f} m'}, "
-                               f"{min_engage_height_m(altitude_m):.2f} m needed)")
-        xy = pos[:2].copy()
-        self.hold_at(xy, float(pos[2]))
-        sp = self.vehicle.offboard.status().setpoint
-        assert sp is not None
-        offset = math.dist(sp.position_ned_m, map_frame_of(state).to_ned(*pos))
-        if offset > ENGAGE_MAX_OFFSET_M:
-            raise MissionError(f"not engaging offboard: the first setpoint is {offset:.2f} m from the vehicle")
+        xy, hold_z_m = self._hold_where_airborne(altitude_m)
 
         async def follow_climb() -> None:
             # PX4's Hold may still be climbing while the stream warms up (1 s, then up to a
             # heartbeat for the switch): the hold rises with the vehicle, never pulling it back
             # down towards the floor when OFFBOARD takes over. A Hold that sank below the
             # engage clearance is asked to climb back to the take-off altitude.
-            top_m = float(pos[2])
+            top_m = hold_z_m
             climb_asked_s = -math.inf
             while True:
                 snap = self.vehicle.snapshot()
@@ -284,6 +268,29 @@ class TakeoffSteps:
             follower.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await follower
+
+    def _hold_where_airborne(self, altitude_m: float) -> tuple[NDArray[np.float64], float]:
+        """Hold where the vehicle is and return that hold (map frame xy, height above the floor
+        in metres); a :class:`MissionError` unless the vehicle is airborne clear of the floor
+        (:func:`took_off`) and the hold's setpoint lies near it."""
+        state = self.vehicle.snapshot()
+        pos = position_enu(state)
+        if pos is None:
+            raise MissionError("no vehicle position (or no floor height) to engage offboard from")
+        if not state.in_air or not took_off(state, altitude_m):
+            raise MissionError(f"not engaging offboard: the vehicle is not airborne clear of the floor "
+                               f"({'in the air' if state.in_air else 'on the ground'}, "
+                               f"{pos[2]:.2f} m above the floor, range below "
+                               f"{'none' if state.range_down_m is None else f'{state.range_down_m:.2f} m'}, "
+                               f"{min_engage_height_m(altitude_m):.2f} m needed)")
+        xy = pos[:2].copy()
+        self.hold_at(xy, float(pos[2]))
+        sp = self.vehicle.offboard.status().setpoint
+        assert sp is not None
+        offset = math.dist(sp.position_ned_m, map_frame_of(state).to_ned(*pos))
+        if offset > ENGAGE_MAX_OFFSET_M:
+            raise MissionError(f"not engaging offboard: the first setpoint is {offset:.2f} m from the vehicle")
+        return xy, float(pos[2])
 
     async def climb_in_hold(self, state: VehicleState, altitude_m: float) -> None:
         """Ask PX4's Hold to climb where it is (DO_REPOSITION to an altitude above the current

@@ -77,6 +77,39 @@ def _cost(e: NDArray[np.float64], robust: NDArray[np.bool_], k: float) -> float:
     return 0.5 * float(rho.sum())
 
 
+def _normal_equations(
+    e: NDArray[np.float64], c: NDArray[np.float64], s: NDArray[np.float64], dx: NDArray[np.float64],
+    dy: NDArray[np.float64], a: NDArray[np.int64], b: NDArray[np.int64], w: NDArray[np.float64],
+    robust: NDArray[np.bool_], huber_scale: float, n_fixed: int, n_free: int,
+) -> tuple[sp.csc_matrix, NDArray[np.float64]]:
+    """``H = J^T J`` and ``g = J^T r`` of the (E, 3) residuals ``e`` (with :func:`_residuals`'
+    terms ``c, s, dx, dy``), Huber-reweighted, over the ``n_free`` coordinates of the poses
+    after the first ``n_fixed`` (the held poses have no column)."""
+    E = len(a)
+    # Jacobian blocks (E, 3, 3) wrt pose a and pose b, before the weights.
+    Ja = np.zeros((E, 3, 3))
+    Jb = np.zeros((E, 3, 3))
+    Ja[:, 0, 0], Ja[:, 0, 1], Ja[:, 0, 2] = -c, -s, -s * dx + c * dy
+    Ja[:, 1, 0], Ja[:, 1, 1], Ja[:, 1, 2] = s, -c, -c * dx - s * dy
+    Ja[:, 2, 2] = -1.0
+    Jb[:, 0, 0], Jb[:, 0, 1] = c, s
+    Jb[:, 1, 0], Jb[:, 1, 1] = -s, c
+    Jb[:, 2, 2] = 1.0
+    Ja *= w[:, :, None]
+    Jb *= w[:, :, None]
+    sw = np.sqrt(_huber_weights(e, robust, huber_scale))[:, None]
+    rows = np.repeat(np.arange(3 * E).reshape(E, 3), 3, axis=1).reshape(E, 3, 3)
+    cols_a = (3 * (a - n_fixed))[:, None, None] + np.arange(3)[None, None, :]
+    cols_b = (3 * (b - n_fixed))[:, None, None] + np.arange(3)[None, None, :]
+    vals = np.concatenate([(Ja * sw[:, :, None]).ravel(), (Jb * sw[:, :, None]).ravel()])
+    rr = np.concatenate([rows.ravel(), rows.ravel()])
+    cc = np.concatenate([np.broadcast_to(cols_a, (E, 3, 3)).ravel(), np.broadcast_to(cols_b, (E, 3, 3)).ravel()])
+    keep = cc >= 0
+    J = sp.csr_matrix((vals[keep], (rr[keep], cc[keep])), shape=(3 * E, n_free))
+    r = (e * sw).ravel()
+    return (J.T @ J).tocsc(), J.T @ r
+
+
 def optimize(
     poses: NDArray[np.float64], edges: list[Edge], n_fixed: int = 1, huber_scale: float = 1.0,
     max_iterations: int = 20, tolerance: float = 1e-6,
@@ -101,29 +134,7 @@ def optimize(
     cost0 = cost = _cost(e, robust, huber_scale)
     it = 0
     for it in range(1, max_iterations + 1):  # noqa: B007 - reported below
-        # Jacobian blocks (E, 3, 3) wrt pose a and pose b, before the weights.
-        Ja = np.zeros((E, 3, 3))
-        Jb = np.zeros((E, 3, 3))
-        Ja[:, 0, 0], Ja[:, 0, 1], Ja[:, 0, 2] = -c, -s, -s * dx + c * dy
-        Ja[:, 1, 0], Ja[:, 1, 1], Ja[:, 1, 2] = s, -c, -c * dx - s * dy
-        Ja[:, 2, 2] = -1.0
-        Jb[:, 0, 0], Jb[:, 0, 1] = c, s
-        Jb[:, 1, 0], Jb[:, 1, 1] = -s, c
-        Jb[:, 2, 2] = 1.0
-        Ja *= w[:, :, None]
-        Jb *= w[:, :, None]
-        sw = np.sqrt(_huber_weights(e, robust, huber_scale))[:, None]
-        rows = np.repeat(np.arange(3 * E).reshape(E, 3), 3, axis=1).reshape(E, 3, 3)
-        cols_a = (3 * (a - n_fixed))[:, None, None] + np.arange(3)[None, None, :]
-        cols_b = (3 * (b - n_fixed))[:, None, None] + np.arange(3)[None, None, :]
-        vals = np.concatenate([(Ja * sw[:, :, None]).ravel(), (Jb * sw[:, :, None]).ravel()])
-        rr = np.concatenate([rows.ravel(), rows.ravel()])
-        cc = np.concatenate([np.broadcast_to(cols_a, (E, 3, 3)).ravel(), np.broadcast_to(cols_b, (E, 3, 3)).ravel()])
-        keep = cc >= 0
-        J = sp.csr_matrix((vals[keep], (rr[keep], cc[keep])), shape=(3 * E, n_free))
-        r = (e * sw).ravel()
-        H = (J.T @ J).tocsc()
-        g = J.T @ r
+        H, g = _normal_equations(e, c, s, dx, dy, a, b, w, robust, huber_scale, n_fixed, n_free)
         improved = False
         while lam < 1e8:
             A = H + lam * sp.diags(H.diagonal() + 1e-9)

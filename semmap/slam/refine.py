@@ -103,24 +103,6 @@ def refine_pose(
     # Keep the prior's angle on the same branch as the start.
     th_prior = float(x0[2]) + float(wrap(th_prior - x0[2]))
     w_occ = occupied_space_weight / math.sqrt(n)
-    res = grid.resolution_m
-    ox, oy = grid.origin_xy_m
-
-    def model(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        c, s = math.cos(x[2]), math.sin(x[2])
-        qx = x[0] + c * pts[:, 0] - s * pts[:, 1]
-        qy = x[1] + s * pts[:, 0] + c * pts[:, 1]
-        cc = np.stack([(qx - ox) / res - 0.5, (qy - oy) / res - 0.5], axis=1)
-        val, dc, dr = bicubic(grid.probability, cc)
-        dqx_dth = -s * pts[:, 0] - c * pts[:, 1]
-        dqy_dth = c * pts[:, 0] - s * pts[:, 1]
-        gx, gy = dc / res, dr / res
-        J = np.empty((n, 3))
-        J[:, 0] = -w_occ * gx
-        J[:, 1] = -w_occ * gy
-        J[:, 2] = -w_occ * (gx * dqx_dth + gy * dqy_dth)
-        return w_occ * (1.0 - val), J
-
     cache: dict[bytes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
 
     def cached(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -128,7 +110,7 @@ def refine_pose(
         key = x.tobytes()
         if key not in cache:
             cache.clear()
-            cache[key] = model(x)
+            cache[key] = _occupied_space_residuals(grid, pts, x, w_occ)
         return cache[key]
 
     def fun(x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -148,6 +130,29 @@ def refine_pose(
     r, _ = cached(sol.x)
     mean_p = float(1.0 - np.mean(r) / w_occ) if w_occ > 0 else 0.0
     return RefineResult(pose, mean_p, score_curvature(grid, pts, pose), n, bool(sol.success))
+
+
+def _occupied_space_residuals(
+    grid: MatchGrid, points_xy_m: NDArray[np.float64], pose: NDArray[np.float64], w_occ: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The (N,) occupied-space residuals ``w_occ * (1 - P(T p_i))`` of the (N, 2) body-frame
+    hits at ``pose`` (x_m, y_m, yaw_rad) in ``grid``'s frame, and their (N, 3) Jacobian."""
+    pts = points_xy_m
+    res = grid.resolution_m
+    ox, oy = grid.origin_xy_m
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    qx = pose[0] + c * pts[:, 0] - s * pts[:, 1]
+    qy = pose[1] + s * pts[:, 0] + c * pts[:, 1]
+    cc = np.stack([(qx - ox) / res - 0.5, (qy - oy) / res - 0.5], axis=1)
+    val, dc, dr = bicubic(grid.probability, cc)
+    dqx_dth = -s * pts[:, 0] - c * pts[:, 1]
+    dqy_dth = c * pts[:, 0] - s * pts[:, 1]
+    gx, gy = dc / res, dr / res
+    J = np.empty((len(pts), 3))
+    J[:, 0] = -w_occ * gx
+    J[:, 1] = -w_occ * gy
+    J[:, 2] = -w_occ * (gx * dqx_dth + gy * dqy_dth)
+    return w_occ * (1.0 - val), J
 
 
 def score_curvature(grid: MatchGrid, points_xy_m: NDArray[np.float64], pose: Pose2) -> NDArray[np.float64]:
