@@ -217,16 +217,21 @@ class OffboardFailsafe:
 
     def _position_jump_m(self, now_s: float, vehicle: VehicleState) -> float | None:
         """How much farther (horizontally) the reported position moved since the previous
-        report than the reported velocity explains; None without two reports to compare."""
+        report than the reported velocity explains; None without two reports to compare.
+
+        Reports are timed by the autopilot's own stamp where it has one: reports that queued up
+        behind a stall of our loop arrive together, and timed by arrival a vehicle at speed
+        would seem to jump."""
         pos, age = vehicle.position_ned_m, vehicle.position_age_s
         if pos is None or age is None:
             return None
-        t = now_s - age
+        t = vehicle.position_boot_s if vehicle.position_boot_s is not None else now_s - age
         prev = self._last_report
-        if prev is not None and t - prev[0] < 1e-3:
+        if prev is not None and abs(t - prev[0]) < 1e-3:
             return None  # the same report again
         self._last_report = (t, pos)
-        if prev is None or t - prev[0] > POSITION_JUMP_MAX_GAP_S:
+        # Also no comparison across a clock that went back (the autopilot rebooted).
+        if prev is None or not 0.0 < t - prev[0] <= POSITION_JUMP_MAX_GAP_S:
             return None
         vn, ve, _ = vehicle.velocity_ned_m_s or (0.0, 0.0, 0.0)
         dt = t - prev[0]

@@ -120,6 +120,9 @@ class VehicleState:
     #: moves home's z in flight, and home's z can differ from where the vehicle stands); home's
     #: z until the vehicle has been seen landed. None before either is known.
     floor_down_m: float | None = None
+    #: The autopilot's time of the last LOCAL_POSITION_NED (its ``time_boot_ms``, seconds): when
+    #: the estimate was made, which arrival times are not once reports queue up behind a stall.
+    position_boot_s: float | None = None
 
     def heartbeat_fresh(self, timeout_s: float) -> bool:
         """True if the autopilot's heartbeat is younger than ``timeout_s``."""
@@ -213,6 +216,7 @@ class VehicleStateTracker:
         self._pos: Vec3 | None = None
         self._vel: Vec3 | None = None
         self._pos_s: float | None = None
+        self._pos_boot_s: float | None = None
         self._rpy: Vec3 | None = None
         self._battery_v: float | None = None
         self._battery_remaining: float | None = None
@@ -263,6 +267,7 @@ class VehicleStateTracker:
             self._floor_down = float(msg.z)  # standing on the floor: this z is the floor
         self._vel = (float(msg.vx), float(msg.vy), float(msg.vz))
         self._pos_s = self._clock()
+        self._pos_boot_s = msg.time_boot_ms * 1e-3
 
     def _on_attitude(self, msg: mavlink.MAVLink_message) -> None:
         self._rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
@@ -326,6 +331,7 @@ class VehicleStateTracker:
             position_ned_m=self._pos,
             velocity_ned_m_s=self._vel,
             position_age_s=None if self._pos_s is None else now - self._pos_s,
+            position_boot_s=self._pos_boot_s,
             attitude_rpy_rad=self._rpy,
             battery_v=self._battery_v,
             battery_remaining=self._battery_remaining,

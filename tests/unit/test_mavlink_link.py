@@ -193,6 +193,7 @@ async def test_state_tracker_names_modes_and_reads_telemetry(peer_and_link: tupl
     assert s.flight_mode is FlightMode.MISSION and s.armed
     assert s.position_ned_m == pytest.approx((1.0, 2.0, -3.0))
     assert s.velocity_ned_m_s == pytest.approx((0.1, 0.2, -0.3))
+    assert s.position_boot_s == pytest.approx(1.0)  # the autopilot's time of the estimate
     assert s.attitude_rpy_rad == pytest.approx((0.01, 0.02, 1.5))
     assert s.yaw_ned_rad == pytest.approx(1.5)
     assert s.landed_state is LandedState.IN_AIR and s.in_air

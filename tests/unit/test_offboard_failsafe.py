@@ -282,6 +282,20 @@ def test_motion_its_velocity_explains_is_no_jump() -> None:
         assert fs.state is OffboardState.ACTIVE
 
 
+def test_reports_queued_behind_a_stall_are_no_jump() -> None:
+    # A stall of our loop queues the autopilot's reports, which then arrive together: timed by
+    # arrival, 0.2 m flown in 0.1 s at 2 m/s would read as a jump 10 ms apart, and the
+    # vehicle would stop to hold mid-leg (a CI run's re-plan flight under load).
+    fs = _engaged()
+    fly = {"flight_mode": FlightMode.OFFBOARD, "velocity_ned_m_s": (2.0, 0.0, 0.0), "position_age_s": 0.0}
+    fs.step(2.0, _vehicle(**fly, position_ned_m=(1.0, 2.0, -1.5), position_boot_s=10.0), True, True)
+    fs.step(2.01, _vehicle(**fly, position_ned_m=(1.2, 2.0, -1.5), position_boot_s=10.1), True, True)
+    assert fs.state is OffboardState.ACTIVE and not fs.position_reset
+    # A real reset between two reports 33 ms apart is still one.
+    fs.step(2.05, _vehicle(**fly, position_ned_m=(1.7, 2.0, -1.5), position_boot_s=10.133), True, True)
+    assert fs.state is OffboardState.HOLDING and fs.position_reset
+
+
 def test_a_jump_during_a_hold_moves_the_hold_to_where_the_vehicle_now_is() -> None:
     fs = _engaged()
     v = _vehicle(flight_mode=FlightMode.OFFBOARD, position_ned_m=(3.0, 1.0, -1.6))
