@@ -181,7 +181,7 @@ class LegFollow:
         blocked."""
         runner, leg, rep, traj = self.runner, self.leg, self.rep, self.traj
         if self.checking is None and now >= self.next_check and pos is not None and self.t_traj < traj.duration_s:
-            self.checking = asyncio.create_task(runner._check_ahead(traj, self.t_traj))
+            self.checking = asyncio.create_task(runner._check_ahead(traj, lambda: self.t_traj))
         elif self.checking is not None and self.checking.done():
             free, t_start = self.checking.result()
             self.checking = None

@@ -311,15 +311,18 @@ class MissionRunner(TakeoffSteps):
         except CompanionError as exc:
             log.warning("re-engaging offboard failed: %s; retrying", exc)
 
-    async def _check_ahead(self, traj: Trajectory, t_s: float) -> tuple[bool, float | None]:
-        """Is the rest of ``traj`` from ``t_s`` free on the newest costmap? If not, also the
-        trajectory time from which to re-plan without stopping: the stretch up to it must be
-        free (None when even a short one is not)."""
-        if await self._path_free(_remaining(traj, t_s)):
+    async def _check_ahead(self, traj: Trajectory, t_now: Callable[[], float]) -> tuple[bool, float | None]:
+        """Is the rest of ``traj`` from the trajectory time ``t_now()`` free on the newest
+        costmap? If not, also the trajectory time from which to re-plan without stopping: the
+        stretch up to it must be free (None when even a short one is not)."""
+        if await self._path_free(_remaining(traj, t_now())):
             return True, None
         plan_s = self.last_plan_ms / 1e3 if self.last_plan_ms is not None else 0.5
         lookahead = min(MAX_REPLAN_LOOKAHEAD_S, max(MIN_REPLAN_LOOKAHEAD_S, 1.5 * plan_s + 0.3))
         for ahead in (lookahead, 0.5 * lookahead):
+            # Ahead of where the vehicle is by now: the first answer can take longer than the
+            # lookahead (the planning process prepares the changed map first, on a loaded CPU).
+            t_s = t_now()
             t_start = min(traj.duration_s, t_s + ahead)
             if await self._path_free(_between(traj, t_s, t_start)):
                 return False, t_start
