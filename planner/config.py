@@ -49,6 +49,11 @@ class PlannerConfig(StageConfig):
     cost_weight: float = Field(default=0.2, ge=0.0)
     #: Unknown cells cost this (0..1) times a lethal cell; 1 forbids them.
     unknown_cost: float = Field(default=0.5, ge=0.0, le=1.0)
+    #: Plan through mapped free space, keeping the vehicle's radius off unknown cells too, and
+    #: through unknown cells (at ``unknown_cost``) only when no such path exists: the unseen
+    #: side of a cabinet is unknown, and a path along it at a small unknown cost runs into it
+    #: where the camera cannot see (closer than its minimum depth).
+    prefer_known_space: bool = True
     snap_goal_to_free: bool = False
     #: Cell size of the grid search that gives the first path (a multiple of the map's
     #: resolution; coarser is faster, the search falls back to full resolution if the coarse

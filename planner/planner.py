@@ -41,6 +41,9 @@ from semmap.layers import paint_objects
 
 log = logging.getLogger(__name__)
 
+#: Failures no other treatment of unknown cells can change.
+_OUTSIDE = (PlanStatus.START_OUTSIDE_MAP, PlanStatus.GOAL_OUTSIDE_MAP)
+
 
 def _xy(value: Sequence[float] | NDArray[np.floating], name: str) -> NDArray[np.float64]:
     arr = np.asarray(value, dtype=np.float64).reshape(-1)
@@ -49,8 +52,44 @@ def _xy(value: Sequence[float] | NDArray[np.floating], name: str) -> NDArray[np.
     return arr
 
 
+class _Fields:
+    """One configuration space and its search graphs, kept up to date with the map."""
+
+    def __init__(self, params: InflationParams, cost_weight: float) -> None:
+        self.params = params
+        self.cost_weight = cost_weight
+        self.cs: CSpace | None = None
+        self.graphs: dict[int, GridGraph] = {}
+
+    def update(self, costmap: Costmap, version: int) -> Bounds | None:
+        """Adopt ``costmap``; returns the window whose fields changed (None: none). The first
+        map (or one with a new grid geometry or band) is precomputed in full, later ones by
+        window."""
+        if self.cs is None or self.cs.spec != costmap.spec or self.cs.band != costmap.band:
+            self.cs = build_cspace(costmap, self.params, version)
+            self.graphs = {}
+            return Bounds(0, 0, costmap.spec.rows, costmap.spec.cols)
+        self.cs, window = update_cspace(self.cs, costmap, version)
+        for g in self.graphs.values():
+            g.update(self.cs, window)
+        return window
+
+    def graph(self, factor: int) -> GridGraph:
+        assert self.cs is not None
+        g = self.graphs.get(factor)
+        if g is None:
+            g = GridGraph(self.cs, self.cost_weight, factor)
+            self.graphs[factor] = g
+        return g
+
+
 class Planner:
-    """Plans paths for a multicopter at the configured altitude on the latest costmap."""
+    """Plans paths for a multicopter at the configured altitude on the latest costmap.
+
+    With ``prefer_known_space`` it keeps two configuration spaces: one in which unknown cells
+    block like obstacles (used first) and, built on the first request that needs it, one in
+    which they cost ``unknown_cost``.
+    """
 
     def __init__(self, config: PlannerConfig) -> None:
         self.config = config
@@ -60,8 +99,16 @@ class Planner:
             unknown_cost=config.unknown_cost,
             geofence_xy_m=config.geofence_xy_m,
         )
-        self._cs: CSpace | None = None
-        self._graphs: dict[int, GridGraph] = {}
+        strict = config.prefer_known_space and config.unknown_cost < 1.0
+        known_params = dataclasses.replace(self.params, unknown_cost=1.0) if strict else self.params
+        self._known = _Fields(known_params, config.cost_weight)
+        #: The space with unknown cells traversable, once a request needed it (None: not yet
+        #: or never: unknown cells are forbidden or not avoided first).
+        self._any: _Fields | None = None
+        self._fallback = strict
+        #: The fields the current request works on.
+        self._active = self._known
+        self._costmap: Costmap | None = None
         self._version = 0
         #: Seconds spent preparing the fields of the last map version.
         self.last_prepare_s = 0.0
@@ -75,9 +122,9 @@ class Planner:
 
     @property
     def cspace(self) -> CSpace:
-        if self._cs is None:
+        if self._active.cs is None:
             raise PlanningError("no map yet: call set_map() before planning")
-        return self._cs
+        return self._active.cs
 
     @property
     def map_version(self) -> int:
@@ -100,41 +147,50 @@ class Planner:
         """
         t0 = time.perf_counter()
         self._version = self._version + 1 if version is None else int(version)
-        window: Bounds | None
-        if self._cs is None or self._cs.spec != costmap.spec or self._cs.band != costmap.band:
-            self._cs = build_cspace(costmap, self.params, self._version)
-            self._graphs = {}
-            window = Bounds(0, 0, costmap.spec.rows, costmap.spec.cols)
-        else:
-            self._cs, window = update_cspace(self._cs, costmap, self._version)
-            for g in self._graphs.values():
-                g.update(self._cs, window)
+        self._costmap = costmap
+        window = self._known.update(costmap, self._version)
+        if self._any is not None:
+            other = self._any.update(costmap, self._version)
+            window = other if window is None else window if other is None else window.union(other)
         # The coarse graph gives first paths; the full-resolution one is built on first use
         # (after the first path exists) and from then on kept up to date by windowed updates.
-        self._graph(self._coarse_factor())
+        self._known.graph(self._coarse_factor())
         self.last_prepare_s = time.perf_counter() - t0
         return window
+
+    def _unknown_fields(self) -> _Fields:
+        """The space with unknown cells traversable, built from the current map on first use."""
+        if self._any is None:
+            if self._costmap is None:
+                raise PlanningError("no map yet: call set_map() before planning")
+            self._any = _Fields(self.params, self.config.cost_weight)
+            self._any.update(self._costmap, self._version)
+        return self._any
 
     def _coarse_factor(self) -> int:
         return max(1, int(round(self.config.search_cell_m / self.cspace.spec.resolution_m)))
 
     def _graph(self, factor: int) -> GridGraph:
-        g = self._graphs.get(factor)
-        if g is None:
-            g = GridGraph(self.cspace, self.config.cost_weight, factor)
-            self._graphs[factor] = g
-        return g
+        self.cspace  # noqa: B018 - raises before any map
+        return self._active.graph(factor)
 
     # --- checks ---------------------------------------------------------------------
 
     def path_still_valid(self, path_xy_m: NDArray[np.floating]) -> bool:
-        """True if the (K, 2) polyline is still free on the current map."""
-        return self.cspace.path_free(path_xy_m)
+        """True if the (K, 2) polyline is still free on the current map: in the space it may
+        have been planned in (through unknown cells, once a request needed that)."""
+        fields = self._any or self._known
+        if fields.cs is None:
+            raise PlanningError("no map yet: call set_map() before planning")
+        return fields.cs.path_free(path_xy_m)
 
     def escape_point(self, xy_m: NDArray[np.floating], extra_m: float = 0.05) -> NDArray[np.float64] | None:
         """The nearest point to ``xy_m`` where the vehicle fits with ``extra_m`` to spare on
-        the current map (see :meth:`CSpace.escape_point`)."""
-        return self.cspace.escape_point(xy_m, extra_m)
+        the current map (see :meth:`CSpace.escape_point`), off unknown cells where possible."""
+        point = self.cspace.escape_point(xy_m, extra_m)
+        if point is None and self._fallback:
+            point = self._unknown_fields().cs.escape_point(xy_m, extra_m)  # type: ignore[union-attr]
+        return point
 
     def _inside(self, xy: NDArray[np.float64]) -> bool:
         if not bool(self.cspace.spec.contains_xy(xy.reshape(1, 2))[0]):
@@ -159,7 +215,38 @@ class Planner:
         config) moves a goal outside the map, blocked or unreachable to the nearest reachable
         free point. ``refine`` (default: config) enables the OMPL stage. Never raises for
         "no path": the result's status and reason say why.
+
+        With ``prefer_known_space`` the path keeps off unknown cells when it can; only when
+        that fails for another reason than a start or goal outside the map is it planned
+        through them, for what is left of the budget.
         """
+        t0 = time.perf_counter()
+        budget = self.config.time_limit_s if time_limit_s is None else float(time_limit_s)
+        self._active = self._known
+        known = self._plan(start_xy_m, goal_xy_m, budget, snap_goal, refine)
+        if known.ok or not self._fallback or known.status in _OUTSIDE:
+            return known
+        self._active = self._unknown_fields()
+        try:
+            res = self._plan(start_xy_m, goal_xy_m, max(0.0, budget - (time.perf_counter() - t0)),
+                             snap_goal, refine)
+        finally:
+            self._active = self._known
+        if not res.ok:
+            return res
+        log.info("no path through mapped free space (%s); planned through unknown cells", known.reason)
+        return dataclasses.replace(res, planning_time_s=time.perf_counter() - t0, through_unknown=True,
+                                   source=res.source + "+unknown")
+
+    def _plan(
+        self,
+        start_xy_m: Sequence[float] | NDArray[np.floating],
+        goal_xy_m: Sequence[float] | NDArray[np.floating],
+        time_limit_s: float | None,
+        snap_goal: bool | None,
+        refine: bool | None,
+    ) -> PlanResult:
+        """:meth:`plan` in the active fields."""
         t0 = time.perf_counter()
         budget, snap, use_ompl = self._request_options(time_limit_s, snap_goal, refine)
         start = _xy(start_xy_m, "start")
@@ -292,8 +379,8 @@ class Planner:
         new_goal = self._snap(start, goal)
         if new_goal is None or float(np.linalg.norm(new_goal - goal)) <= 1e-9:
             return None
-        res = self.plan(start, new_goal, max(0.0, budget - (time.perf_counter() - t0)),
-                        snap_goal=False, refine=refine)
+        res = self._plan(start, new_goal, max(0.0, budget - (time.perf_counter() - t0)),
+                         snap_goal=False, refine=refine)
         if not res.ok:
             return res
         return dataclasses.replace(

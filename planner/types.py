@@ -41,6 +41,7 @@ class PlanResult:
     ``goal_xy_m`` is the goal actually planned to (differs from ``requested_goal_xy_m`` when
     snapped).
     ``source`` names the stage that produced the final path (``grid``, ``ompl:<planner>``).
+    ``through_unknown``: the path may cross unknown cells (no path kept off them).
     """
 
     status: PlanStatus
@@ -56,6 +57,7 @@ class PlanResult:
     map_version: int = 0
     requested_goal_xy_m: tuple[float, float] | None = None
     stats: dict[str, float] = field(default_factory=dict)
+    through_unknown: bool = False
 
     @property
     def ok(self) -> bool:

@@ -197,10 +197,10 @@ def test_windowed_graph_update_equals_fresh_graph() -> None:
     pl = make(0.5, refine_with_ompl=False)
     pl.set_map(base_map(pl))
     assert pl.plan((1.0, 1.4), (5.0, 1.6)).ok  # builds the full-resolution graph too
-    assert set(pl._graphs) == {1, 2}
+    assert set(pl._known.graphs) == {1, 2}
     chair = ObjectFootprint(3, "chair", rect(2.8, 1.2, 3.3, 1.8), 0.0, 0.9)
     pl.set_base_map(base_map(pl), [chair])
-    for factor, graph in pl._graphs.items():
+    for factor, graph in pl._known.graphs.items():
         fresh = GridGraph(pl.cspace, pl.config.cost_weight, factor)
         np.testing.assert_array_equal(graph.node_free, fresh.node_free)
         np.testing.assert_allclose(graph._weights, fresh._weights)
