@@ -68,7 +68,7 @@ class _Fields:
         if self.cs is None or self.cs.spec != costmap.spec or self.cs.band != costmap.band:
             self.cs = build_cspace(costmap, self.params, version)
             self.graphs = {}
-            return Bounds(0, 0, costmap.spec.rows, costmap.spec.cols)
+            return costmap.spec.bounds
         self.cs, window = update_cspace(self.cs, costmap, version)
         for g in self.graphs.values():
             g.update(self.cs, window)

@@ -275,7 +275,7 @@ def _crop_window(smap: SemanticMap, crop_margin_m: float) -> Bounds:
         window = Bounds(int(rows_any.min()), int(cols_any.min()), int(rows_any.max()) + 1, int(cols_any.max()) + 1)
         window = window.grown(int(math.ceil(crop_margin_m / spec.resolution_m)))
     else:
-        window = Bounds(0, 0, spec.rows, spec.cols)
+        window = spec.bounds
     keep = [np.asarray(fp.polygon_xy_m).reshape(-1, 2) for fp in smap.objects]
     if len(smap.path_xyz_m):
         keep.append(smap.path_xyz_m[:, :2])

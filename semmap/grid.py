@@ -40,6 +40,11 @@ class GridSpec:
         return self.shape_rc[1]
 
     @property
+    def bounds(self) -> "Bounds":
+        """The whole grid as a window."""
+        return Bounds(0, 0, self.rows, self.cols)
+
+    @property
     def extent_xy_m(self) -> tuple[float, float, float, float]:
         """(x_min, y_min, x_max, y_max) in metres."""
         ox, oy = self.origin_xy_m

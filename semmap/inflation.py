@@ -128,7 +128,7 @@ def reinflate(layer: InflatedCostmap, costmap: Costmap) -> tuple[InflatedCostmap
     """
     if (costmap.spec != layer.spec or costmap.band != layer.band
             or costmap.clearance_decay_m != layer.clearance_decay_m):
-        return inflate(costmap, layer.params), Bounds(0, 0, layer.spec.rows, layer.spec.cols)
+        return inflate(costmap, layer.params), layer.spec.bounds
     params = layer.params
     blocked = blocked_cells(costmap, params)
     changed = changed_window(blocked, layer.blocked).union(changed_window(costmap.cost, layer.source_cost))

@@ -268,7 +268,7 @@ class ClassProbabilityLayer(_ObjectLayer):
 
     def probabilities(self, spec: GridSpec, window: Bounds | None = None) -> NDArray[np.uint8]:
         """(K + 1, window rows, window cols) uint8, 0..255 for 0..1 (see the class docstring)."""
-        w = window or Bounds(0, 0, spec.rows, spec.cols)
+        w = window or spec.bounds
         k = len(self.class_names)
         planes = np.zeros((k + 1, w.r1 - w.r0, w.c1 - w.c0), np.uint8)
         if self.grid is not None:
@@ -309,7 +309,7 @@ class HeightLayer(_ObjectLayer):
 
     def heights_m(self, spec: GridSpec, window: Bounds | None = None) -> NDArray[np.float32]:
         """(window rows, cols) float32 metres; NaN where no object."""
-        w = window or Bounds(0, 0, spec.rows, spec.cols)
+        w = window or spec.bounds
         out = np.full((w.r1 - w.r0, w.c1 - w.c0), np.nan, np.float32)
         for r in self.rasters.overlapping(w):
             views = r.views(w)
@@ -422,7 +422,7 @@ class LayeredCostmap:
         spec = self.spec
         c = self._cached
         if c is None or c[0] != spec or c[1] != band:
-            window = Bounds(0, 0, spec.rows, spec.cols)
+            window = spec.bounds
             cost = np.empty(spec.shape_rc, np.uint8)
             cls = np.empty(spec.shape_rc, np.int16)
         else:
@@ -470,7 +470,7 @@ def paint_objects(
     rasters.set_spec(spec)
     # Ids are the caller's business (files and tests reuse them); the rasters need them unique.
     rasters.update([dataclasses.replace(fp, object_id=i) for i, fp in enumerate(objects)])
-    window = Bounds(0, 0, spec.rows, spec.cols)
+    window = spec.bounds
     layers = (ObjectFootprintLayer(rasters, existence_confirm), SafetyMarginLayer(rasters, existence_confirm))
     cost = combine_maximum([base.cost, *(layer.costs(spec, band, window) for layer in layers)])
     return Costmap(

@@ -106,7 +106,7 @@ class ObjectRasters:
         for r in old:
             self.rasters[r.footprint.object_id] = self._draw(r.footprint, r.class_probs)
             self._geometry[r.footprint.object_id] = _geometry_key(r.footprint)
-        return Bounds(0, 0, spec.rows, spec.cols)
+        return spec.bounds
 
     def update(
         self, objects: Sequence[ObjectFootprint],

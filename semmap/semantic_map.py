@@ -317,7 +317,7 @@ class SemanticMap:
         layers.sync_spec()
         spec = layers.spec
         band = band or self.settings.scan_band
-        cost = layers.occupancy.costs(spec, band, Bounds(0, 0, spec.rows, spec.cols))
+        cost = layers.occupancy.costs(spec, band, spec.bounds)
         stamp = layers.occupancy.stamp_s
         return Costmap(spec, np.ascontiguousarray(cost), band, stamp_s=stamp if np.isfinite(stamp) else 0.0,
                        clearance_decay_m=self.settings.clearance_decay_m)

@@ -18,7 +18,7 @@ from semmap.costmap import (
     VerticalBand,
 )
 from semmap.errors import ConfigError
-from semmap.grid import Bounds, GridSpec
+from semmap.grid import GridSpec
 from semmap.inflation import InflationParams
 from semmap.layers import cost_decay, paint_objects
 
@@ -229,7 +229,7 @@ def test_a_new_decay_rebuilds_the_whole_space() -> None:
     slower = paint_objects(Costmap(SPEC, cm.cost * 0, band, clearance_decay_m=0.4), [desk()], band)
     cs1, window = update_cspace(cs0, slower, version=1)
     full = build_cspace(slower, InflationParams(vehicle_radius_m=0.25), version=1)
-    assert window == Bounds(0, 0, SPEC.rows, SPEC.cols)
+    assert window == SPEC.bounds
     np.testing.assert_allclose(cs1.cost, full.cost)
 
 
