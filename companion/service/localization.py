@@ -13,8 +13,9 @@ wrong cells. With ``service.localization: slam`` every frame passes through
   integrated), not the autopilot's position estimate: that estimate fuses the poses this
   stage sends it, so its increments would hand the SLAM's own corrections back to it as
   motion (see :meth:`Localizer.odometry_prior`);
-* the frame leaves with ``T_map_camera`` built from the SLAM's x, y, yaw and the autopilot's
-  height, roll and pitch: the map frame is the autopilot's frame at the first scan.
+* the frame leaves with ``T_map_camera`` built from the SLAM's x, y, yaw, the autopilot's
+  roll and pitch, and its height corrected by the floor the depth shows: the map frame is the
+  autopilot's frame at the first scan.
 
 Degenerate scans (a corridor, a blank wall) fall back to odometry for the direction they do
 not constrain or entirely (``SlamStatus``); that is counted and reported, not silent, and
@@ -45,6 +46,7 @@ from companion.service.perception_worker import semantic_map_settings
 from companion.shared_record import SharedRecord
 from companion.sources.base import FrameSource, WrappedSource
 from semmap.costmap import VerticalBand
+from semmap.floor import view_floor_height_m
 from semmap.frames import invert, pose_from_xyz_rpy, rpy_from_rotation
 from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth
 from semmap.slam.pose2d import compose, from_matrix4, inverse, relative
@@ -205,6 +207,9 @@ class Localizer:
         self.jumps = JumpCounter(cfg.link.vision_reset_jump_m, math.radians(cfg.link.vision_reset_jump_deg))
         #: The motion prior at the last fully matched scan (None before the first).
         self._prior_at_match: NDArray[np.float64] | None = None
+        #: Where the depth's floor lies in the frame the autopilot's height makes (metres): that
+        #: height's error, kept from the last view that showed the floor.
+        self.floor_offset_m = 0.0
 
     def since_match_m(self, prior: NDArray[np.float64], status: SlamStatus) -> float:
         """Metres the motion ``prior`` moved since the last fully matched scan: how far the
@@ -213,6 +218,19 @@ class Localizer:
             self._prior_at_match = np.asarray(prior, dtype=np.float64).copy()
             return 0.0
         return float(math.hypot(prior[0] - self._prior_at_match[0], prior[1] - self._prior_at_match[1]))
+
+    def height_above_floor_m(self, depth: NDArray[np.floating], roll: float, pitch: float, z: float) -> float:
+        """The body's height above the floor: the autopilot's ``z`` corrected by where the depth
+        shows the floor. The band the SLAM scans is a slice of the room by height, so an
+        estimate 0.1 m off (PX4's EKF2 on baro and range finder, in SITL) moves table tops and
+        chair seats in and out of it from scan to scan, and the matcher follows them."""
+        T_level_camera = pose_from_xyz_rpy(0.0, 0.0, z, roll, pitch, 0.0) @ self.T_body_camera
+        floor_m = view_floor_height_m(depth, self.intrinsics, T_level_camera,
+                                      (self.cfg.camera.depth_min_m, self.cfg.camera.depth_max_m),
+                                      prior_height_m=self.floor_offset_m)
+        if floor_m is not None:
+            self.floor_offset_m = floor_m
+        return z - self.floor_offset_m
 
     def close(self) -> None:
         """Stop the background loop closer."""
@@ -264,8 +282,9 @@ class Localizer:
         t0 = time.perf_counter()
         T_odom_body = np.asarray(frame.T_map_camera, dtype=np.float64) @ self.T_camera_body
         roll, pitch, yaw = rpy_from_rotation(T_odom_body[:3, :3])
-        x, y, z = (float(v) for v in T_odom_body[:3, 3])
+        x, y, z_autopilot = (float(v) for v in T_odom_body[:3, 3])
         depth = np.asarray(frame.depth_m)
+        z = self.height_above_floor_m(depth, roll, pitch, z_autopilot)
         scan = level_scan_from_depth(depth, self.intrinsics, self.T_body_camera, roll, pitch, z, self.band,
                                      min_depth_m=self.cfg.camera.depth_min_m,
                                      max_depth_m=self.cfg.camera.depth_max_m,
