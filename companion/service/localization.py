@@ -54,6 +54,11 @@ from semmap.types import CameraIntrinsics, Frame
 
 log = logging.getLogger(__name__)
 
+#: Time constant of the height correction (seconds): PX4's height error drifts over seconds,
+#: while each view's floor is a few millimetres off on its own, and a band that jitters from
+#: scan to scan gives the matcher inconsistent slices.
+FLOOR_OFFSET_TAU_S = 0.5
+
 #: Status codes in the shared array.
 _STATUS_CODES = {None: 0.0, SlamStatus.OK: 1.0, SlamStatus.PARTIAL_ODOMETRY: 2.0,
                  SlamStatus.DEGENERATE_FALLBACK_ODOMETRY: 3.0, SlamStatus.ODOMETRY: 4.0}
@@ -208,8 +213,9 @@ class Localizer:
         #: The motion prior at the last fully matched scan (None before the first).
         self._prior_at_match: NDArray[np.float64] | None = None
         #: Where the depth's floor lies in the frame the autopilot's height makes (metres): that
-        #: height's error, kept from the last view that showed the floor.
+        #: height's error, followed over the views that show the floor (``FLOOR_OFFSET_TAU_S``).
         self.floor_offset_m = 0.0
+        self._floor_stamp_s: float | None = None
 
     def since_match_m(self, prior: NDArray[np.float64], status: SlamStatus) -> float:
         """Metres the motion ``prior`` moved since the last fully matched scan: how far the
@@ -219,17 +225,24 @@ class Localizer:
             return 0.0
         return float(math.hypot(prior[0] - self._prior_at_match[0], prior[1] - self._prior_at_match[1]))
 
-    def height_above_floor_m(self, depth: NDArray[np.floating], roll: float, pitch: float, z: float) -> float:
+    def height_above_floor_m(self, depth: NDArray[np.floating], roll: float, pitch: float, z: float,
+                             stamp_s: float) -> float:
         """The body's height above the floor: the autopilot's ``z`` corrected by where the depth
-        shows the floor. The band the SLAM scans is a slice of the room by height, so an
-        estimate 0.1 m off (PX4's EKF2 on baro and range finder, in SITL) moves table tops and
-        chair seats in and out of it from scan to scan, and the matcher follows them."""
+        shows the floor. The SLAM's scan and the map's grid are slices of the room by height,
+        and perception measures objects only in views whose floor lies near where the pose puts
+        it; PX4's EKF2 on range finder and baro (SITL) held its height 0.1-0.15 m low in cruise
+        and up to 0.28 m during take-off."""
         T_level_camera = pose_from_xyz_rpy(0.0, 0.0, z, roll, pitch, 0.0) @ self.T_body_camera
         floor_m = view_floor_height_m(depth, self.intrinsics, T_level_camera,
                                       (self.cfg.camera.depth_min_m, self.cfg.camera.depth_max_m),
                                       prior_height_m=self.floor_offset_m)
         if floor_m is not None:
-            self.floor_offset_m = floor_m
+            if self._floor_stamp_s is None:
+                self.floor_offset_m = floor_m
+            else:
+                gain = 1.0 - math.exp(-max(0.0, stamp_s - self._floor_stamp_s) / FLOOR_OFFSET_TAU_S)
+                self.floor_offset_m += gain * (floor_m - self.floor_offset_m)
+            self._floor_stamp_s = stamp_s
         return z - self.floor_offset_m
 
     def close(self) -> None:
@@ -284,7 +297,7 @@ class Localizer:
         roll, pitch, yaw = rpy_from_rotation(T_odom_body[:3, :3])
         x, y, z_autopilot = (float(v) for v in T_odom_body[:3, 3])
         depth = np.asarray(frame.depth_m)
-        z = self.height_above_floor_m(depth, roll, pitch, z_autopilot)
+        z = self.height_above_floor_m(depth, roll, pitch, z_autopilot, frame.stamp_s)
         scan = level_scan_from_depth(depth, self.intrinsics, self.T_body_camera, roll, pitch, z, self.band,
                                      min_depth_m=self.cfg.camera.depth_min_m,
                                      max_depth_m=self.cfg.camera.depth_max_m,

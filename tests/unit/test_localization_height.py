@@ -44,9 +44,9 @@ def _frames(cfg: CompanionConfig, height_error_m: float) -> list[tuple[Frame, fl
 
 
 @pytest.mark.parametrize("height_error_m", [-0.12, 0.0, 0.15])
-def test_px4_gps_denied_seed2_ekf_height_error_does_not_move_the_scanned_band(height_error_m: float) -> None:
-    # PX4 SITL's EKF2 (range finder and baro) held the height 0.09-0.15 m low in cruise; the
-    # SLAM scanned the band at the wrong heights and its error p95 doubled (0.06 -> 0.12 m).
+def test_px4_gps_denied_ekf_height_error_is_corrected_by_the_floor(height_error_m: float) -> None:
+    # PX4 SITL's EKF2 (range finder and baro) held the height 0.1-0.15 m low in cruise: the
+    # scanned band and the map's heights were off by as much.
     cfg = _config()
     loc = Localizer(cfg, cfg.camera.intrinsics())
     try:
