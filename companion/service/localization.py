@@ -230,8 +230,8 @@ class Localizer:
         """The body's height above the floor: the autopilot's ``z`` corrected by where the depth
         shows the floor. The SLAM's scan and the map's grid are slices of the room by height,
         and perception measures objects only in views whose floor lies near where the pose puts
-        it; PX4's EKF2 on range finder and baro (SITL) held its height 0.1-0.15 m low in cruise
-        and up to 0.28 m during take-off."""
+        it, while an autopilot's height on range finder and baro is decimetres off (see
+        docs/mavlink.md)."""
         T_level_camera = pose_from_xyz_rpy(0.0, 0.0, z, roll, pitch, 0.0) @ self.T_body_camera
         floor_m = view_floor_height_m(depth, self.intrinsics, T_level_camera,
                                       (self.cfg.camera.depth_min_m, self.cfg.camera.depth_max_m),
@@ -260,9 +260,8 @@ class Localizer:
         estimate's increment between two frames holds, beside the motion, the part of the
         SLAM's latest correction PX4 took in, and the SLAM would apply that correction
         twice. While the scans constrain the pose weakly (turning on the spot, few hits) the
-        two then chase each other off the truth. Measured on the SLAM integration test's
-        flight (tests/integration/test_service_slam.py): live error p95 0.13-0.27 m over 11
-        runs with the estimate's increments, 0.065-0.098 m over 8 with the odometry's.
+        two then chase each other off the truth (tests/integration/test_service_slam.py
+        flies it).
 
         The odometry frame is anchored to the map frame by the fixed offset that puts its
         first pose on the estimate (the map frame is the autopilot's frame at the first scan).

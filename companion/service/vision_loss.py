@@ -54,9 +54,8 @@ NOAID_PARAM = "EKF2_NOAID_TOUT"
 LAND_SPEED_PARAM = "MPC_LAND_SPEED"
 #: Seconds kept between the touchdown and the end of PX4's estimate: the guard's period, the
 #: LAND command's way through the service and PX4's Land reaching its descent speed, and the
-#: height estimate's error (PX4 SITL at load 15: 0.45 s beyond height / MPC_LAND_SPEED from
-#: the command to the touchdown). The time without vision counts from the last pose's
-#: capture, as PX4's timeout does.
+#: height estimate's error (docs/mavlink.md gives what PX4 SITL took under load). The time
+#: without vision counts from the last pose's capture, as PX4's timeout does.
 LAND_MARGIN_S = 1.0
 #: How often the guard asks again for parameters PX4 has not answered (seconds).
 PARAM_RETRY_S = 2.0
