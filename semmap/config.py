@@ -92,7 +92,7 @@ class ClassConfig(StageConfig):
     #: Extra clearance the planner keeps from objects of this class, metres.
     margin_m: float = Field(ge=0.0, le=5.0)
     color_rgb: tuple[int, int, int]
-    #: Existence log-odds subtracted each frame the object should be visible but is not.
+    #: Existence log-odds taken per 0.5 s in which the object should be visible but is not.
     miss_decay: float = Field(default=0.4, ge=0.0, le=5.0)
     #: The least footprint (length, width) metres an object of this class has: the planner's
     #: view of a partly seen one (a table top seen edge-on from a low flight, a chair from

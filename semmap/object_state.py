@@ -166,6 +166,8 @@ class ObjectState:
     shape_tier: int = -1
     #: Seen at least once within ``footprint_max_range_m``: far views alone do not confirm.
     seen_near: bool = False
+    #: When the last miss counted (a frame that should have shown it and did not).
+    last_miss_s: float = -math.inf
     z_max_hist: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
     z_min_hist: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
     top_hist: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
