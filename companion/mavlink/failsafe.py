@@ -108,6 +108,8 @@ class OffboardFailsafe:
         #: Set when a hold was started because the autopilot's position estimate jumped;
         #: cleared likewise.
         self.position_reset = False
+        #: A jump not yet taken by :meth:`take_position_reset`.
+        self._reset_untaken = False
         self._off_track_since_s: float | None = None
         self._last_report: tuple[float, tuple[float, float, float]] | None = None
         self.state = OffboardState.IDLE
@@ -152,6 +154,12 @@ class OffboardFailsafe:
         if self.state is OffboardState.WARMUP:
             self._go(OffboardState.ACTIVE, now_s, "autopilot in OFFBOARD")
 
+    def take_position_reset(self) -> bool:
+        """True once for each jump of the position estimate: the caller re-plans from where the
+        vehicle now is, and the plan it starts while the hold lasts does not re-plan again."""
+        taken, self._reset_untaken = self._reset_untaken, False
+        return taken
+
     def release(self, now_s: float, reason: str) -> None:
         """Stop commanding on purpose (we handed the vehicle to another mode)."""
         self._hold = None
@@ -190,6 +198,7 @@ class OffboardFailsafe:
         if jump_m is not None and jump_m > POSITION_JUMP_M and st in (OffboardState.ACTIVE, OffboardState.HOLDING):
             self._latch_hold(now_s, vehicle)
             self.position_reset = True
+            self._reset_untaken = True
             self._off_track_since_s = None
             self._go(OffboardState.HOLDING, now_s, f"position estimate jumped {jump_m:.2f} m: holding where "
                      "the vehicle now is", level=logging.WARNING)

@@ -108,7 +108,7 @@ class LegFollow:
             self.t_traj = min(self.t_traj + now - self.last, self.t_cap)
         elif st is OffboardState.HOLDING and ctl.failsafe.tracking_fault:
             return "tracking"
-        elif st is OffboardState.HOLDING and ctl.failsafe.position_reset:
+        elif st is OffboardState.HOLDING and ctl.failsafe.take_position_reset():
             # The rest of this trajectory was planned in the estimate before the jump.
             pos = position_enu(self.runner.vehicle.snapshot())
             if pos is not None:
