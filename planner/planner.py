@@ -171,7 +171,8 @@ class Planner:
         return max(1, int(round(self.config.search_cell_m / self.cspace.spec.resolution_m)))
 
     def _graph(self, factor: int) -> GridGraph:
-        self.cspace  # noqa: B018 - raises before any map
+        if self._active.cs is None:
+            raise PlanningError("no map yet: call set_map() before planning")
         return self._active.graph(factor)
 
     # --- checks ---------------------------------------------------------------------
