@@ -33,7 +33,7 @@ from planner.cspace import CSpace, build_cspace, update_cspace
 from planner.gridsearch import GridGraph, refine_vertices, shortcut
 from planner.ompl_backend import ompl_solve
 from planner.types import PlanResult, PlanStatus, path_length_m
-from semmap.costmap import Costmap, ObjectFootprint, VerticalBand
+from semmap.costmap import NO_INFORMATION, Costmap, ObjectFootprint, VerticalBand
 from semmap.errors import PlanningError
 from semmap.grid import Bounds
 from semmap.inflation import InflationParams
@@ -109,6 +109,8 @@ class Planner:
         #: The fields the current request works on.
         self._active = self._known
         self._costmap: Costmap | None = None
+        #: The current map holds unknown cells (without any, the fallback could change nothing).
+        self._has_unknown = False
         self._version = 0
         #: Seconds spent preparing the fields of the last map version.
         self.last_prepare_s = 0.0
@@ -148,6 +150,7 @@ class Planner:
         t0 = time.perf_counter()
         self._version = self._version + 1 if version is None else int(version)
         self._costmap = costmap
+        self._has_unknown = bool(np.any(costmap.cost == NO_INFORMATION))
         window = self._known.update(costmap, self._version)
         if self._any is not None:
             other = self._any.update(costmap, self._version)
@@ -225,7 +228,7 @@ class Planner:
         budget = self.config.time_limit_s if time_limit_s is None else float(time_limit_s)
         self._active = self._known
         known = self._plan(start_xy_m, goal_xy_m, budget, snap_goal, refine)
-        if known.ok or not self._fallback or known.status in _OUTSIDE:
+        if known.ok or not self._fallback or not self._has_unknown or known.status in _OUTSIDE:
             return known
         self._active = self._unknown_fields()
         try:

@@ -315,9 +315,14 @@ class MissionRunner(TakeoffSteps):
         """Is the rest of ``traj`` from the trajectory time ``t_now()`` free on the newest
         costmap? If not, also the trajectory time from which to re-plan without stopping: the
         stretch up to it must be free (None when even a short one is not)."""
+        t0 = time.monotonic()
         if await self._path_free(_remaining(traj, t_now())):
             return True, None
+        # The re-plan must be back before the vehicle reaches its start: judged by the last
+        # plan and by this check's own round trip, which shows how fast the planning process
+        # answers now (a loaded CPU can take it from tens of ms to a second).
         plan_s = self.last_plan_ms / 1e3 if self.last_plan_ms is not None else 0.5
+        plan_s = max(plan_s, time.monotonic() - t0)
         lookahead = min(MAX_REPLAN_LOOKAHEAD_S, max(MIN_REPLAN_LOOKAHEAD_S, 1.5 * plan_s + 0.3))
         for ahead in (lookahead, 0.5 * lookahead):
             # Ahead of where the vehicle is by now: the first answer can take longer than the
