@@ -50,6 +50,7 @@ from semmap.floor import view_floor_height_m
 from semmap.frames import invert, pose_from_xyz_rpy, rpy_from_rotation
 from semmap.slam import Slam2D, SlamStatus, level_scan_from_depth
 from semmap.slam.pose2d import compose, from_matrix4, inverse, relative
+from semmap.slam.scan2d import T_level_camera
 from semmap.types import CameraIntrinsics, Frame
 
 log = logging.getLogger(__name__)
@@ -232,8 +233,7 @@ class Localizer:
         and perception measures objects only in views whose floor lies near where the pose puts
         it, while an autopilot's height on range finder and baro is decimetres off (see
         docs/mavlink.md)."""
-        T_level_camera = pose_from_xyz_rpy(0.0, 0.0, z, roll, pitch, 0.0) @ self.T_body_camera
-        floor_m = view_floor_height_m(depth, self.intrinsics, T_level_camera,
+        floor_m = view_floor_height_m(depth, self.intrinsics, T_level_camera(self.T_body_camera, roll, pitch, z),
                                       (self.cfg.camera.depth_min_m, self.cfg.camera.depth_max_m),
                                       prior_height_m=self.floor_offset_m)
         if floor_m is not None:
