@@ -161,7 +161,7 @@ def report(rooms: dict[str, dict[str, Any]], out: Path, elapsed_s: float,
           f"{'ev_Hz':>6} {'new_Hz':>6}  vision loss")
     cases: dict[str, Any] = {}
     loss_flights = loss_flights or {}
-    flights = [(seed, s) for seed, s in rooms.items()] + [(f"loss-{seed}", s) for seed, s in loss_flights.items()]
+    flights = list(rooms.items()) + [(f"loss-{seed}", s) for seed, s in loss_flights.items()]
     for seed, s in flights:
         def f(v: Any) -> str:
             return "-" if v is None else f"{v}"
@@ -207,12 +207,11 @@ def report(rooms: dict[str, dict[str, Any]], out: Path, elapsed_s: float,
             for line in s.get("px4_log_events", [])[-15:]:
                 print(f"  {line}")
 
-    def vals(key: str) -> list[float]:
-        return [float(s[key]) for s in rooms.values() if s.get(key) is not None]
+    def vals(key: str, of: dict[str, dict[str, Any]] = rooms) -> list[float]:
+        return [float(s[key]) for s in of.values() if s.get(key) is not None]
 
     ekf, slam, ev = vals("ekf_vs_truth_error_m_p95"), vals("slam_vs_truth_error_m_p95"), vals("ev_rate_hz_at_px4")
-    with_loss = [float(s["ekf_vs_truth_error_m_p95_with_slam_loss"]) for s in loss_flights.values()
-                 if s.get("ekf_vs_truth_error_m_p95_with_slam_loss") is not None]
+    with_loss = vals("ekf_vs_truth_error_m_p95_with_slam_loss", loss_flights)
     figures = {
         "rooms": len(rooms),
         "waypoints_reached": sum(s["waypoints_reached"] for s in rooms.values()),
