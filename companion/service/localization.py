@@ -68,7 +68,7 @@ _STATUS_NAMES = {int(v): (k.value if k is not None else "none") for k, v in _STA
 _FIELDS = ("seq", "stamp_s", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad", "status",
            "scans", "ok", "partial", "fallbacks", "consecutive_fallbacks", "loop_closures",
            "generation", "loop_searches_dropped", "localize_ms", "resets", "published_monotonic_s",
-           "since_match_m", "prior_odometry")
+           "since_match_m", "prior_odometry", "odometry_scale_error", "odometry_heading_drift_rad_s")
 _IX = {name: i for i, name in enumerate(_FIELDS)}
 
 
@@ -99,6 +99,9 @@ class LocalizationState:
     since_match_m: float = 0.0
     #: True when the motion prior is the frames' own odometry, not the autopilot's estimate.
     prior_is_odometry: bool = False
+    #: The motion prior's errors as the SLAM measures and removes them (see :class:`semmap.slam.SlamStats`).
+    odometry_scale_error: float = 0.0
+    odometry_heading_drift_rad_s: float = 0.0
 
     @property
     def matched(self) -> bool:
@@ -110,7 +113,9 @@ class LocalizationState:
         return {"status": self.status, "scans": self.scans, "ok": self.ok, "partial": self.partial,
                 "fallbacks": self.fallbacks, "consecutive_fallbacks": self.consecutive_fallbacks,
                 "loop_closures": self.loop_closures, "generation": self.generation, "resets": self.resets,
-                "localize_ms": round(self.localize_ms, 2)}
+                "localize_ms": round(self.localize_ms, 2),
+                "odometry_scale_error": round(self.odometry_scale_error, 4),
+                "odometry_heading_drift_deg_s": round(math.degrees(self.odometry_heading_drift_rad_s), 3)}
 
 
 class SharedLocalization:
@@ -147,7 +152,8 @@ class SharedLocalization:
             int(g(_IX["consecutive_fallbacks"])), int(g(_IX["loop_closures"])), int(g(_IX["generation"])),
             int(g(_IX["loop_searches_dropped"])), g(_IX["localize_ms"]),
             time.monotonic() - g(_IX["published_monotonic_s"]), int(g(_IX["resets"])),
-            g(_IX["since_match_m"]), g(_IX["prior_odometry"]) > 0.5)
+            g(_IX["since_match_m"]), g(_IX["prior_odometry"]) > 0.5, g(_IX["odometry_scale_error"]),
+            g(_IX["odometry_heading_drift_rad_s"]))
 
 
 #: The GIL switch interval of the process the SLAM runs in (seconds).
@@ -319,7 +325,9 @@ class Localizer:
                 "consecutive_fallbacks": stats.consecutive_fallbacks, "loop_closures": stats.loop_closures,
                 "generation": stats.generation, "loop_searches_dropped": stats.loop_searches_dropped,
                 "localize_ms": ms, "resets": resets, "since_match_m": since_match_m,
-                "prior_odometry": 1.0 if self.prior_source == "odometry" else 0.0})
+                "prior_odometry": 1.0 if self.prior_source == "odometry" else 0.0,
+                "odometry_scale_error": stats.odometry_scale_error,
+                "odometry_heading_drift_rad_s": stats.odometry_heading_drift_rad_s})
         return replace(frame, T_map_camera=T_map_body @ self.T_body_camera)
 
 

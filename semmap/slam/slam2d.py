@@ -72,7 +72,9 @@ class SlamStats:
     with one direction from odometry (``partial``) or entirely from odometry
     (``fallbacks``), the current run of consecutive fallbacks, the latest status and
     fallback reason, nodes, submaps, loop closures, loop-closure searches dropped
-    (worker behind) and the optimisation ``generation``."""
+    (worker behind), the optimisation ``generation`` and the odometry's errors as the
+    calibration measures them (:class:`semmap.slam.local.OdometryCalibration`): a scale
+    error far from the odometry's own says the matches under-read the motion."""
 
     scans: int
     ok: int
@@ -86,6 +88,8 @@ class SlamStats:
     loop_closures: int
     loop_searches_dropped: int
     generation: int
+    odometry_scale_error: float = 0.0
+    odometry_heading_drift_rad_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -193,7 +197,8 @@ class Slam2D:
         return SlamStats(self.n_scans, self.n_scans - self.n_partial - self.n_fallback, self.n_partial,
                          self.n_fallback, self._run_of_fallbacks, self._last_status, self._last_reason,
                          len(self.global_.nodes), len(self.local.submaps.all), self.loop_closures,
-                         self.global_.n_dropped, self.generation)
+                         self.global_.n_dropped, self.generation, self.local.calibration.scale_error,
+                         self.local.calibration.heading_drift_rad_s)
 
     # --- queries ---------------------------------------------------------------------
 

@@ -25,6 +25,17 @@ def _shared(status: SlamStatus) -> SharedLocalization:
     return shared
 
 
+def test_the_status_carries_the_odometry_errors_the_slam_removes() -> None:
+    shared = SharedLocalization()
+    shared.publish({"stamp_s": 1.0, "status": _STATUS_CODES[SlamStatus.OK], "odometry_scale_error": 0.031,
+                    "odometry_heading_drift_rad_s": math.radians(0.5)})
+    st = shared.latest()
+    assert st is not None
+    summary = st.summary()
+    assert summary["odometry_scale_error"] == pytest.approx(0.031)
+    assert summary["odometry_heading_drift_deg_s"] == pytest.approx(0.5)
+
+
 def test_a_fully_matched_pose_is_sent() -> None:
     pose = vision_pose(_shared(SlamStatus.OK))
     assert pose is not None

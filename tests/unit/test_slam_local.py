@@ -59,6 +59,17 @@ def test_slam_closes_the_loop_in_the_background_and_beats_drifting_odometry() ->
     assert _ate(final[:, 1:], truth) < 0.05
 
 
+def test_the_stats_report_the_odometry_errors_the_calibration_measured() -> None:
+    # An operator reads the prior's health from them: a scale error far from the odometry's
+    # own says the matches under-read the motion.
+    drift = OdometryDriftModel(scale_error=0.05, heading_drift_deg_s=1.0, seed=3)
+    with Slam2D(SlamConfig(), background=False) as slam:
+        _fly(slam, 120, drift, rate_hz=5.0)
+        stats = slam.stats()
+    assert stats.odometry_scale_error == pytest.approx(0.05, abs=0.015)
+    assert math.degrees(stats.odometry_heading_drift_rad_s) == pytest.approx(1.0, abs=0.3)
+
+
 def test_too_few_points_is_reported_not_diverged() -> None:
     with Slam2D(SlamConfig(), background=False) as slam:
         p = pose2(3.0, 2.0, 0.0)
