@@ -115,7 +115,8 @@ class GpsDeniedSitl(Px4Sitl):
 @dataclass(frozen=True)
 class TruthSample:
     """SIH's true state: PX4's time (s), our time (s, ``time.monotonic``), map-frame x/y/z (m,
-    z above the floor) and yaw (rad, ENU: from east, counter-clockwise)."""
+    z above the floor), yaw (rad, ENU: from east, counter-clockwise), roll and pitch (rad, FLU)
+    (what the camera was rendered with, so a flight can be replayed offline)."""
 
     px4_s: float
     local_s: float
@@ -123,6 +124,8 @@ class TruthSample:
     y_m: float
     z_m: float
     yaw_rad: float
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
 
 
 def truth_pose(msg: mavlink.MAVLink_message, origin: GeoOrigin) -> tuple[NDArray[np.float64], float]:
@@ -196,7 +199,8 @@ class SihTruth:
         elif self._estimate is not None and self._floor_down_m is not None:
             self.shared.set_pose(local_s, T, self._estimate_pose(T), self._odometry_pose(local_s, T, yaw))
         x, y, z = (float(v) for v in T[:3, 3])
-        self.samples.append(TruthSample(px4_s, local_s, x, y, z, yaw))
+        roll, pitch, _ = rpy_from_rotation(T[:3, :3])
+        self.samples.append(TruthSample(px4_s, local_s, x, y, z, yaw, roll, pitch))
 
     def follow_estimate(self, link: LinkLike, target_system: int = 1) -> Callable[[], None]:
         """Keep PX4's estimate (LOCAL_POSITION_NED, ATTITUDE) from ``link`` as the frames' pose."""

@@ -157,7 +157,8 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     origin = GeoOrigin(s.home_lat_deg, s.home_lon_deg, 0.0)
     wps_map = [placement.room_to_map_xy(w) for w in await asyncio.to_thread(crossing_waypoints_room, placement, cfg)]
     est = EstimateRecorder(cfg.link.target_system)
-    slam: list[tuple[float, ...]] = []  # our s, x, y, yaw (rad), generation, loop closures
+    # Our s, x, y, yaw (rad), generation, loop closures, odometry scale error, heading drift (rad/s).
+    slam: list[tuple[float, ...]] = []
     scans: list[tuple[float, float, int, float]] = []  # capture s, published s, status code, localize ms
     uorb_hz: list[float] = []
     new_pose_rate: list[float] = []
@@ -187,7 +188,8 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
                                   st.localize_ms))
                     if st.status == "ok":
                         slam.append((st.stamp_s, *(float(v) for v in from_matrix4(st.T_map_body)),
-                                     float(st.generation), float(st.loop_closures)))
+                                     float(st.generation), float(st.loop_closures), st.odometry_scale_error,
+                                     st.odometry_heading_drift_rad_s))
                 await asyncio.sleep(SLAM_PERIOD_S)
 
         async def sample_uorb() -> None:
@@ -293,9 +295,9 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
                                                         r"[Ff]ailsafe|[Oo]ffboard|vision|EV |reset")[-40:]
     (out / "px4.log").write_text(sitl.log_text(), encoding="utf-8")
     # The tracks the figures come from, for a look afterwards (our clock, map frames unaligned).
-    np.savez_compressed(out / "tracks.npz", truth=np.array([(t.local_s, t.x_m, t.y_m, t.z_m, t.yaw_rad)
-                                                            for t in truth.samples]).reshape(-1, 5),
-                        px4_estimate=np.array(est.rows).reshape(-1, 5), slam=np.array(slam).reshape(-1, 6),
+    np.savez_compressed(out / "tracks.npz", truth=np.array([(t.local_s, t.x_m, t.y_m, t.z_m, t.yaw_rad, t.roll_rad,
+                                                             t.pitch_rad) for t in truth.samples]).reshape(-1, 7),
+                        px4_estimate=np.array(est.rows).reshape(-1, 5), slam=np.array(slam).reshape(-1, 8),
                         scans=np.array(scans).reshape(-1, 4))
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
     return summary

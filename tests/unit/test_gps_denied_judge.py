@@ -1,11 +1,18 @@
-"""How the GPS-denied bench tells a stalled SLAM from an unmatched one
-(companion.sim.px4_gps_denied_flight.scan_gaps)."""
+"""The GPS-denied bench's records: how it tells a stalled SLAM from an unmatched one
+(companion.sim.px4_gps_denied_flight.scan_gaps) and the truth it keeps."""
 
 from __future__ import annotations
 
-import pytest
+import math
 
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+from scipy.spatial.transform import Rotation
+
+from companion.config import CompanionConfig
+from companion.sim.px4_gps_denied import SihTruth, placement_around_start
 from companion.sim.px4_gps_denied_flight import SCAN_STATUS_CODES, scan_gaps
+from companion.sim.sim_world import SharedSimState
 
 OK, PARTIAL = SCAN_STATUS_CODES["ok"], SCAN_STATUS_CODES["partial_odometry"]
 
@@ -29,3 +36,18 @@ def test_a_steady_stream_has_no_gaps() -> None:
     gaps = scan_gaps(_scans([(0.1 * k, OK) for k in range(50)]))
     assert (gaps["no_scan"], gaps["unmatched"]) == (0, 0)
     assert gaps["scan_rate_hz"] == pytest.approx(10.2, abs=0.3)
+
+
+def test_the_truth_keeps_the_attitude_the_camera_was_rendered_with() -> None:
+    # A flight is replayed offline from its tracks; without the true roll and pitch the replay
+    # can only guess the tilt from the accelerations.
+    roll, pitch, yaw = 0.1, -0.05, 0.3  # FRD body in NED
+    x, y, z, w = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat()
+    msg = mavlink.MAVLink_hil_state_quaternion_message(0, [w, x, y, z], 0, 0, 0, 473977420, 85455940, 488000,
+                                                       0, 0, 0, 0, 0, 0, 0, 0)
+    truth = SihTruth("udpin://127.0.0.1:0", placement_around_start(CompanionConfig()), SharedSimState())
+    truth.handle(msg)
+    s = truth.samples[-1]
+    # FRD -> FLU: roll keeps its sign, pitch and yaw flip (yaw also measured from east).
+    assert (s.roll_rad, s.pitch_rad) == (pytest.approx(roll, abs=1e-9), pytest.approx(-pitch, abs=1e-9))
+    assert s.yaw_rad == pytest.approx(math.pi / 2 - yaw, abs=1e-9)
