@@ -133,7 +133,9 @@ class OdometryCalibration:
     are measured over seconds of matched scans and taken out of the increments.
 
     The heading drift is the slope of (odometry yaw - matched yaw) over time (least squares
-    over the window: the matched yaw's per-scan noise averages out); the scale the
+    over the window: the matched yaw's per-scan noise averages out), with one offset per
+    stretch between turns faster than ``max_turn_rate_rad_s`` (:func:`_drift_between_turns`;
+    kept while those stretches span less than ``min_span_s``); the scale the
     least-squares ratio of the odometry's body-frame displacements to the matched ones over
     pairs of scans ``pair_s`` apart (long enough that the match noise does not shrink it).
     Only fully matched scans (status OK) are used. Estimates are clamped to
@@ -144,8 +146,9 @@ class OdometryCalibration:
 
     def __init__(self, window_s: float, min_span_s: float = 3.0, pair_s: float = 1.0,
                  max_drift_rad_s: float = math.radians(5.0), max_scale_error: float = 0.2,
-                 min_displacement_m: float = 0.1) -> None:
+                 min_displacement_m: float = 0.1, max_turn_rate_rad_s: float = math.radians(30.0)) -> None:
         self.window_s = float(window_s)
+        self.max_turn_rate_rad_s = float(max_turn_rate_rad_s)
         self.min_displacement_m = float(min_displacement_m)
         self.min_span_s = float(min_span_s)
         self.pair_s = float(pair_s)
@@ -180,10 +183,9 @@ class OdometryCalibration:
         t = np.array([x[0] for x in s])
         odo = np.array([x[1] for x in s])
         mat = np.array([x[2] for x in s])
-        diff = np.unwrap(odo[:, 2] - mat[:, 2])
-        tc = t - t.mean()
-        rate = float((tc @ (diff - diff.mean())) / max(float(tc @ tc), 1e-12))
-        self.heading_drift_rad_s = float(np.clip(rate, -self.max_drift_rad_s, self.max_drift_rad_s))
+        rate = _drift_between_turns(t, odo[:, 2], mat[:, 2], self.max_turn_rate_rad_s, self.min_span_s)
+        if rate is not None:
+            self.heading_drift_rad_s = float(np.clip(rate, -self.max_drift_rad_s, self.max_drift_rad_s))
         # Pairs (k, j(k)) about pair_s apart: body-frame displacement in each frame.
         j = np.searchsorted(t, t + self.pair_s)
         k = np.flatnonzero(j < len(t))
@@ -198,6 +200,36 @@ class OdometryCalibration:
             return
         ratio = float(np.sum(d_odo * d_mat)) / den
         self.scale_error = float(np.clip(ratio - 1.0, -self.max_scale_error, self.max_scale_error))
+
+
+def _drift_between_turns(t: NDArray[np.float64], odo_yaw: NDArray[np.float64], mat_yaw: NDArray[np.float64],
+                         max_turn_rate_rad_s: float, min_span_s: float) -> float | None:
+    """The slope of (odometry yaw - matched yaw) over ``t`` (rad/s), least squares with one
+    offset per stretch between turns faster than ``max_turn_rate_rad_s``; None when the
+    stretches span less than ``min_span_s`` together.
+
+    In a fast turn the narrow camera matches its heading worst and the gyro measures it best:
+    a turn's matching error is a step in the difference, and a single line through it takes
+    the step for drift, which is then fed into every prediction after it."""
+    odo_u = np.unwrap(odo_yaw)
+    turning = np.abs(np.diff(odo_u)) > max_turn_rate_rad_s * np.maximum(np.diff(t), 1e-6)
+    stretch = np.concatenate([[0], np.cumsum(turning)])
+    n = np.bincount(stretch).astype(np.float64)
+    span = float(np.sum(_stretch_spans(t, stretch)))
+    if span < min_span_s:
+        return None
+    diff = odo_u - np.unwrap(mat_yaw)
+    tc = t - (np.bincount(stretch, t) / n)[stretch]
+    dc = diff - (np.bincount(stretch, diff) / n)[stretch]
+    den = float(tc @ tc)
+    return float(tc @ dc) / den if den > 1e-12 else None
+
+
+def _stretch_spans(t: NDArray[np.float64], stretch: NDArray[np.int64]) -> NDArray[np.float64]:
+    """(S,) last minus first time of each stretch (``stretch`` is non-decreasing)."""
+    first = np.searchsorted(stretch, np.arange(stretch[-1] + 1), side="left")
+    last = np.searchsorted(stretch, np.arange(stretch[-1] + 1), side="right") - 1
+    return t[last] - t[first]
 
 
 def _body_displacements(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -146,6 +146,23 @@ def test_odometry_calibration_measures_heading_drift_and_scale() -> None:
     assert length_ratio(fixed) == pytest.approx(1.0, abs=0.01)
 
 
+def test_px4_gps_denied_seed1_a_turns_matching_error_is_not_taken_for_gyro_drift() -> None:
+    # The take-off survey turns once at 70 deg/s; the matched heading came out of it 1.2 deg
+    # off. One line through (odometry - matched) took that step for drift: the estimate fell
+    # from 0.5 to 0.3 deg/s and fed the difference into every prediction, doubling the error.
+    drift_rad_s = math.radians(0.5)
+    cal = OdometryCalibration(window_s=10.0)
+    rate_hz, turn_rad_s = 20.0, math.radians(70.0)
+    t_turn = (4.0, 4.0 + 2.0 * math.pi / turn_rad_s)
+    for i in range(int(10.0 * rate_hz)):
+        t = i / rate_hz
+        yaw = turn_rad_s * min(max(t - t_turn[0], 0.0), t_turn[1] - t_turn[0])
+        lag = math.radians(1.2) * (yaw / (2.0 * math.pi))  # the matcher's error builds up in the turn
+        odo = np.array([0.0, 0.0, yaw + drift_rad_s * t])
+        cal.add(t, odo, np.array([0.0, 0.0, yaw - lag]))
+    assert math.degrees(cal.heading_drift_rad_s) == pytest.approx(0.5, abs=0.05)
+
+
 def test_odometry_calibration_waits_for_enough_matches() -> None:
     cal = OdometryCalibration(window_s=10.0, min_span_s=3.0)
     for i in range(20):  # 1.9 s of matches whose odometry turns 10 deg/s faster
