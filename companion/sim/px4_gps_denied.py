@@ -124,8 +124,8 @@ class TruthSample:
     y_m: float
     z_m: float
     yaw_rad: float
-    roll_rad: float = 0.0
-    pitch_rad: float = 0.0
+    roll_rad: float
+    pitch_rad: float
 
 
 def truth_pose(msg: mavlink.MAVLink_message, origin: GeoOrigin) -> tuple[NDArray[np.float64], float]:

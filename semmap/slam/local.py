@@ -213,23 +213,17 @@ def _drift_between_turns(t: NDArray[np.float64], odo_yaw: NDArray[np.float64], m
     the step for drift, which is then fed into every prediction after it."""
     odo_u = np.unwrap(odo_yaw)
     turning = np.abs(np.diff(odo_u)) > max_turn_rate_rad_s * np.maximum(np.diff(t), 1e-6)
+    first = np.flatnonzero(np.concatenate([[True], turning]))  # each stretch's first sample
+    last = np.append(first[1:] - 1, len(t) - 1)
+    if float(np.sum(t[last] - t[first])) < min_span_s:
+        return None
     stretch = np.concatenate([[0], np.cumsum(turning)])
     n = np.bincount(stretch).astype(np.float64)
-    span = float(np.sum(_stretch_spans(t, stretch)))
-    if span < min_span_s:
-        return None
     diff = odo_u - np.unwrap(mat_yaw)
     tc = t - (np.bincount(stretch, t) / n)[stretch]
     dc = diff - (np.bincount(stretch, diff) / n)[stretch]
     den = float(tc @ tc)
     return float(tc @ dc) / den if den > 1e-12 else None
-
-
-def _stretch_spans(t: NDArray[np.float64], stretch: NDArray[np.int64]) -> NDArray[np.float64]:
-    """(S,) last minus first time of each stretch (``stretch`` is non-decreasing)."""
-    first = np.searchsorted(stretch, np.arange(stretch[-1] + 1), side="left")
-    last = np.searchsorted(stretch, np.arange(stretch[-1] + 1), side="right") - 1
-    return t[last] - t[first]
 
 
 def _body_displacements(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:

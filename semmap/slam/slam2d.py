@@ -88,8 +88,8 @@ class SlamStats:
     loop_closures: int
     loop_searches_dropped: int
     generation: int
-    odometry_scale_error: float = 0.0
-    odometry_heading_drift_rad_s: float = 0.0
+    odometry_scale_error: float
+    odometry_heading_drift_rad_s: float
 
 
 @dataclass(frozen=True)
