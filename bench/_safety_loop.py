@@ -22,7 +22,7 @@ The leg logic mirrors :class:`companion.service.mission_runner.MissionRunner`: t
 survey (a turn on the spot; the leg's time limit starts after it), plan from the setpoint
 being flown, follow the trajectory, re-plan when the remaining path crosses a newly mapped
 obstacle (checked on every new map, or every ``check_period_s``), back off when too
-close, hold and retry when no path exists, snap a blocked goal.
+close, hold and retry when no path exists, snap a blocked goal (and fly on to it once the map frees it).
 """
 
 from __future__ import annotations
@@ -383,17 +383,16 @@ class LockstepFlight:
         acceptance = DEFAULT_ACCEPTANCE_M
         goal_blocked = False
         replanning = False
-        target = self.goal
         while self.ap.now_s() < end:
             pos = self._pos()
-            if np.linalg.norm(pos[:2] - target) <= acceptance:
+            if np.linalg.norm(pos[:2] - self.goal) <= acceptance:
                 lg.reached = True
                 return
             start = self._plan_start(pos)
             self._note_frame_for_plan()
             result = self._plan(start, goal_blocked, replanning)
             replanning = False
-            goal_blocked = result.status is PlanStatus.GOAL_BLOCKED
+            goal_blocked = result.status is PlanStatus.GOAL_BLOCKED or result.snapped_goal
             if result.status is PlanStatus.START_BLOCKED and self.costmap is not None:
                 self._adopt_map()
                 esc = self.planner.escape_point(start)
@@ -412,10 +411,14 @@ class LockstepFlight:
             lg.planned_paths_map.append(result.path_xy_m.copy())
             traj = time_parametrize(result.path_xy_m, self.alt, self.limits,
                                     initial_yaw_rad=yaw_ned_to_enu(self.ap.vehicle.yaw_rad))
+            target = self.goal
             if result.snapped_goal and result.goal_xy_m is not None:
                 target = np.array(result.goal_xy_m)
+                if np.linalg.norm(target - pos[:2]) <= acceptance:
+                    lg.reached = True  # the nearest free point to the blocked goal
+                    return
             outcome = self._follow(traj, target, acceptance, end, check=True)
-            if outcome == "reached":
+            if outcome == "reached" and target is self.goal:
                 lg.reached = True
                 return
             if outcome == "invalid":

@@ -109,6 +109,6 @@ class LegReport:
     plan_ms: list[float] = field(default_factory=list)
     duration_s: float = 0.0
     final_error_m: float = math.nan
-    snapped_goal: bool = False  # the waypoint was blocked; the nearest free point was flown to
+    snapped_goal: bool = False  # the leg ended at the nearest free point to a blocked waypoint
     tracking_faults: int = 0  # holds because the vehicle did not follow its setpoints
 

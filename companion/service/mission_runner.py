@@ -175,14 +175,16 @@ class MissionRunner(TakeoffSteps):
                 await asyncio.sleep(RETRY_HOLD_S)
                 continue
             if arrived(snap, goal, leg.acceptance_m):
-                rep.reached = True
+                rep.reached, rep.snapped_goal = True, False
                 break
             start = self._plan_start(pos)
             # A waypoint that turned out to lie in (or too near) a mapped object is replaced
             # by the nearest point the vehicle fits (the planner's goal snapping).
             result, costmap = await self._plan(start, leg.goal_xy_m, snap_goal=goal_blocked, replan=replanning)
             replanning = False
-            goal_blocked = result.status is PlanStatus.GOAL_BLOCKED
+            # Once blocked, every plan asks for the nearest free point again: the planner
+            # returns the waypoint itself as soon as the map frees it.
+            goal_blocked = result.status is PlanStatus.GOAL_BLOCKED or result.snapped_goal
             rep.plans += 1
             rep.plan_ms.append(1e3 * result.planning_time_s)
             if result.status is PlanStatus.START_BLOCKED and await self._back_off(leg, start, costmap):
@@ -197,13 +199,21 @@ class MissionRunner(TakeoffSteps):
                                     initial_yaw_rad=self._yaw_enu())
             target = leg
             if result.snapped_goal and result.goal_xy_m is not None:
+                if np.linalg.norm(np.asarray(result.goal_xy_m) - pos[:2]) <= leg.acceptance_m:
+                    # No free point nearer the waypoint than where the vehicle already is.
+                    rep.reached = rep.snapped_goal = True
+                    goal = np.array(result.goal_xy_m)
+                    break
                 target = self._snapped_target(leg, result.goal_xy_m, rep)
-                goal = np.array(result.goal_xy_m)
             capture_s = self.capture_time(costmap) if self.capture_time is not None else None
             outcome = await self._follow(traj, target, capture_mono_s=capture_s, rep=rep)
-            if outcome == "reached":
-                rep.reached = True
+            if outcome == "reached" and target is leg:
+                rep.reached, rep.snapped_goal = True, False
                 break
+            if outcome == "reached":
+                # At the stand-in for a blocked waypoint, chosen on an older map: the next plan
+                # flies on to the waypoint if the map has freed it since, or ends the leg here.
+                continue
             if outcome == "tracking":
                 rep.tracking_faults += 1
                 if rep.tracking_faults >= MAX_TRACKING_FAULTS:

@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
@@ -94,3 +95,57 @@ def test_obstacle_ahead_is_avoided_without_stopping() -> None:
     between = [speed for x, speed in samples if x <= 6.0]
     assert len(between) > 10
     assert min(between) > 0.1, min(between)
+
+
+def test_a_waypoint_the_map_blocked_is_flown_to_once_the_map_frees_it() -> None:
+    # test_semantic_map_flies_around_the_chair_the_depth_slice_misses: a misplaced object
+    # blocked the goal, the leg flew to the nearest free point 1.6 m short, and it ended there
+    # although the next maps had freed the goal.
+    cfg = CompanionConfig()
+    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
+    band = flight_band(cfg)
+    free = Costmap(spec, np.zeros(spec.shape_rc, np.uint8), band, stamp_s=1.0)
+    cost = np.zeros(spec.shape_rc, np.uint8)
+    rc = spec.cell_of(np.array([[5.6, -1.0], [6.6, 1.0]]))
+    cost[rc[0, 0]:rc[1, 0] + 1, rc[0, 1]:rc[1, 1] + 1] = LETHAL_OBSTACLE
+    phantom = Costmap(spec, cost, band, stamp_s=2.0)
+    goal = (6.0, 0.0)
+    link_port = free_udp_port()
+    link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
+    altitude = cfg.planner.flight_altitude_m
+
+    async def main() -> tuple[object, NDArray[np.float64] | None]:
+        current = [phantom]
+        async with MockAutopilot(local_port=0, remote_ports=(link_port,),
+                                 params={"COM_DISARM_PRFLT": -1.0}) as _ap, Vehicle(link) as v:
+            planning = PlanningService(cfg.planner)
+            await asyncio.to_thread(planning.start)
+            try:
+                runner = MissionRunner(v, planning, lambda: current[0], cfg.planner)
+                await v.wait_connected(timeout_s=15.0)
+                await v.state.wait_for(lambda s: s.home is not None and s.position_ned_m is not None, 15.0,
+                                       "home and position")
+                await runner.take_off(altitude)
+
+                async def clear_when_close() -> None:
+                    while True:
+                        pos = position_enu(v.snapshot())
+                        if pos is not None and pos[0] > 4.0:
+                            current[0] = free  # closer views: the object was not there
+                            return
+                        await asyncio.sleep(0.05)
+
+                watcher = asyncio.create_task(clear_when_close())
+                try:
+                    report = await runner.fly_leg(Leg(0, goal, altitude))
+                finally:
+                    watcher.cancel()
+                end = position_enu(v.snapshot())
+                await runner.finish()
+            finally:
+                await asyncio.to_thread(planning.close)
+        return report, end
+
+    report, end = asyncio.run(main())
+    assert end is not None and np.linalg.norm(end[:2] - np.array(goal)) < 0.3, (end, report)
+    assert report.reached and not report.snapped_goal, report  # type: ignore[attr-defined]
