@@ -16,7 +16,11 @@ box again without the points that are not its own:
   more of it (the table top filling the lower part of a box round a chair behind the table),
   or that is not cut by the image border while this one is (a table running out of the
   image, with a chair in front of it), shows that object: this box's object is what remains
-  behind it, or nothing.
+  behind it, or nothing;
+* **a neighbour of the same kind**: where none of these applies, two overlapping boxes of the
+  same shape class (chairs side by side at a table, seen along the row) often hold one
+  cluster that spans both objects. Points that only one of the two boxes holds are that
+  object's; each point the two boxes share goes to the object whose own points are nearest.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from semmap.box_points import BoxPoints, box_points
 from semmap.config import ClassConfig, GeometryConfig
@@ -95,6 +100,8 @@ def observe_frame(
             continue
         foreign, shown = _foreign_objects(i, o, tracks, first, params.voxel_size_m)
         if not foreign:
+            foreign = _same_kind_neighbours(i, o, tracks, first, classes, intrinsics, T_map_camera, params)
+        if not foreign:
             out.append(o)
             continue
         # Showing another object: this box's own is whatever remains. Else it is the same
@@ -135,3 +142,48 @@ def _foreign_objects(
             foreign.append(p.voxels_map_m)
             shown = shown or shows_other
     return foreign, shown
+
+
+def _same_kind_neighbours(
+    i: int, o: ObjectObservation, tracks: Sequence[Track], first: Sequence[ObjectObservation | None],
+    classes: Mapping[str, ClassConfig], intrinsics: CameraIntrinsics, T_map_camera: Transform,
+    params: GeometryConfig,
+) -> list[NDArray[np.float64]]:
+    """Voxels (K, 3) of box ``i``'s first look ``o`` that belong to a neighbour of the same
+    shape class (see the module doc): a shared point goes to the object whose points seen in
+    one box only are nearest to it."""
+    tr = tracks[i]
+    kind = classes[tr.class_name].shape
+    foreign: list[NDArray[np.float64]] = []
+    for j, (other, p) in enumerate(zip(tracks, first, strict=True)):
+        if (j == i or p is None or classes[other.class_name].shape != kind
+                or not _boxes_overlap(tr.xyxy_px, other.xyxy_px)
+                or not _bounds_meet(o.voxels_map_m, p.voxels_map_m, 2 * params.voxel_size_m)):
+            continue
+        pts = np.unique(np.concatenate([o.voxels_map_m, p.voxels_map_m]), axis=0)
+        in_i, in_j = _in_box(pts, tr.xyxy_px, intrinsics, T_map_camera), _in_box(
+            pts, other.xyxy_px, intrinsics, T_map_camera)
+        own_i, own_j = pts[in_i & ~in_j], pts[in_j & ~in_i]
+        if len(own_i) < params.min_cluster_points or len(own_j) < params.min_cluster_points:
+            continue  # one box inside the other: nothing tells the two apart
+        shared = o.voxels_map_m[_in_box(o.voxels_map_m, other.xyxy_px, intrinsics, T_map_camera)]
+        if len(shared) < MIN_FOREIGN_FRAC * len(o.voxels_map_m):
+            continue
+        d_i, _ = cKDTree(own_i).query(shared)
+        d_j, _ = cKDTree(own_j).query(shared)
+        theirs = shared[d_j < d_i]
+        if len(theirs):
+            foreign.append(theirs)
+    return foreign
+
+
+def _in_box(points_map_m: NDArray[np.float64], xyxy_px: tuple[float, float, float, float],
+            intrinsics: CameraIntrinsics, T_map_camera: Transform) -> NDArray[np.bool_]:
+    """(N,) which map-frame points project into the image box ``xyxy_px``."""
+    T = np.linalg.inv(np.asarray(T_map_camera, dtype=np.float64))
+    xyz = points_map_m @ T[:3, :3].T + T[:3, 3]
+    z = np.maximum(xyz[:, 2], 1e-6)
+    u = intrinsics.fx_px * xyz[:, 0] / z + intrinsics.cx_px
+    v = intrinsics.fy_px * xyz[:, 1] / z + intrinsics.cy_px
+    u0, v0, u1, v1 = xyxy_px
+    return np.asarray((xyz[:, 2] > 0) & (u >= u0) & (u < u1) & (v >= v0) & (v < v1), dtype=bool)

@@ -7,7 +7,7 @@ import numpy as np
 from semmap.config import ClassConfig, GeometryConfig, default_classes
 from semmap.frame_objects import observe_frame
 from semmap.geometry import _widest_top, observe_object
-from semmap.polygons import convex_iou, polygon_area_m2
+from semmap.polygons import convex_intersection, convex_iou, polygon_area_m2
 from semmap.shape_prior import horizontal_layers, shape_mask
 from semmap.types import Track
 from tests.unit.test_geometry import FLOOR, K, box_of, camera_pose, render
@@ -133,3 +133,25 @@ def test_a_farther_wider_top_at_another_class_height_is_not_the_tables() -> None
     top[:, 1] *= 6.0
     assert _widest_top(np.concatenate([top, low[len(small):]]), labels, np.concatenate([top, low[len(small):]])[:, 2],
                        [0, 1], coffee, GeometryConfig()) == 0
+
+
+def _chair_at(y0_m: float) -> list:
+    """A solid seat 0.45 x 0.45 m and a backrest to 0.9 m, at x 1.3-1.75 m, y y0..y0 + 0.45."""
+    return [((1.3, y0_m, 0.0), (1.75, y0_m + 0.45, 0.45)), ((1.3, y0_m, 0.45), (1.34, y0_m + 0.45, 0.9))]
+
+
+def test_two_chairs_side_by_side_seen_along_the_row_are_each_their_own() -> None:
+    near, far = _chair_at(0.0), _chair_at(0.52)
+    near_fp = np.array([[1.3, 0.0], [1.75, 0.0], [1.75, 0.45], [1.3, 0.45]])
+    far_fp = near_fp + [0.0, 0.52]
+    T = camera_pose(-0.8, -2.0, 1.3, np.radians(35.0), 30.0)
+    depth = render(near + far + [FLOOR], T)
+    tracks = [Track(1, box_of(near, T), 0.8, "chair"), Track(2, box_of(far, T), 0.8, "chair")]
+    obs = {o.track_id: o for o in observe_frame(depth, K, T, tracks, CLASSES, GeometryConfig(),
+                                                depth_range_m=(0.3, 8.0))}
+    # The 7 cm gap does not part the two in depth: the near chair's box holds one cluster
+    # spanning both. Each box keeps only its own chair (of the far one only the backrest shows).
+    for tid, other in ((1, far_fp), (2, near_fp)):
+        assert polygon_area_m2(convex_intersection(obs[tid].footprint_xy_m, other)) < 0.02, tid
+    assert polygon_area_m2(convex_intersection(obs[1].footprint_xy_m, near_fp)) > 0.6 * polygon_area_m2(near_fp)
+    assert obs[2].centroid_map_m[1] > 0.6
