@@ -37,6 +37,8 @@ HEIGHT_TOLERANCE_M = 0.03
 #: The same for a footprint side above its range: footprints are within a few centimetres of
 #: the truth once seen, and grow by depth noise at range.
 FOOTPRINT_OVER_TOLERANCE_M = 0.10
+#: One view's height above its class's range (see :func:`oversize_likelihood`).
+VIEW_HEIGHT_TOLERANCE_M = 0.10
 #: A side below its range is weak evidence: part of an object is smaller than all of it, and
 #: a table seen from one side maps short until the vehicle has flown round it.
 FOOTPRINT_UNDER_TOLERANCE_M = 0.40
@@ -86,6 +88,25 @@ def prior_likelihood(prior: GeometricPrior | None, height_m: float | None,
                                 FOOTPRINT_OVER_TOLERANCE_M)
         lik *= range_likelihood(short_m, prior.footprint_short_m, FOOTPRINT_UNDER_TOLERANCE_M,
                                 FOOTPRINT_OVER_TOLERANCE_M)
+    return lik
+
+
+def oversize_likelihood(prior: GeometricPrior | None, height_m: float | None,
+                        sides_m: tuple[float, float] | None) -> float:
+    """How well one view fits under a class's upper bounds (1 = fully). A view shows part of
+    an object, never more than all of it, so only measuring larger than the class counts:
+    a "chair" 1.5 m high is a wall or a person, one 1.1 x 0.9 m holds the table it stands at.
+    Per-view measurements are noisier than an object's fused estimate, hence the wider
+    height tolerance."""
+    if prior is None:
+        return 1.0
+    lik = 1.0
+    if height_m is not None and prior.height_m is not None:
+        lik *= range_likelihood(height_m, (0.0, prior.height_m[1]), 1.0, VIEW_HEIGHT_TOLERANCE_M)
+    if sides_m is not None:
+        for value, bounds in zip(sides_m, (prior.footprint_long_m, prior.footprint_short_m), strict=True):
+            if bounds is not None:
+                lik *= range_likelihood(value, (0.0, bounds[1]), 1.0, FOOTPRINT_OVER_TOLERANCE_M)
     return lik
 
 

@@ -142,11 +142,12 @@ class FootprintEvidence:
 
 
 def view_quality(score: float, range_m: float, at_image_edge: bool, n_voxels: int, has_top: bool | None,
-                 far_range_m: float) -> float:
+                 far_range_m: float, prior_fit: float = 1.0) -> float:
     """How much one observation says an object is there, in [0, 1]: the box score, the range,
     how much of the object the view holds (cut by the border, few voxels) and whether the 3D
     fit agrees with the class (``has_top``: a hollow class's top plane was found; None when
-    the class has none). A close, clean, confident view is 1."""
+    the class has none; ``prior_fit``: how well its size fits the class, in [0, 1]). A close,
+    clean, confident view is 1."""
     q = min(1.0, max(0.0, score) / QUALITY_FULL_SCORE)
     if range_m > QUALITY_NEAR_RANGE_M:
         t = min(1.0, (range_m - QUALITY_NEAR_RANGE_M) / max(1e-6, far_range_m - QUALITY_NEAR_RANGE_M))
@@ -156,4 +157,4 @@ def view_quality(score: float, range_m: float, at_image_edge: bool, n_voxels: in
     q *= min(1.0, n_voxels / QUALITY_FULL_VOXELS)
     if has_top is False:
         q *= QUALITY_NO_TOP_WEIGHT
-    return q
+    return q * min(1.0, max(0.0, prior_fit))

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semmap.class_extent import MEASURED_ONLY_MARGIN_M, contradicts_class
-from semmap.class_prior import ClassPrior
+from semmap.class_prior import ClassPrior, footprint_sides_m, oversize_likelihood
 from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
 from semmap.duplicates import (
@@ -428,9 +428,13 @@ class ObjectMap:
         # but only a nearer one confirms the object (else it stays tentative and times out).
         s.seen_near = s.seen_near or o.range_m <= cfg.footprint_max_range_m
         cap = logit(cfg.existence_max) if s.seen_near else logit(cfg.existence_confirm) - _UNCONFIRMED_MARGIN
-        hollow = self.classes[self._class_index[o.class_name]].hollow != "none"
+        cls = self.classes[self._class_index[o.class_name]]
+        # A detector's class that stands for several of ours (COCO's one table) fits any of them.
+        height, sides = o.top_height_m if o.top_height_m is not None else o.z_max_m, footprint_sides_m(o.footprint_xy_m)
+        fit = max(oversize_likelihood(self.classes[k].prior, height, sides) for k in self._vote_indices(o.class_name))
         q = view_quality(o.score, o.range_m, o.at_image_edge, o.n_voxels,
-                         (o.top_height_m is not None) if hollow else None, cfg.footprint_max_range_m)
+                         (o.top_height_m is not None) if cls.hollow != "none" else None, cfg.footprint_max_range_m,
+                         fit)
         s.support += q
         s.logodds = min(s.logodds + cfg.existence_hit_logodds * q, max(s.logodds, cap))
 

@@ -98,3 +98,29 @@ def test_a_track_that_moved_off_its_object_joins_the_object_its_view_overlaps() 
     # ...then its box slides onto the desk: that view is the desk's, not the corner's.
     ids = m.update([obs(2, cls="desk", xy=(3.2, 0.0), size=0.5, stamp=4)], 4.0)
     assert ids == [desk.object_id]
+
+
+def test_one_view_larger_than_its_class_does_not_confirm_it() -> None:
+    # bench/mapping.py seed 1015: one close, confident "chair" box on a wall, 1.46 m high,
+    # confirmed a chair that was never there.
+    chair = dataclasses.replace(obs(1, cls="chair", score=0.85), range_m=2.0, z_max_m=0.9, top_height_m=0.45)
+    tall = dataclasses.replace(chair, z_max_m=1.46, top_height_m=None)
+    wide = dataclasses.replace(obs(1, cls="chair", score=0.85, size=1.2), range_m=2.0, z_max_m=0.9,
+                               top_height_m=0.45)
+    for view, confirmed in ((chair, True), (tall, False), (wide, False)):
+        m = ObjectMap(default_classes())
+        m.update([view], 0.0)
+        assert m.objects()[0].confirmed is confirmed, view
+    # A detector class standing for several of ours fits the largest of them: COCO's one table
+    # class names a 2.0 x 1.1 m dining table "desk" (at most 2.0 x 0.95 m).
+    classes = default_classes()
+    votes = {"desk": ("desk", "coffee_table", "conference_table")}
+    table = dataclasses.replace(obs(1, cls="desk", score=0.85, size=1.1), range_m=2.0, z_max_m=0.75,
+                                top_height_m=0.75)
+    assert not _confirmed_by(ObjectMap(classes), table)
+    assert _confirmed_by(ObjectMap(classes, vote_groups=votes), table)
+
+
+def _confirmed_by(m: ObjectMap, view: object) -> bool:
+    m.update([view], 0.0)  # type: ignore[list-item]
+    return bool(m.objects()[0].confirmed)
