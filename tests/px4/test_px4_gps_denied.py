@@ -41,6 +41,8 @@ MAPPED_WITHIN_S = 20.0
 #: The take-off climbs this high above home (m), and is watched this long (s) after arming.
 TAKEOFF_ALT_M = 1.0
 TAKEOFF_WATCH_S = 12.0
+#: How late a MAVLink message may be handled after it arrived on a loaded machine (s).
+ARRIVAL_JITTER_S = 0.1
 
 
 @pytest.fixture
@@ -197,7 +199,12 @@ def test_the_height_estimate_follows_the_vehicle_through_take_off(gps_denied_sit
     # Heights above where each stood: PX4's local z has its own origin.
     z0 = float(np.mean(before[:, 3] - truth.at(before[:, 0], "local")[:, 2]))
     true_z = truth.at(during[:, 0], "local")[:, 2]
-    err = np.abs(during[:, 3] - z0 - true_z)
+    # Estimate and truth are both stamped on arrival, and on a loaded 2-core machine either
+    # can wait up to ~0.1 s for this process: at take-off speed (1.5 m/s) that alone reads as
+    # 0.15 m. Each estimate is judged against the truth within that jitter of its stamp; an
+    # estimate running off (0.26-0.5 m before the fix) stays off over the whole window.
+    err = np.min([np.abs(during[:, 3] - z0 - truth.at(during[:, 0] + dt, "local")[:, 2])
+                  for dt in np.linspace(-ARRIVAL_JITTER_S, ARRIVAL_JITTER_S, 9)], axis=0)
     assert true_z.max() > 0.5 * TAKEOFF_ALT_M, f"the vehicle never climbed: true height at most {true_z.max():.2f} m"
     assert err.max() < 0.15, (f"PX4's height left the truth by {err.max():.2f} m during the take-off "
                               f"(at {during[int(err.argmax()), 0] - armed_at[0]:.1f} s after arming)")
