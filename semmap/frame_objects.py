@@ -36,6 +36,7 @@ from semmap.box_points import BoxPoints, box_points
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform
 from semmap.geometry import ObjectObservation, object_in_box
+from semmap.pointcloud import project_map_points
 from semmap.ransac import Plane
 from semmap.types import CameraIntrinsics, Track
 from semmap.voxels import within_a_voxel
@@ -160,13 +161,13 @@ def _same_kind_neighbours(
                 or not _boxes_overlap(tr.xyxy_px, other.xyxy_px)
                 or not _bounds_meet(o.voxels_map_m, p.voxels_map_m, 2 * params.voxel_size_m)):
             continue
-        pts = np.unique(np.concatenate([o.voxels_map_m, p.voxels_map_m]), axis=0)
-        in_i, in_j = _in_box(pts, tr.xyxy_px, intrinsics, T_map_camera), _in_box(
-            pts, other.xyxy_px, intrinsics, T_map_camera)
+        pts, index = np.unique(np.concatenate([o.voxels_map_m, p.voxels_map_m]), axis=0, return_inverse=True)
+        u, v, z = project_map_points(pts, intrinsics, T_map_camera)
+        in_i, in_j = _in_box(u, v, z, tr.xyxy_px), _in_box(u, v, z, other.xyxy_px)
         own_i, own_j = pts[in_i & ~in_j], pts[in_j & ~in_i]
         if len(own_i) < params.min_cluster_points or len(own_j) < params.min_cluster_points:
             continue  # one box inside the other: nothing tells the two apart
-        shared = o.voxels_map_m[_in_box(o.voxels_map_m, other.xyxy_px, intrinsics, T_map_camera)]
+        shared = o.voxels_map_m[in_j[index.reshape(-1)[: len(o.voxels_map_m)]]]
         if len(shared) < MIN_FOREIGN_FRAC * len(o.voxels_map_m):
             continue
         d_i, _ = cKDTree(own_i).query(shared)
@@ -177,13 +178,9 @@ def _same_kind_neighbours(
     return foreign
 
 
-def _in_box(points_map_m: NDArray[np.float64], xyxy_px: tuple[float, float, float, float],
-            intrinsics: CameraIntrinsics, T_map_camera: Transform) -> NDArray[np.bool_]:
-    """(N,) which map-frame points project into the image box ``xyxy_px``."""
-    T = np.linalg.inv(np.asarray(T_map_camera, dtype=np.float64))
-    xyz = points_map_m @ T[:3, :3].T + T[:3, 3]
-    z = np.maximum(xyz[:, 2], 1e-6)
-    u = intrinsics.fx_px * xyz[:, 0] / z + intrinsics.cx_px
-    v = intrinsics.fy_px * xyz[:, 1] / z + intrinsics.cy_px
+def _in_box(u: NDArray[np.float64], v: NDArray[np.float64], z: NDArray[np.float64],
+            xyxy_px: tuple[float, float, float, float]) -> NDArray[np.bool_]:
+    """(N,) which projected points (:func:`~semmap.pointcloud.project_map_points`) lie in
+    front of the camera and inside the image box ``xyxy_px``."""
     u0, v0, u1, v1 = xyxy_px
-    return np.asarray((xyz[:, 2] > 0) & (u >= u0) & (u < u1) & (v >= v0) & (v < v1), dtype=bool)
+    return np.asarray((z > 0) & (u >= u0) & (u < u1) & (v >= v0) & (v < v1), dtype=bool)

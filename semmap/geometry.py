@@ -33,9 +33,16 @@ from numpy.typing import NDArray
 from semmap.box_points import BoxPoints, box_points
 from semmap.clustering import euclidean_clusters, voxel_downsample
 from semmap.config import ClassConfig, GeometryConfig
-from semmap.frames import Transform, invert
+from semmap.frames import Transform
 from semmap.noise_bridges import dense_parts
-from semmap.pointcloud import CLEARANCE_ROW, HEIGHT_ROW, PIXEL_U_ROW, RANGE_ROW, valid_depth_mask
+from semmap.pointcloud import (
+    CLEARANCE_ROW,
+    HEIGHT_ROW,
+    PIXEL_U_ROW,
+    RANGE_ROW,
+    project_map_points,
+    valid_depth_mask,
+)
 from semmap.polygons import convex_footprint, simplify_polygon
 from semmap.ransac import Plane, fit_plane
 from semmap.shape_prior import horizontal_layers, shape_mask
@@ -121,14 +128,9 @@ class CameraView:
         out = np.zeros(len(pts), dtype=bool)
         if len(pts) == 0:
             return out
-        T = invert(np.asarray(self.T_map_camera, dtype=np.float64))
-        pc = pts @ T[:3, :3].T + T[:3, 3]  # (N, 3) camera frame
         K = self.intrinsics
-        z = pc[:, 2]
-        in_range = (z >= self.depth_range_m[0]) & (z <= self.depth_range_m[1])
-        zs = np.where(in_range, z, 1.0)
-        u = K.fx_px * pc[:, 0] / zs + K.cx_px
-        v = K.fy_px * pc[:, 1] / zs + K.cy_px
+        u, v, z = project_map_points(pts, K, self.T_map_camera)
+        in_range = (z > 0.0) & (z >= self.depth_range_m[0]) & (z <= self.depth_range_m[1])
         m = self.margin_px
         inside = in_range & (u >= m) & (u < K.width_px - m) & (v >= m) & (v < K.height_px - m)
         d = np.asarray(self.depth_m)

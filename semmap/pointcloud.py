@@ -13,6 +13,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.frames import Transform, invert
 from semmap.types import CameraIntrinsics
 
 #: Rows of a :func:`window_points_map` table after map x, y, z (0-2): height above the plane,
@@ -43,6 +44,19 @@ def _clipped_window(
         )
     u0, v0, u1, v1 = window_px if window_px is not None else (0, 0, W, H)
     return max(0, int(u0)), max(0, int(v0)), min(W, int(u1)), min(H, int(v1))
+
+
+def project_map_points(
+    points_map_m: NDArray[np.floating], intrinsics: CameraIntrinsics, T_map_camera: Transform,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Pixel coordinates u, v and camera z-depth, each (N,), of map-frame points (N, 3): the
+    inverse of :func:`backproject`. Points at or behind the camera (z <= 0) are projected as
+    if 1 m deep; callers mask them by z."""
+    T = invert(np.asarray(T_map_camera, dtype=np.float64))
+    pc = np.asarray(points_map_m, dtype=np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+    z = pc[:, 2]
+    zs = np.where(z > 0.0, z, 1.0)
+    return intrinsics.fx_px * pc[:, 0] / zs + intrinsics.cx_px, intrinsics.fy_px * pc[:, 1] / zs + intrinsics.cy_px, z
 
 
 def backproject(
