@@ -98,9 +98,8 @@ def test_obstacle_ahead_is_avoided_without_stopping() -> None:
 
 
 def test_a_waypoint_the_map_blocked_is_flown_to_once_the_map_frees_it() -> None:
-    # test_semantic_map_flies_around_the_chair_the_depth_slice_misses: a misplaced object
-    # blocked the goal, the leg flew to the nearest free point 1.6 m short, and it ended there
-    # although the next maps had freed the goal.
+    # The nearest free point stands in for a blocked waypoint only while the map blocks it:
+    # early footprints are often too large, and closer views free the waypoint again.
     cfg = CompanionConfig()
     spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
     band = flight_band(cfg)

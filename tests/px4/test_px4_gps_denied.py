@@ -202,7 +202,7 @@ def test_the_height_estimate_follows_the_vehicle_through_take_off(gps_denied_sit
     # Estimate and truth are both stamped on arrival, and on a loaded 2-core machine either
     # can wait up to ~0.1 s for this process: at take-off speed (1.5 m/s) that alone reads as
     # 0.15 m. Each estimate is judged against the truth within that jitter of its stamp; an
-    # estimate running off (0.26-0.5 m before the fix) stays off over the whole window.
+    # estimate running off while the vehicle is on the floor stays off over the whole window.
     err = np.min([np.abs(during[:, 3] - z0 - truth.at(during[:, 0] + dt, "local")[:, 2])
                   for dt in np.linspace(-ARRIVAL_JITTER_S, ARRIVAL_JITTER_S, 9)], axis=0)
     assert true_z.max() > 0.5 * TAKEOFF_ALT_M, f"the vehicle never climbed: true height at most {true_z.max():.2f} m"

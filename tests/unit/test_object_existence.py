@@ -101,8 +101,8 @@ def test_a_track_that_moved_off_its_object_joins_the_object_its_view_overlaps() 
 
 
 def test_one_view_larger_than_its_class_does_not_confirm_it() -> None:
-    # bench/mapping.py seed 1015: one close, confident "chair" box on a wall, 1.46 m high,
-    # confirmed a chair that was never there.
+    # A view shows part of an object, never more: one larger than any object of its class is
+    # something else in the box (a wall, the table the chair stands at), however clean.
     chair = dataclasses.replace(obs(1, cls="chair", score=0.85), range_m=2.0, z_max_m=0.9, top_height_m=0.45)
     tall = dataclasses.replace(chair, z_max_m=1.46, top_height_m=None)
     wide = dataclasses.replace(obs(1, cls="chair", score=0.85, size=1.2), range_m=2.0, z_max_m=0.9,

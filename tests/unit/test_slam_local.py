@@ -147,9 +147,8 @@ def test_odometry_calibration_measures_heading_drift_and_scale() -> None:
 
 
 def test_px4_gps_denied_seed1_a_turns_matching_error_is_not_taken_for_gyro_drift() -> None:
-    # The take-off survey turns once at 70 deg/s; the matched heading came out of it 1.2 deg
-    # off. One line through (odometry - matched) took that step for drift: the estimate fell
-    # from 0.5 to 0.3 deg/s and fed the difference into every prediction, doubling the error.
+    # A fast turn is where the narrow camera matches its heading worst: its error is a step in
+    # (odometry - matched), not a slope, and must not be read as gyro drift.
     drift_rad_s = math.radians(0.5)
     cal = OdometryCalibration(window_s=10.0)
     rate_hz, turn_rad_s = 20.0, math.radians(70.0)
