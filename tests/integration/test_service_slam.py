@@ -105,6 +105,8 @@ def test_slam_keeps_the_pose_while_the_odometry_drifts(tmp_path: Path) -> None:
     assert float(errs.max()) < 0.20, detail
     assert float(errs.max()) < 0.5 * float(odo.max()), detail
     assert loc["scans"] > 50 and loc["vision_sent"] > 300, detail
-    assert loc["fallbacks"] < 0.25 * loc["scans"], detail
+    # Judged in flight only: on the floor before take-off and after landing the camera sees
+    # little but floor, and how long the service sits there depends on the machine's load.
+    assert statuses.count("degenerate_fallback_odometry") < 0.25 * len(statuses), detail
     assert statuses.count("ok") + statuses.count("partial_odometry") > 0.75 * len(statuses), detail
     assert sum(health) > 0.75 * len(health), detail
