@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,6 +40,7 @@ from semmap.geometry import ObjectObservation, object_in_box
 from semmap.pointcloud import project_map_points
 from semmap.ransac import Plane
 from semmap.types import CameraIntrinsics, Track
+from semmap.view_edges import cut_edges, depth_frame_px
 from semmap.voxels import within_a_voxel
 
 __all__ = ["observe_frame"]
@@ -86,7 +88,7 @@ def observe_frame(
                              rng, exclude_voxels_m=exclude, same_object_as_m=same)
 
     first = [observe(i) for i in range(len(tracks))]
-    out: list[ObjectObservation] = []
+    out: list[tuple[int, ObjectObservation]] = []  # (box, observation)
     for i, (tr, o) in enumerate(zip(tracks, first, strict=True)):
         if o is None:
             # Nothing of its own at first look (a seat's box whose cluster was another object's
@@ -97,13 +99,13 @@ def observe_frame(
                       if j != i and p is not None and _boxes_overlap(tr.xyxy_px, tracks[j].xyxy_px)]
             behind = observe(i, np.concatenate(others)) if others else None
             if behind is not None:
-                out.append(behind)
+                out.append((i, behind))
             continue
         foreign, shown = _foreign_objects(i, o, tracks, first, params.voxel_size_m)
         if not foreign:
             foreign = _same_kind_neighbours(i, o, tracks, first, classes, intrinsics, T_map_camera, params)
         if not foreign:
-            out.append(o)
+            out.append((i, o))
             continue
         # Showing another object: this box's own is whatever remains. Else it is the same
         # cluster as before, less the nearer objects' points.
@@ -115,8 +117,17 @@ def observe_frame(
                 continue  # it was the nearer object's points all along
         again = observe(i, excluded, same)
         if again is not None:
-            out.append(again)
-    return out
+            out.append((i, again))
+    if not out:
+        return []
+    frame = depth_frame_px(depth_m, *depth_range_m)
+    return [replace(o, footprint_edge_cut=cut_edges(o.footprint_xy_m, o.voxels_map_m, intrinsics, T_map_camera,
+                                                     frame, params.voxel_size_m, _stride(boxes[i])))
+            for i, o in out]
+
+
+def _stride(box: BoxPoints | None) -> int:
+    return box.stride_px if box is not None else 1
 
 
 def _foreign_objects(

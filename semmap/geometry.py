@@ -94,6 +94,9 @@ class ObjectObservation:
     #: (K, 3) the object's downsampled points in the map frame (which points are whose, when
     #: boxes of one frame overlap; see :mod:`semmap.frame_objects`).
     voxels_map_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    #: (M,) per footprint edge (vertex k to k+1): the depth image's border drew it, not the
+    #: object (:func:`semmap.view_edges.cut_edges`); None when not known.
+    footprint_edge_cut: NDArray[np.bool_] | None = None
 
     @property
     def centroid_xy_m(self) -> NDArray[np.float64]:

@@ -29,7 +29,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semmap.clustering import euclidean_clusters
-from semmap.polygons import convex_footprint, inside_convex, min_perimeter_rectangle
+from semmap.polygons import (
+    convex_footprint,
+    inside_convex,
+    min_perimeter_rectangle,
+    rectangle_along,
+)
 
 __all__ = ["CELL_M", "FootprintEvidence", "cell_centres", "cell_keys", "view_quality"]
 
@@ -115,11 +120,13 @@ class FootprintEvidence:
                                    minlength=len(keys)).astype(np.float64)
         self.keys = keys
 
-    def footprint(self, frac: float, shape: Literal["rectangle", "hull"]) -> NDArray[np.float64] | None:
+    def footprint(self, frac: float, shape: Literal["rectangle", "hull"],
+                  direction_rad: float | None = None) -> NDArray[np.float64] | None:
         """The footprint polygon (M, 2) from the cells holding at least ``frac`` of the
         90th-percentile cell's weight, less groups of them lying apart with neither a cell
         that reaches it nor ``GROUP_MIN_SHARE`` of the weight (module doc), as their convex
-        hull or bounding rectangle; None without evidence."""
+        hull or bounding rectangle (least perimeter, or along ``direction_rad`` when given);
+        None without evidence."""
         if len(self.weights) == 0:
             return None
         k90 = int(0.9 * (len(self.weights) - 1))
@@ -138,7 +145,9 @@ class FootprintEvidence:
         hull = convex_footprint(c)  # of centres; each cell's half-width is added back
         corners = np.concatenate([hull + [-h, -h], hull + [h, -h], hull + [h, h], hull + [-h, h]])
         # The rectangle takes the hull of the corners itself: one hull, not two.
-        return min_perimeter_rectangle(corners) if shape == "rectangle" else convex_footprint(corners)
+        if shape == "hull":
+            return convex_footprint(corners)
+        return min_perimeter_rectangle(corners) if direction_rad is None else rectangle_along(corners, direction_rad)
 
 
 def view_quality(score: float, range_m: float, at_image_edge: bool, n_voxels: int, has_top: bool | None,

@@ -28,6 +28,7 @@ from semmap.polygons import (
     min_perimeter_rectangle,
     polygon_area_m2,
 )
+from semmap.view_edges import EdgeDirections
 
 __all__ = ["HISTORY", "MIN_CLASS_PROB", "MappedObject", "ObjectState", "consistent", "logit", "overlaps",
            "quantile", "sigmoid"]
@@ -173,6 +174,9 @@ class ObjectState:
     top_hist: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
     #: Footprint evidence: weighted map-plane cells the views saw the object in.
     evidence: FootprintEvidence = field(default_factory=FootprintEvidence)
+    #: The views' footprint edge directions, seen and cut by the field of view: where the
+    #: image border cut the views, the rectangle takes the direction of the edges seen.
+    edges: EdgeDirections = field(default_factory=EdgeDirections)
     #: Sum of the unit map-plane vectors camera -> object over the views, and their count.
     view_sum_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros(2))
     n_views: int = 0
@@ -243,6 +247,7 @@ class ObjectState:
         if not shape:
             return
         keep.evidence.merge(drop.evidence)
+        keep.edges.merge(drop.edges)
         keep.view_sum_xy = keep.view_sum_xy + drop.view_sum_xy
         keep.n_views += drop.n_views
         keep.footprint_cache = None
@@ -270,7 +275,8 @@ class ObjectState:
         observed hull before there is any (cached until the state changes)."""
         if self.footprint_cache is not None:
             return self.footprint_cache
-        fp = self.evidence.footprint(config.footprint_evidence_frac, config.footprint_shape)
+        direction = self.edges.rectangle_direction_rad()
+        fp = self.evidence.footprint(config.footprint_evidence_frac, config.footprint_shape, direction)
         if fp is None:
             fp = min_perimeter_rectangle(self.hull_xy_m) if config.footprint_shape == "rectangle" else self.hull_xy_m
         self.footprint_cache = fp

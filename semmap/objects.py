@@ -408,6 +408,8 @@ class ObjectMap:
         pts = o.points_xy_m if len(o.points_xy_m) else fp
         near = o.range_m <= cfg.footprint_max_range_m
         s.evidence.add_view(pts, 1.0 if near else _FAR_WEIGHT)
+        if o.footprint_edge_cut is not None:
+            s.edges.add_view(fp, o.footprint_edge_cut)
         if o.camera_xy_m is not None:
             d = o.centroid_xy_m - np.asarray(o.camera_xy_m, dtype=np.float64)
             n = float(np.hypot(d[0], d[1]))

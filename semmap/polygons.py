@@ -10,6 +10,7 @@ per-call cost would dominate.
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import cv2
@@ -121,6 +122,17 @@ def min_perimeter_rectangle(xy_m: NDArray[np.floating]) -> NDArray[np.float64]:
     triangle of points (why the object map's footprints use it: see
     :mod:`semmap.object_evidence`)."""
     return _caliper_rectangle(xy_m, "perimeter")
+
+
+def rectangle_along(xy_m: NDArray[np.floating], direction_rad: float) -> NDArray[np.float64]:
+    """The rectangle (4, 2), counter-clockwise, around points (N, 2) whose sides run along
+    ``direction_rad`` and across it."""
+    axis = np.array([math.cos(direction_rad), math.sin(direction_rad)])
+    perp = np.array([-axis[1], axis[0]])
+    pts = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
+    a, b = pts @ axis, pts @ perp
+    corners = np.array([[a.min(), b.min()], [a.max(), b.min()], [a.max(), b.max()], [a.min(), b.max()]])
+    return corners[:, :1] * axis + corners[:, 1:] * perp
 
 
 def grow_to_least_size(
