@@ -44,10 +44,15 @@ def depth_frame_px(depth_m: NDArray[np.floating], min_m: float, max_m: float) ->
     depth (in ``[min_m, max_m]``) in at least ``FRAME_MIN_VALID_FRAC`` of their pixels; the
     whole image when none do."""
     d = np.asarray(depth_m)
-    valid = np.isfinite(d) & (d >= min_m) & (d <= max_m) & (d > 0)
-    h, w = valid.shape
-    cols = np.flatnonzero(valid.mean(axis=0) >= FRAME_MIN_VALID_FRAC)
-    rows = np.flatnonzero(valid.mean(axis=1) >= FRAME_MIN_VALID_FRAC)
+    h, w = d.shape
+
+    def valid(x: NDArray[np.floating]) -> NDArray[np.bool_]:
+        return (x >= max(min_m, 0.0)) & (x <= max_m) & (x > 0)  # NaN compares False
+
+    # Every 4th row says which columns are valid and every 4th column which rows: the shares
+    # need no more, and the full image costs four times as much.
+    cols = np.flatnonzero(valid(d[::4]).mean(axis=0) >= FRAME_MIN_VALID_FRAC)
+    rows = np.flatnonzero(valid(d[:, ::4]).mean(axis=1) >= FRAME_MIN_VALID_FRAC)
     if len(cols) == 0 or len(rows) == 0:
         return 0, 0, w - 1, h - 1
     return int(cols[0]), int(rows[0]), int(cols[-1]), int(rows[-1])
@@ -71,6 +76,8 @@ def cut_edges(
     slack_px = 2.0 * stride_px + voxel_size_m * intrinsics.fx_px / np.maximum(z, 1e-3)
     u0, v0, u1, v1 = frame_px
     on_border = (z <= 0.0) | (u <= u0 + slack_px) | (u >= u1 - slack_px) | (v <= v0 + slack_px) | (v >= v1 - slack_px)
+    if not on_border.any():
+        return np.zeros(m, dtype=bool)  # most objects: wholly in view
     a = poly
     d = np.roll(poly, -1, axis=0) - a
     length = np.linalg.norm(d, axis=1)
@@ -97,7 +104,9 @@ class EdgeDirections:
         """Add one view's footprint (M, 2) and its edges' cut flags (M,)."""
         poly = np.asarray(footprint_xy_m, dtype=np.float64)
         d = np.roll(poly, -1, axis=0) - poly
-        np.add.at(self.length_m, (np.asarray(cut, dtype=np.int64), _bins(d)), np.linalg.norm(d, axis=1))
+        index = np.asarray(cut, dtype=np.int64) * DIRECTION_BINS + _bins(d)
+        self.length_m = self.length_m + np.bincount(index, weights=np.linalg.norm(d, axis=1),
+                                                    minlength=2 * DIRECTION_BINS).reshape(2, DIRECTION_BINS)
 
     def merge(self, other: EdgeDirections) -> None:
         self.length_m = self.length_m + other.length_m
