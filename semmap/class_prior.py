@@ -39,6 +39,9 @@ HEIGHT_TOLERANCE_M = 0.03
 FOOTPRINT_OVER_TOLERANCE_M = 0.10
 #: One view's height above its class's range (see :func:`oversize_likelihood`).
 VIEW_HEIGHT_TOLERANCE_M = 0.10
+#: A table's top plane measured this far below its class's height range is another object's
+#: top: the seat of a chair pushed in under it, in a cluster that missed the table top.
+VIEW_TOP_UNDER_TOLERANCE_M = 0.10
 #: A side below its range is weak evidence: part of an object is smaller than all of it, and
 #: a table seen from one side maps short until the vehicle has flown round it.
 FOOTPRINT_UNDER_TOLERANCE_M = 0.40
@@ -108,6 +111,14 @@ def oversize_likelihood(prior: GeometricPrior | None, height_m: float | None,
             if bounds is not None:
                 lik *= range_likelihood(value, (0.0, bounds[1]), 1.0, FOOTPRINT_OVER_TOLERANCE_M)
     return lik
+
+
+def top_fits(prior: GeometricPrior | None, top_height_m: float) -> bool:
+    """A table's measured top plane can be its top: not far below its class's height range (a
+    top is a top however little of it is seen, unlike a side, which a partial view shortens)."""
+    if prior is None or prior.height_m is None:
+        return True
+    return top_height_m >= prior.height_m[0] - VIEW_TOP_UNDER_TOLERANCE_M
 
 
 class ClassPrior:

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semmap.class_extent import MEASURED_ONLY_MARGIN_M, contradicts_class
-from semmap.class_prior import ClassPrior, footprint_sides_m, oversize_likelihood
+from semmap.class_prior import ClassPrior, footprint_sides_m, oversize_likelihood, top_fits
 from semmap.config import ClassConfig, MapConfig
 from semmap.costmap import ObjectFootprint
 from semmap.duplicates import (
@@ -368,6 +368,12 @@ class ObjectMap:
         s.last_seen_s = max(s.last_seen_s, o.stamp_s)
         s.first_seen_s = min(s.first_seen_s, o.stamp_s)
         fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
+        if not first and not self._top_fits(o):
+            # The box's cluster held another object's top (a chair's seat under the table):
+            # the detection says the table is there, the geometry is the chair's.
+            log.debug("object %d: top of track %d at %.2f m is not a %s top, geometry ignored",
+                      s.object_id, o.track_id, o.top_height_m, o.class_name)
+            return
         if not first and not consistent(s.hull_xy_m, fp):
             # The track's box showed something else this time (an occluder in front): it
             # still says the object is there, but not where or how big.
@@ -434,11 +440,17 @@ class ObjectMap:
         # A detector's class that stands for several of ours (COCO's one table) fits any of them.
         height, sides = o.top_height_m if o.top_height_m is not None else o.z_max_m, footprint_sides_m(o.footprint_xy_m)
         fit = max(oversize_likelihood(self.classes[k].prior, height, sides) for k in self._vote_indices(o.class_name))
-        q = view_quality(o.score, o.range_m, o.at_image_edge, o.n_voxels,
-                         (o.top_height_m is not None) if cls.hollow != "none" else None, cfg.footprint_max_range_m,
-                         fit)
+        has_top = (o.top_height_m is not None and self._top_fits(o)) if cls.hollow != "none" else None
+        q = view_quality(o.score, o.range_m, o.at_image_edge, o.n_voxels, has_top, cfg.footprint_max_range_m, fit)
         s.support += q
         s.logodds = min(s.logodds + cfg.existence_hit_logodds * q, max(s.logodds, cap))
+
+    def _top_fits(self, o: ObjectObservation) -> bool:
+        """A table class's observed top plane is at a height one of the classes its detector
+        class stands for can have (:func:`semmap.class_prior.top_fits`); True for other shapes."""
+        if o.top_height_m is None or self.classes[self._class_index[o.class_name]].shape != "table":
+            return True
+        return any(top_fits(self.classes[k].prior, o.top_height_m) for k in self._vote_indices(o.class_name))
 
     def _negative_evidence(self, matched: set[int], view: CameraView | None, stamp_s: float) -> None:
         if view is None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from semmap.config import MapConfig, default_classes
 from semmap.frames import make_transform
@@ -124,3 +125,24 @@ def test_one_view_larger_than_its_class_does_not_confirm_it() -> None:
 def _confirmed_by(m: ObjectMap, view: object) -> bool:
     m.update([view], 0.0)  # type: ignore[list-item]
     return bool(m.objects()[0].confirmed)
+
+
+def test_a_table_view_whose_top_is_a_chair_seat_adds_no_geometry() -> None:
+    # The table's box held only a chair pushed in under it: the top plane found is the seat.
+    classes = default_classes()
+    table = dataclasses.replace(obs(1, cls="conference_table", score=0.85, xy=(3.0, 0.0), size=1.0),
+                                range_m=2.0, z_max_m=0.77, top_height_m=0.75)
+    seat = dataclasses.replace(obs(1, cls="conference_table", score=0.85, xy=(3.55, 0.0), size=0.5),
+                               range_m=2.0, z_max_m=0.5, top_height_m=0.47, stamp_s=0.1)
+    m = ObjectMap(classes)
+    m.update([table], 0.0)
+    before = m.objects(confirmed_only=False)[0].footprint_xy_m
+    m.update([seat], 0.1)
+    (o,) = m.objects(confirmed_only=False)
+    assert o.n_observations == 2  # the detection still counts
+    assert np.max(o.footprint_xy_m[:, 0]) == pytest.approx(np.max(before[:, 0]), abs=0.02)
+    # The same view of a coffee table, whose top is at seat height, is its geometry.
+    low = ObjectMap(classes)
+    low.update([dataclasses.replace(table, class_name="coffee_table", top_height_m=0.45, z_max_m=0.47)], 0.0)
+    low.update([dataclasses.replace(seat, class_name="coffee_table")], 0.1)
+    assert np.max(low.objects(confirmed_only=False)[0].footprint_xy_m[:, 0]) > np.max(before[:, 0]) + 0.1
