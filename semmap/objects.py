@@ -370,9 +370,13 @@ class ObjectMap:
         fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
         if not first and not self._top_fits(o):
             # The box's cluster held another object's top (a chair's seat under the table):
-            # the detection says the table is there, the geometry is the chair's.
-            log.debug("object %d: top of track %d at %.2f m is not a %s top, geometry ignored",
+            # the detection says the table is there, the outline is the chair's. The top is
+            # kept, a minority among the object's own (and what shows a track whose every
+            # view is another object's surface to be that object's duplicate).
+            log.debug("object %d: top of track %d at %.2f m is not a %s top, outline ignored",
                       s.object_id, o.track_id, o.top_height_m, o.class_name)
+            if o.top_height_m is not None:
+                s.top_hist.append(o.top_height_m)
             return
         if not first and not consistent(s.hull_xy_m, fp):
             # The track's box showed something else this time (an occluder in front): it
