@@ -370,12 +370,12 @@ class ObjectMap:
         fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
         if not first and not self._top_fits(o):
             # The box's cluster held another object's top (a chair's seat under the table):
-            # the detection says the table is there, the outline is the chair's. The top is
-            # kept, a minority among the object's own (and what shows a track whose every
-            # view is another object's surface to be that object's duplicate).
+            # the detection says the table is there, the outline is the chair's. Its top is
+            # kept only by an object without a top of its own: a track whose every view shows
+            # another object's surface is that object's duplicate, and the top shows it.
             log.debug("object %d: top of track %d at %.2f m is not a %s top, outline ignored",
                       s.object_id, o.track_id, o.top_height_m, o.class_name)
-            if o.top_height_m is not None:
+            if o.top_height_m is not None and not any(self._top_fits(o, t) for t in s.top_hist):
                 s.top_hist.append(o.top_height_m)
             return
         if not first and not consistent(s.hull_xy_m, fp):
@@ -449,12 +449,14 @@ class ObjectMap:
         s.support += q
         s.logodds = min(s.logodds + cfg.existence_hit_logodds * q, max(s.logodds, cap))
 
-    def _top_fits(self, o: ObjectObservation) -> bool:
-        """A table class's observed top plane is at a height one of the classes its detector
-        class stands for can have (:func:`semmap.class_prior.top_fits`); True for other shapes."""
-        if o.top_height_m is None or self.classes[self._class_index[o.class_name]].shape != "table":
+    def _top_fits(self, o: ObjectObservation, top_height_m: float | None = None) -> bool:
+        """A table class's observed top plane (or ``top_height_m``) is at a height one of the
+        classes its detector class stands for can have (:func:`semmap.class_prior.top_fits`);
+        True for other shapes."""
+        h = o.top_height_m if top_height_m is None else top_height_m
+        if h is None or self.classes[self._class_index[o.class_name]].shape != "table":
             return True
-        return any(top_fits(self.classes[k].prior, o.top_height_m) for k in self._vote_indices(o.class_name))
+        return any(top_fits(self.classes[k].prior, h) for k in self._vote_indices(o.class_name))
 
     def _negative_evidence(self, matched: set[int], view: CameraView | None, stamp_s: float) -> None:
         if view is None:
