@@ -109,6 +109,7 @@ class EdgeDirections:
                                                     minlength=2 * DIRECTION_BINS).reshape(2, DIRECTION_BINS)
 
     def merge(self, other: EdgeDirections) -> None:
+        """Fold another object's edges into this one (two objects found to be one)."""
         self.length_m = self.length_m + other.length_m
 
     def rectangle_direction_rad(self) -> float | None:
