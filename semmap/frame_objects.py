@@ -34,13 +34,13 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from semmap.box_points import BoxPoints, box_points
+from semmap.camera_view import cut_edges, depth_frame_px
 from semmap.config import ClassConfig, GeometryConfig
 from semmap.frames import Transform
 from semmap.geometry import ObjectObservation, object_in_box
 from semmap.pointcloud import project_map_points
 from semmap.ransac import Plane
 from semmap.types import CameraIntrinsics, Track
-from semmap.view_edges import cut_edges, depth_frame_px
 from semmap.voxels import within_a_voxel
 
 __all__ = ["observe_frame"]

@@ -17,8 +17,8 @@ The pipeline per track (one I/O-free step, :func:`observe_object`): the box's po
    onto the map plane, so the space between the legs is inside it. Heights are true heights
    above the floor plane; the position is the centroid of the object's (downsampled) points.
 
-Also here: :class:`CameraView`, which tells whether a map point should be visible in a frame
-(negative evidence for the object map). The polygon helpers are in :mod:`semmap.polygons`.
+The polygon helpers are in :mod:`semmap.polygons`; what a frame could see (negative
+evidence, edges the image border cut) is in :mod:`semmap.camera_view`.
 """
 
 from __future__ import annotations
@@ -40,8 +40,6 @@ from semmap.pointcloud import (
     HEIGHT_ROW,
     PIXEL_U_ROW,
     RANGE_ROW,
-    project_map_points,
-    valid_depth_mask,
 )
 from semmap.polygons import convex_footprint, simplify_polygon
 from semmap.ransac import Plane, fit_plane
@@ -95,7 +93,7 @@ class ObjectObservation:
     #: boxes of one frame overlap; see :mod:`semmap.frame_objects`).
     voxels_map_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
     #: (M,) per footprint edge (vertex k to k+1): the depth image's border drew it, not the
-    #: object (:func:`semmap.view_edges.cut_edges`); None when not known.
+    #: object (:func:`semmap.camera_view.cut_edges`); None when not known.
     footprint_edge_cut: NDArray[np.bool_] | None = None
 
     @property
@@ -106,46 +104,6 @@ class ObjectObservation:
     def height_m(self) -> float:
         """The top of the object above the floor."""
         return self.z_max_m
-
-
-@dataclass(frozen=True)
-class CameraView:
-    """What one frame could see: for "should be visible but is not" (negative evidence).
-
-    ``depth_m``: (H, W) metres, 0/NaN invalid. ``T_map_camera``: (4, 4). Points beyond
-    ``depth_range_m`` or within ``margin_px`` of the image border are not expected to be seen.
-    """
-
-    depth_m: NDArray[np.floating]
-    intrinsics: CameraIntrinsics
-    T_map_camera: Transform
-    depth_range_m: tuple[float, float] = (0.3, 6.0)
-    tolerance_m: float = 0.3
-    margin_px: int = 10
-
-    def expects_visible(self, points_map_m: NDArray[np.floating]) -> NDArray[np.bool_]:
-        """(N,) True where a map point (N, 3) projects inside the image, within range, and the
-        measured depth there (median of a 5x5 patch) is not nearer than the point by more than
-        the tolerance. Pixels without valid depth are not evidence either way (False)."""
-        pts = np.asarray(points_map_m, dtype=np.float64).reshape(-1, 3)
-        out = np.zeros(len(pts), dtype=bool)
-        if len(pts) == 0:
-            return out
-        K = self.intrinsics
-        u, v, z = project_map_points(pts, K, self.T_map_camera)
-        in_range = (z > 0.0) & (z >= self.depth_range_m[0]) & (z <= self.depth_range_m[1])
-        m = self.margin_px
-        inside = in_range & (u >= m) & (u < K.width_px - m) & (v >= m) & (v < K.height_px - m)
-        d = np.asarray(self.depth_m)
-        for i in np.nonzero(inside)[0]:
-            ui, vi = int(u[i]), int(v[i])
-            patch = d[max(0, vi - 2) : vi + 3, max(0, ui - 2) : ui + 3]
-            ok = valid_depth_mask(patch, self.depth_range_m[0], self.depth_range_m[1])
-            if ok.sum() == 0:
-                continue
-            measured = float(np.median(patch[ok]))
-            out[i] = measured >= z[i] - self.tolerance_m
-        return out
 
 
 def _pick_cluster(

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.camera_view import EdgeDirections
 from semmap.class_prior import ClassPrior
 from semmap.config import MapConfig
 from semmap.costmap import ObjectFootprint
@@ -28,7 +29,6 @@ from semmap.polygons import (
     min_perimeter_rectangle,
     polygon_area_m2,
 )
-from semmap.view_edges import EdgeDirections
 
 __all__ = ["HISTORY", "MIN_CLASS_PROB", "MappedObject", "ObjectState", "consistent", "logit", "overlaps",
            "quantile", "sigmoid"]

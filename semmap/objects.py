@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from semmap.camera_view import CameraView
 from semmap.class_extent import MEASURED_ONLY_MARGIN_M, contradicts_class
 from semmap.class_prior import ClassPrior, footprint_sides_m, oversize_likelihood, top_fits
 from semmap.config import ClassConfig, MapConfig
@@ -47,7 +48,7 @@ from semmap.duplicates import (
     DuplicateTests,
 )
 from semmap.errors import MapError
-from semmap.geometry import CameraView, ObjectObservation
+from semmap.geometry import ObjectObservation
 from semmap.object_evidence import view_quality
 from semmap.object_state import (
     MIN_CLASS_PROB,

@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 
+from semmap.camera_view import EdgeDirections, cut_edges, depth_frame_px
 from semmap.config import GeometryConfig, default_classes
 from semmap.frame_objects import observe_frame
 from semmap.objects import ObjectMap
 from semmap.types import Track
-from semmap.view_edges import EdgeDirections, cut_edges, depth_frame_px
 from tests.unit.test_geometry import FLOOR, K, box_of, camera_pose, render
 from tests.unit.test_touching_furniture import TABLE
 

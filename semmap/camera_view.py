@@ -1,6 +1,10 @@
-"""Which sides of an observed footprint the camera's field of view drew, not the object.
+"""What one camera frame could see.
 
-A table running out of the image has a footprint bounded on one side by where the depth image
+:class:`CameraView` tells whether a map point should have been visible in a frame: a miss
+there is negative evidence for the object map.
+
+The rest says which sides of an observed footprint the field of view drew, not the object. A
+table running out of the image has a footprint bounded on one side by where the depth image
 ends. That side is straight, often long, and at an angle to the object's own edges, so a
 least-perimeter rectangle fitted to such a view turns towards it. This module marks each edge
 of an observation's footprint polygon as *cut* when the object's points along it lie on the
@@ -21,10 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semmap.frames import Transform
-from semmap.pointcloud import project_map_points
+from semmap.pointcloud import project_map_points, valid_depth_mask
 from semmap.types import CameraIntrinsics
 
-__all__ = ["DIRECTION_BINS", "EdgeDirections", "cut_edges", "depth_frame_px"]
+__all__ = ["DIRECTION_BINS", "CameraView", "EdgeDirections", "cut_edges", "depth_frame_px"]
 
 #: A row or column with valid depth in at least this share of its pixels is inside the depth
 #: image (a registered depth image has invalid bands along its borders).
@@ -37,6 +41,46 @@ SMOOTH_BINS = 3
 #: Views cut by the field of view by at least this much outline (metres) steer the rectangle:
 #: a few short cut edges never do.
 MIN_CUT_LENGTH_M = 0.2
+
+
+@dataclass(frozen=True)
+class CameraView:
+    """What one frame could see: for "should be visible but is not" (negative evidence).
+
+    ``depth_m``: (H, W) metres, 0/NaN invalid. ``T_map_camera``: (4, 4). Points beyond
+    ``depth_range_m`` or within ``margin_px`` of the image border are not expected to be seen.
+    """
+
+    depth_m: NDArray[np.floating]
+    intrinsics: CameraIntrinsics
+    T_map_camera: Transform
+    depth_range_m: tuple[float, float] = (0.3, 6.0)
+    tolerance_m: float = 0.3
+    margin_px: int = 10
+
+    def expects_visible(self, points_map_m: NDArray[np.floating]) -> NDArray[np.bool_]:
+        """(N,) True where a map point (N, 3) projects inside the image, within range, and the
+        measured depth there (median of a 5x5 patch) is not nearer than the point by more than
+        the tolerance. Pixels without valid depth are not evidence either way (False)."""
+        pts = np.asarray(points_map_m, dtype=np.float64).reshape(-1, 3)
+        out = np.zeros(len(pts), dtype=bool)
+        if len(pts) == 0:
+            return out
+        K = self.intrinsics
+        u, v, z = project_map_points(pts, K, self.T_map_camera)
+        in_range = (z > 0.0) & (z >= self.depth_range_m[0]) & (z <= self.depth_range_m[1])
+        m = self.margin_px
+        inside = in_range & (u >= m) & (u < K.width_px - m) & (v >= m) & (v < K.height_px - m)
+        d = np.asarray(self.depth_m)
+        for i in np.nonzero(inside)[0]:
+            ui, vi = int(u[i]), int(v[i])
+            patch = d[max(0, vi - 2) : vi + 3, max(0, ui - 2) : ui + 3]
+            ok = valid_depth_mask(patch, self.depth_range_m[0], self.depth_range_m[1])
+            if ok.sum() == 0:
+                continue
+            measured = float(np.median(patch[ok]))
+            out[i] = measured >= z[i] - self.tolerance_m
+        return out
 
 
 def depth_frame_px(depth_m: NDArray[np.floating], min_m: float, max_m: float) -> tuple[int, int, int, int]:
