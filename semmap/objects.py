@@ -369,14 +369,14 @@ class ObjectMap:
         s.last_seen_s = max(s.last_seen_s, o.stamp_s)
         s.first_seen_s = min(s.first_seen_s, o.stamp_s)
         fp = np.asarray(o.footprint_xy_m, dtype=np.float64)
-        if not first and not self._top_fits(o):
+        if not first and not self._top_fits(o.class_name, o.top_height_m):
             # The box's cluster held another object's top (a chair's seat under the table):
             # the detection says the table is there, the outline is the chair's. Its top is
             # kept only by an object without a top of its own: a track whose every view shows
             # another object's surface is that object's duplicate, and the top shows it.
             log.debug("object %d: top of track %d at %.2f m is not a %s top, outline ignored",
                       s.object_id, o.track_id, o.top_height_m, o.class_name)
-            if o.top_height_m is not None and not any(self._top_fits(o, t) for t in s.top_hist):
+            if o.top_height_m is not None and not any(self._top_fits(o.class_name, t) for t in s.top_hist):
                 s.top_hist.append(o.top_height_m)
             return
         if not first and not consistent(s.hull_xy_m, fp):
@@ -445,19 +445,18 @@ class ObjectMap:
         # A detector's class that stands for several of ours (COCO's one table) fits any of them.
         height, sides = o.top_height_m if o.top_height_m is not None else o.z_max_m, footprint_sides_m(o.footprint_xy_m)
         fit = max(oversize_likelihood(self.classes[k].prior, height, sides) for k in self._vote_indices(o.class_name))
-        has_top = (o.top_height_m is not None and self._top_fits(o)) if cls.hollow != "none" else None
+        has_top = (o.top_height_m is not None and self._top_fits(o.class_name, o.top_height_m)) if cls.hollow != "none" else None
         q = view_quality(o.score, o.range_m, o.at_image_edge, o.n_voxels, has_top, cfg.footprint_max_range_m, fit)
         s.support += q
         s.logodds = min(s.logodds + cfg.existence_hit_logodds * q, max(s.logodds, cap))
 
-    def _top_fits(self, o: ObjectObservation, top_height_m: float | None = None) -> bool:
-        """A table class's observed top plane (or ``top_height_m``) is at a height one of the
-        classes its detector class stands for can have (:func:`semmap.class_prior.top_fits`);
-        True for other shapes."""
-        h = o.top_height_m if top_height_m is None else top_height_m
-        if h is None or self.classes[self._class_index[o.class_name]].shape != "table":
+    def _top_fits(self, class_name: str, top_height_m: float | None) -> bool:
+        """A top plane at ``top_height_m`` can be the top of an object the detector class
+        ``class_name`` stands for (:func:`semmap.class_prior.top_fits`); True without a top
+        and for classes not shaped as tables."""
+        if top_height_m is None or self.classes[self._class_index[class_name]].shape != "table":
             return True
-        return any(top_fits(self.classes[k].prior, h) for k in self._vote_indices(o.class_name))
+        return any(top_fits(self.classes[k].prior, top_height_m) for k in self._vote_indices(class_name))
 
     def _negative_evidence(self, matched: set[int], view: CameraView | None, stamp_s: float) -> None:
         if view is None:
