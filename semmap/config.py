@@ -451,6 +451,10 @@ class SlamConfig(StageConfig):
     motion_filter_distance_m: float = Field(default=0.1, ge=0.0)
     motion_filter_angle_deg: float = Field(default=5.0, ge=0.0)
     motion_filter_time_s: float = Field(default=2.0, ge=0.0)
+    #: Scans within this long (s) of an OK match take the odometry's prediction and are not
+    #: matched (0: match every scan). 0.09: every third frame of a 30 Hz camera, every
+    #: frame of a 10 Hz one.
+    match_interval_s: float = Field(default=0.09, ge=0.0, le=1.0)
     # Real-time correlative search window around the odometry prediction.
     correlative_linear_window_m: float = Field(default=0.1, ge=0.0)
     correlative_angular_window_deg: float = Field(default=5.0, ge=0.0)

@@ -80,6 +80,30 @@ def test_too_few_points_is_reported_not_diverged() -> None:
     np.testing.assert_allclose(est.pose_map, [3.05, 2.0, 0.0], atol=1e-9)
 
 
+def test_scans_within_the_match_interval_take_the_prediction_and_stay_out_of_the_submap() -> None:
+    # A 30 Hz camera: every third scan is matched; the two between take the odometry's
+    # increment and are neither matched, nor fed to the calibration, nor inserted.
+    cfg = SlamConfig(match_interval_s=0.09, motion_filter_time_s=0.0)
+    rng = np.random.default_rng(3)
+    truth = pose2(3.0, 2.0, 0.0)
+    with Slam2D(cfg, background=False) as slam:
+        results = []
+        for i in range(12):
+            t = i / 30.0
+            odom = truth + np.array([0.002 * i, 0.0, 0.0])  # the odometry creeps, the vehicle stands
+            hits = cast(room_world(), truth, noise_m=0.005, rng=rng)
+            results.append((slam.local.add_scan(t, BandScan.from_points(hits), odom), odom))
+    matched = [r.matched for r, _ in results]
+    first = matched.index(True)
+    assert matched[first:first + 9] == [True, False, False] * 3
+    for (r, odom), (prev, prev_odom) in zip(results[first + 1:], results[first:-1], strict=True):
+        assert r.status is SlamStatus.OK
+        if not r.matched:  # predicted: the previous pose moved by the odometry's increment
+            np.testing.assert_allclose(r.pose_local[:2] - prev.pose_local[:2], odom[:2] - prev_odom[:2], atol=1e-4)
+            assert not r.inserted
+    assert all(r.inserted for r, _ in results[first:] if r.matched)  # motion_filter_time_s 0: every match
+
+
 def test_a_first_scan_without_obstacles_does_not_leave_the_next_ones_on_the_odometry() -> None:
     # On the ground the camera sees nothing in the band: the first scan has no hits. Then
     # the vehicle is in the air, still, while the odometry's heading drifts 2 deg/s. The
@@ -175,7 +199,7 @@ def _spin_heading_error_deg(rate_deg_per_scan: float, scans: int, seed: int) -> 
     camera-wide 87 deg field of view) in the synthetic room."""
     rng = np.random.default_rng(seed)
     x, y = 4.0, 3.0
-    with Slam2D(SlamConfig(), background=False) as slam:
+    with Slam2D(SlamConfig(match_interval_s=0.0), background=False) as slam:  # every scan's match
         for i in range(scans):
             p = pose2(x, y, math.radians(rate_deg_per_scan * i))
             hits = cast(room_world(), p, fov_deg=87.0, n_rays=160, noise_m=0.01, rng=rng)
