@@ -89,14 +89,10 @@ def depth_frame_px(depth_m: NDArray[np.floating], min_m: float, max_m: float) ->
     whole image when none do."""
     d = np.asarray(depth_m)
     h, w = d.shape
-
-    def valid(x: NDArray[np.floating]) -> NDArray[np.bool_]:
-        return (x >= max(min_m, 0.0)) & (x <= max_m) & (x > 0)  # NaN compares False
-
     # Every 4th row says which columns are valid and every 4th column which rows: the shares
     # need no more, and the full image costs four times as much.
-    cols = np.flatnonzero(valid(d[::4]).mean(axis=0) >= FRAME_MIN_VALID_FRAC)
-    rows = np.flatnonzero(valid(d[:, ::4]).mean(axis=1) >= FRAME_MIN_VALID_FRAC)
+    cols = np.flatnonzero(valid_depth_mask(d[::4], min_m, max_m).mean(axis=0) >= FRAME_MIN_VALID_FRAC)
+    rows = np.flatnonzero(valid_depth_mask(d[:, ::4], min_m, max_m).mean(axis=1) >= FRAME_MIN_VALID_FRAC)
     if len(cols) == 0 or len(rows) == 0:
         return 0, 0, w - 1, h - 1
     return int(cols[0]), int(rows[0]), int(cols[-1]), int(rows[-1])
