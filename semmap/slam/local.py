@@ -283,10 +283,10 @@ class LocalSlam:
         # the scans in between on the drifting odometry and anchor the map to it.
         starved = target is not None and target.n_hits < cfg.min_scan_points
         predicted = self._predicts(stamp_s)
-        matched = not predicted and target is not None and target.n_scans > 0 and not starved
-        if matched:
-            assert target is not None
+        matched = False
+        if not predicted and target is not None and target.n_scans > 0 and not starved:
             pose, status, reason, score, min_info = self._match(target, pts, pred)
+            matched = True
         elif starved and target is not None:
             status = SlamStatus.DEGENERATE_FALLBACK_ODOMETRY
             reason = f"submap {target.index} holds {target.n_hits} hits: nothing to match against yet"
