@@ -48,6 +48,7 @@ from companion.px4 import FlightMode
 from companion.service.mission_runner import (
     DEFAULT_ACCEPTANCE_M,
     RETRY_HOLD_S,
+    SETTLED_SPEED_M_S,
     SurveyTurn,
     _remaining,
 )
@@ -414,8 +415,10 @@ class LockstepFlight:
             target = self.goal
             if result.snapped_goal and result.goal_xy_m is not None:
                 target = np.array(result.goal_xy_m)
-                if np.linalg.norm(target - pos[:2]) <= acceptance:
-                    lg.reached = True  # the nearest free point to the blocked goal
+                # At rest at the nearest free point to the blocked goal, as the service's runner.
+                speed = float(np.hypot(*self.ap.vehicle.state().velocity_ned_m_s[:2]))
+                if np.linalg.norm(target - self._pos()[:2]) <= acceptance and speed <= SETTLED_SPEED_M_S:
+                    lg.reached = True
                     return
             outcome = self._follow(traj, target, acceptance, end, check=True)
             if outcome == "reached" and target is self.goal:

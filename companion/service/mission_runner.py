@@ -199,10 +199,13 @@ class MissionRunner(TakeoffSteps):
                                     initial_yaw_rad=self._yaw_enu())
             target = leg
             if result.snapped_goal and result.goal_xy_m is not None:
-                if np.linalg.norm(np.asarray(result.goal_xy_m) - pos[:2]) <= leg.acceptance_m:
-                    # No free point nearer the waypoint than where the vehicle already is.
+                stand_in = np.asarray(result.goal_xy_m, dtype=np.float64)
+                # At rest there, like any waypoint: a leg that ended as the vehicle passed
+                # through the stand-in's acceptance circle would leave it braking up to the
+                # circle's radius beyond, away from the waypoint.
+                if arrived(self.vehicle.snapshot(), stand_in, leg.acceptance_m):
                     rep.reached = rep.snapped_goal = True
-                    goal = np.array(result.goal_xy_m)
+                    goal = stand_in
                     break
                 target = self._snapped_target(leg, result.goal_xy_m, rep)
             capture_s = self.capture_time(costmap) if self.capture_time is not None else None

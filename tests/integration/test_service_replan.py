@@ -13,7 +13,14 @@ from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
 from companion.mavlink.vehicle import Vehicle
-from companion.service.mission_runner import Leg, MissionRunner, position_enu
+from companion.service.mission_runner import (
+    DEFAULT_ACCEPTANCE_M,
+    SETTLED_SPEED_M_S,
+    Leg,
+    MissionRunner,
+    horizontal_speed_m_s,
+    position_enu,
+)
 from companion.service.perception_worker import flight_band
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.demo_e2e import free_udp_port
@@ -148,3 +155,74 @@ def test_a_waypoint_the_map_blocked_is_flown_to_once_the_map_frees_it() -> None:
     report, end = asyncio.run(main())
     assert end is not None and np.linalg.norm(end[:2] - np.array(goal)) < 0.3, (end, report)
     assert report.reached and not report.snapped_goal, report  # type: ignore[attr-defined]
+
+
+def test_a_blocked_waypoints_stand_in_is_reached_at_rest_not_in_passing() -> None:
+    # The waypoint lies in a mapped object's inflation from the start; as the vehicle
+    # approaches, the object grows and moves the nearest free point back towards it. The leg
+    # ends at that point with the vehicle at rest on it, not as it passes through its
+    # acceptance circle (which left it braking up to the circle's radius beyond).
+    cfg = CompanionConfig()
+    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
+    band = flight_band(cfg)
+
+    def block_from(x_m: float, stamp_s: float) -> Costmap:
+        cost = np.zeros(spec.shape_rc, np.uint8)
+        rc = spec.cell_of(np.array([[x_m, -1.0], [7.0, 1.0]]))
+        cost[rc[0, 0]:rc[1, 0] + 1, rc[0, 1]:rc[1, 1] + 1] = LETHAL_OBSTACLE
+        return Costmap(spec, cost, band, stamp_s=stamp_s)
+
+    first, grown = block_from(6.1, 1.0), block_from(5.9, 2.0)
+    goal = (6.0, 0.0)
+    link_port = free_udp_port()
+    link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
+    altitude = cfg.planner.flight_altitude_m
+
+    async def main() -> tuple[object, NDArray[np.float64] | None, float | None, tuple[float, float] | None]:
+        current = [first]
+        stand_ins: list[tuple[float, float]] = []
+        async with MockAutopilot(local_port=0, remote_ports=(link_port,),
+                                 params={"COM_DISARM_PRFLT": -1.0}) as _ap, Vehicle(link) as v:
+            planning = PlanningService(cfg.planner)
+            await asyncio.to_thread(planning.start)
+            try:
+                runner = MissionRunner(v, planning, lambda: current[0], cfg.planner)
+                plan = runner._plan
+
+                async def recording_plan(*args: object, **kwargs: object) -> object:
+                    result, costmap = await plan(*args, **kwargs)  # type: ignore[arg-type]
+                    if result.snapped_goal and result.goal_xy_m is not None:
+                        stand_ins.append(result.goal_xy_m)
+                    return result, costmap
+
+                runner._plan = recording_plan  # type: ignore[method-assign]
+                await v.wait_connected(timeout_s=15.0)
+                await v.state.wait_for(lambda s: s.home is not None and s.position_ned_m is not None, 15.0,
+                                       "home and position")
+                await runner.take_off(altitude)
+
+                async def grow_when_close() -> None:
+                    while True:
+                        pos = position_enu(v.snapshot())
+                        if pos is not None and pos[0] > 5.0:
+                            current[0] = grown
+                            return
+                        await asyncio.sleep(0.02)
+
+                watcher = asyncio.create_task(grow_when_close())
+                try:
+                    report = await runner.fly_leg(Leg(0, goal, altitude))
+                finally:
+                    watcher.cancel()
+                state = v.snapshot()
+                end, speed = position_enu(state), horizontal_speed_m_s(state)
+                await runner.finish()
+            finally:
+                await asyncio.to_thread(planning.close)
+        return report, end, speed, stand_ins[-1] if stand_ins else None
+
+    report, end, speed, stand_in = asyncio.run(main())
+    assert report.reached and report.snapped_goal, report  # type: ignore[attr-defined]
+    assert stand_in is not None and stand_in[0] < 5.9 - cfg.planner.vehicle_radius_m, stand_in
+    assert speed is not None and speed <= SETTLED_SPEED_M_S, (speed, end, report)
+    assert end is not None and np.linalg.norm(end[:2] - np.array(stand_in)) <= DEFAULT_ACCEPTANCE_M, (end, stand_in)
