@@ -185,13 +185,18 @@ class LockstepFlight:
 
     def __init__(self, cfg: CompanionConfig, scenario: Scenario, map_mode: str, detector: Detector,
                  detector_name: str, renderer: RoomRenderer, *, perception_hz: float = 4.0,
-                 check_period_s: float = 0.0, metric_slice_m: float = 0.1, time_limit_s: float = 40.0) -> None:
+                 check_period_s: float = 0.0, metric_slice_m: float = 0.1, time_limit_s: float = 40.0,
+                 compute_s: float | None = None) -> None:
         self.scenario = scenario
         self.placement = SimPlacement(scenario.room, scenario.start_xy_m)
         self.cfg = flight_config(cfg, scenario, self.placement, map_mode, metric_slice_m)
         self.perception_hz = perception_hz
         self.check_period_s = check_period_s
         self.time_limit_s = time_limit_s
+        #: Simulated time each frame's perception and each plan take; None: their wall time (the
+        #: bench measures how the machine's latency shapes the flight; a test fixes it so the
+        #: flight does not depend on how busy the machine is).
+        self.compute_s = compute_s
         gx, gy = self.placement.room_to_map_xy(scenario.goal_xy_m)
         self.goal = np.array([gx, gy])
         self.alt = scenario.altitude_m
@@ -267,7 +272,7 @@ class LockstepFlight:
         t2 = time.perf_counter()
         lat = FrameLatency(stages, 1e3 * (t2 - t1))
         self.log.frames.append(lat)
-        busy = t2 - t0
+        busy = t2 - t0 if self.compute_s is None else self.compute_s
         self._pending = (now + busy, costmap, lat)
         self._next_capture_s = now + max(busy, 1.0 / self.perception_hz)
 
@@ -368,7 +373,7 @@ class LockstepFlight:
             self._unchecked.from_hold = not replan
             self._unchecked = None
         self._e2e_base_ms = None
-        self._wait(wall)
+        self._wait(wall if self.compute_s is None else self.compute_s)
         return result
 
     def _adopt_map(self) -> None:
