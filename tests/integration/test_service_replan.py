@@ -9,14 +9,15 @@ import math
 
 import numpy as np
 import pytest
-from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
+from companion.mavlink.state import VehicleState
 from companion.mavlink.vehicle import Vehicle
 from companion.service.mission_runner import (
     DEFAULT_ACCEPTANCE_M,
     SETTLED_SPEED_M_S,
     Leg,
+    LegReport,
     MissionRunner,
     horizontal_speed_m_s,
     position_enu,
@@ -24,8 +25,9 @@ from companion.service.mission_runner import (
 from companion.service.perception_worker import flight_band
 from companion.sim.autopilot import MockAutopilot
 from companion.sim.demo_e2e import free_udp_port
+from planner.types import PlanResult
 from planner.worker import PlanningService
-from semmap.costmap import LETHAL_OBSTACLE, Costmap
+from semmap.costmap import LETHAL_OBSTACLE, Costmap, VerticalBand
 from semmap.grid import GridSpec
 
 #: A closed-loop flight: the full suite runs it, `make check` does not.
@@ -104,81 +106,25 @@ def test_obstacle_ahead_is_avoided_without_stopping() -> None:
     assert min(between) > 0.1, min(between)
 
 
-def test_a_waypoint_the_map_blocked_is_flown_to_once_the_map_frees_it() -> None:
-    # The nearest free point stands in for a blocked waypoint only while the map blocks it:
-    # early footprints are often too large, and closer views free the waypoint again.
-    cfg = CompanionConfig()
-    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
-    band = flight_band(cfg)
-    free = Costmap(spec, np.zeros(spec.shape_rc, np.uint8), band, stamp_s=1.0)
+def _block(spec: GridSpec, band: VerticalBand, lo_xy_m: tuple[float, float], hi_xy_m: tuple[float, float],
+           stamp_s: float) -> Costmap:
+    """A costmap over ``spec`` with one lethal rectangle from ``lo_xy_m`` to ``hi_xy_m``."""
     cost = np.zeros(spec.shape_rc, np.uint8)
-    rc = spec.cell_of(np.array([[5.6, -1.0], [6.6, 1.0]]))
+    rc = spec.cell_of(np.array([lo_xy_m, hi_xy_m]))
     cost[rc[0, 0]:rc[1, 0] + 1, rc[0, 1]:rc[1, 1] + 1] = LETHAL_OBSTACLE
-    phantom = Costmap(spec, cost, band, stamp_s=2.0)
-    goal = (6.0, 0.0)
+    return Costmap(spec, cost, band, stamp_s=stamp_s)
+
+
+def _fly_leg_as_the_map_changes(cfg: CompanionConfig, first: Costmap, then: Costmap, goal: tuple[float, float],
+                                change_past_x_m: float) -> tuple[LegReport, VehicleState, list[tuple[float, float]]]:
+    """One leg to ``goal`` flown on ``first`` until the vehicle passes ``change_past_x_m``, then
+    on ``then``: (the leg's report, the vehicle's state as the leg returned, every stand-in a
+    plan moved the goal to)."""
     link_port = free_udp_port()
     link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
     altitude = cfg.planner.flight_altitude_m
 
-    async def main() -> tuple[object, NDArray[np.float64] | None]:
-        current = [phantom]
-        async with MockAutopilot(local_port=0, remote_ports=(link_port,),
-                                 params={"COM_DISARM_PRFLT": -1.0}) as _ap, Vehicle(link) as v:
-            planning = PlanningService(cfg.planner)
-            await asyncio.to_thread(planning.start)
-            try:
-                runner = MissionRunner(v, planning, lambda: current[0], cfg.planner)
-                await v.wait_connected(timeout_s=15.0)
-                await v.state.wait_for(lambda s: s.home is not None and s.position_ned_m is not None, 15.0,
-                                       "home and position")
-                await runner.take_off(altitude)
-
-                async def clear_when_close() -> None:
-                    while True:
-                        pos = position_enu(v.snapshot())
-                        if pos is not None and pos[0] > 4.0:
-                            current[0] = free  # closer views: the object was not there
-                            return
-                        await asyncio.sleep(0.05)
-
-                watcher = asyncio.create_task(clear_when_close())
-                try:
-                    report = await runner.fly_leg(Leg(0, goal, altitude))
-                finally:
-                    watcher.cancel()
-                end = position_enu(v.snapshot())
-                await runner.finish()
-            finally:
-                await asyncio.to_thread(planning.close)
-        return report, end
-
-    report, end = asyncio.run(main())
-    assert end is not None and np.linalg.norm(end[:2] - np.array(goal)) < 0.3, (end, report)
-    assert report.reached and not report.snapped_goal, report  # type: ignore[attr-defined]
-
-
-def test_a_blocked_waypoints_stand_in_is_reached_at_rest_not_in_passing() -> None:
-    # The waypoint lies in a mapped object's inflation from the start; as the vehicle
-    # approaches, the object grows and moves the nearest free point back towards it. The leg
-    # ends at that point with the vehicle at rest on it, not as it passes through its
-    # acceptance circle (which left it braking up to the circle's radius beyond).
-    cfg = CompanionConfig()
-    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
-    band = flight_band(cfg)
-
-    def block_from(x_m: float, stamp_s: float) -> Costmap:
-        cost = np.zeros(spec.shape_rc, np.uint8)
-        rc = spec.cell_of(np.array([[x_m, -1.0], [7.0, 1.0]]))
-        cost[rc[0, 0]:rc[1, 0] + 1, rc[0, 1]:rc[1, 1] + 1] = LETHAL_OBSTACLE
-        return Costmap(spec, cost, band, stamp_s=stamp_s)
-
-    first, grown = block_from(6.1, 1.0), block_from(5.9, 2.0)
-    goal = (6.0, 0.0)
-    link_port = free_udp_port()
-    link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
-    altitude = cfg.planner.flight_altitude_m
-
-    async def main() -> tuple[object, NDArray[np.float64] | None, float | None, tuple[float, float] | None]:
+    async def main() -> tuple[LegReport, VehicleState, list[tuple[float, float]]]:
         current = [first]
         stand_ins: list[tuple[float, float]] = []
         async with MockAutopilot(local_port=0, remote_ports=(link_port,),
@@ -189,7 +135,7 @@ def test_a_blocked_waypoints_stand_in_is_reached_at_rest_not_in_passing() -> Non
                 runner = MissionRunner(v, planning, lambda: current[0], cfg.planner)
                 plan = runner._plan
 
-                async def recording_plan(*args: object, **kwargs: object) -> object:
+                async def recording_plan(*args: object, **kwargs: object) -> tuple[PlanResult, Costmap]:
                     result, costmap = await plan(*args, **kwargs)  # type: ignore[arg-type]
                     if result.snapped_goal and result.goal_xy_m is not None:
                         stand_ins.append(result.goal_xy_m)
@@ -201,28 +147,56 @@ def test_a_blocked_waypoints_stand_in_is_reached_at_rest_not_in_passing() -> Non
                                        "home and position")
                 await runner.take_off(altitude)
 
-                async def grow_when_close() -> None:
+                async def change_when_past() -> None:
                     while True:
                         pos = position_enu(v.snapshot())
-                        if pos is not None and pos[0] > 5.0:
-                            current[0] = grown
+                        if pos is not None and pos[0] > change_past_x_m:
+                            current[0] = then
                             return
                         await asyncio.sleep(0.02)
 
-                watcher = asyncio.create_task(grow_when_close())
+                watcher = asyncio.create_task(change_when_past())
                 try:
                     report = await runner.fly_leg(Leg(0, goal, altitude))
                 finally:
                     watcher.cancel()
                 state = v.snapshot()
-                end, speed = position_enu(state), horizontal_speed_m_s(state)
                 await runner.finish()
             finally:
                 await asyncio.to_thread(planning.close)
-        return report, end, speed, stand_ins[-1] if stand_ins else None
+        return report, state, stand_ins
 
-    report, end, speed, stand_in = asyncio.run(main())
-    assert report.reached and report.snapped_goal, report  # type: ignore[attr-defined]
-    assert stand_in is not None and stand_in[0] < 5.9 - cfg.planner.vehicle_radius_m, stand_in
+    return asyncio.run(main())
+
+
+def test_a_waypoint_the_map_blocked_is_flown_to_once_the_map_frees_it() -> None:
+    # The nearest free point stands in for a blocked waypoint only while the map blocks it:
+    # early footprints are often too large, and closer views free the waypoint again.
+    cfg = CompanionConfig()
+    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
+    band = flight_band(cfg)
+    free = Costmap(spec, np.zeros(spec.shape_rc, np.uint8), band, stamp_s=1.0)
+    phantom = _block(spec, band, (5.6, -1.0), (6.6, 1.0), stamp_s=2.0)
+    goal = (6.0, 0.0)
+    # Closer views (past x 4 m): the object was not there.
+    report, state, _ = _fly_leg_as_the_map_changes(cfg, phantom, free, goal, change_past_x_m=4.0)
+    end = position_enu(state)
+    assert end is not None and np.linalg.norm(end[:2] - np.array(goal)) < 0.3, (end, report)
+    assert report.reached and not report.snapped_goal, report
+
+
+def test_a_blocked_waypoints_stand_in_is_reached_at_rest_not_in_passing() -> None:
+    # The waypoint lies in a mapped object's inflation from the start; as the vehicle
+    # approaches, the object grows and moves the nearest free point back towards it. The leg
+    # ends at that point with the vehicle at rest on it, not as it passes through its
+    # acceptance circle (which left it braking up to the circle's radius beyond).
+    cfg = CompanionConfig()
+    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
+    band = flight_band(cfg)
+    first, grown = _block(spec, band, (6.1, -1.0), (7.0, 1.0), 1.0), _block(spec, band, (5.9, -1.0), (7.0, 1.0), 2.0)
+    report, state, stand_ins = _fly_leg_as_the_map_changes(cfg, first, grown, (6.0, 0.0), change_past_x_m=5.0)
+    end, speed = position_enu(state), horizontal_speed_m_s(state)
+    assert report.reached and report.snapped_goal, report
+    assert stand_ins and stand_ins[-1][0] < 5.9 - cfg.planner.vehicle_radius_m, stand_ins
     assert speed is not None and speed <= SETTLED_SPEED_M_S, (speed, end, report)
-    assert end is not None and np.linalg.norm(end[:2] - np.array(stand_in)) <= DEFAULT_ACCEPTANCE_M, (end, stand_in)
+    assert end is not None and np.linalg.norm(end[:2] - np.array(stand_ins[-1])) <= DEFAULT_ACCEPTANCE_M, (end, stand_ins)
