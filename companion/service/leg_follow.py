@@ -51,8 +51,8 @@ class LegFollow:
 
     Trajectory time only advances while the controller flies our setpoints (ACTIVE), so
     after a hold (stale pose or map, link loss) the vehicle resumes where it stopped. While a
-    re-plan in flight is pending, trajectory time stops at the point it starts from
-    (``t_cap``)."""
+    re-plan in flight is pending, the trajectory brakes to rest at the point the re-plan
+    starts from, and trajectory time stops there (``t_cap``)."""
 
     def __init__(self, runner: MissionRunner, traj: Trajectory, leg: Leg, check: bool,
                  capture_mono_s: float | None, rep: LegReport | None) -> None:
@@ -173,6 +173,17 @@ class LegFollow:
             runner.on_path(path)
         return True
 
+    def brake_at(self, t_stop_s: float) -> None:
+        """Re-time the trajectory from now to ``t_stop_s`` to come to rest there, and stop
+        trajectory time at its end: a re-plan that comes back late must find the vehicle
+        stopped at the new path's start, not handed a frozen setpoint with the cruise
+        velocity as feed-forward (PX4 then carries on past it, towards the obstacle)."""
+        s = self.traj.sample(self.t_traj)
+        stretch = _between(self.traj, self.t_traj, t_stop_s)
+        self.traj = time_parametrize(stretch, self.leg.altitude_m, self.runner.limits, initial_yaw_rad=s.yaw_rad,
+                                     initial_speed_m_s=float(np.linalg.norm(s.velocity_m_s[:2])))
+        self.t_traj, self.t_cap = 0.0, self.traj.duration_s
+
     def check_path_ahead(self, now: float, pos: NDArray[np.float64] | None) -> str | None:
         """Every :data:`CHECK_PERIOD_S`, check the rest of the path on the newest costmap (in
         the planning process, off this loop). When it has become blocked, re-plan *without
@@ -197,7 +208,7 @@ class LegFollow:
                 log.info("leg %d: the path ahead crosses a newly mapped obstacle; re-planning "
                          "from (%.2f, %.2f) m, %.1f s ahead, while flying on", leg.seq,
                          start[0], start[1], t_start - self.t_traj)
-                self.t_cap = t_start
+                self.brake_at(t_start)
                 self.replan = asyncio.create_task(runner._plan(np.asarray(start, dtype=np.float64),
                                                                leg.goal_xy_m, replan=True))
         return None

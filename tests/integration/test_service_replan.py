@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 
 import numpy as np
 import pytest
@@ -116,10 +117,14 @@ def _block(spec: GridSpec, band: VerticalBand, lo_xy_m: tuple[float, float], hi_
 
 
 def _fly_leg_as_the_map_changes(cfg: CompanionConfig, first: Costmap, then: Costmap, goal: tuple[float, float],
-                                change_past_x_m: float) -> tuple[LegReport, VehicleState, list[tuple[float, float]]]:
+                                change_past_x_m: float, replan_delay_s: float = 0.0,
+                                late_replans: list[tuple[float, float]] | None = None,
+                                ) -> tuple[LegReport, VehicleState, list[tuple[float, float]]]:
     """One leg to ``goal`` flown on ``first`` until the vehicle passes ``change_past_x_m``, then
     on ``then``: (the leg's report, the vehicle's state as the leg returned, every stand-in a
-    plan moved the goal to)."""
+    plan moved the goal to). ``replan_delay_s``: each re-plan in flight comes back this much
+    later (a loaded planning process), its start's x and the vehicle's largest x meanwhile
+    appended to ``late_replans``."""
     link_port = free_udp_port()
     link = cfg.link.model_copy(update={"url": f"udpin://127.0.0.1:{link_port}"})
     altitude = cfg.planner.flight_altitude_m
@@ -137,6 +142,14 @@ def _fly_leg_as_the_map_changes(cfg: CompanionConfig, first: Costmap, then: Cost
 
                 async def recording_plan(*args: object, **kwargs: object) -> tuple[PlanResult, Costmap]:
                     result, costmap = await plan(*args, **kwargs)  # type: ignore[arg-type]
+                    if kwargs.get("replan") and replan_delay_s > 0.0:
+                        x_max, until = -math.inf, time.monotonic() + replan_delay_s
+                        while time.monotonic() < until:
+                            pos = position_enu(v.snapshot())
+                            x_max = max(x_max, pos[0]) if pos is not None else x_max
+                            await asyncio.sleep(0.02)
+                        if late_replans is not None:
+                            late_replans.append((float(np.asarray(args[0])[0]), x_max))
                     if result.snapped_goal and result.goal_xy_m is not None:
                         stand_ins.append(result.goal_xy_m)
                     return result, costmap
@@ -200,3 +213,21 @@ def test_a_blocked_waypoints_stand_in_is_reached_at_rest_not_in_passing() -> Non
     assert stand_ins and stand_ins[-1][0] < 5.9 - cfg.planner.vehicle_radius_m, stand_ins
     assert speed is not None and speed <= SETTLED_SPEED_M_S, (speed, end, report)
     assert end is not None and np.linalg.norm(end[:2] - np.array(stand_ins[-1])) <= DEFAULT_ACCEPTANCE_M, (end, stand_ins)
+
+
+def test_a_late_replan_finds_the_vehicle_stopped_at_its_start() -> None:
+    # The PX4 GPS-denied flight after a SLAM loss: a re-plan in flight came back 1.5 s late,
+    # the setpoint froze at the re-plan's start with the cruise velocity still as its
+    # feed-forward, and PX4 carried on past it into an obstacle's clearance.
+    cfg = CompanionConfig()
+    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
+    band = flight_band(cfg)
+    free = Costmap(spec, np.zeros(spec.shape_rc, np.uint8), band, stamp_s=1.0)
+    wall = _block(spec, band, (4.0, -1.2), (4.3, 1.2), stamp_s=2.0)
+    late: list[tuple[float, float]] = []
+    report, _, _ = _fly_leg_as_the_map_changes(cfg, free, wall, (8.0, 0.0), change_past_x_m=0.8,
+                                               replan_delay_s=4.0, late_replans=late)
+    assert report.reached and report.replans_invalid >= 1, report
+    assert late, "no re-plan in flight"
+    start_x, x_max = late[0]
+    assert x_max <= start_x + 0.15, (start_x, x_max)
