@@ -107,6 +107,13 @@ def test_obstacle_ahead_is_avoided_without_stopping() -> None:
     assert min(between) > 0.1, min(between)
 
 
+def _empty_room(cfg: CompanionConfig) -> tuple[GridSpec, VerticalBand, Costmap]:
+    """The 10 x 6 m room's grid, the flight band and its empty costmap."""
+    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
+    band = flight_band(cfg)
+    return spec, band, Costmap(spec, np.zeros(spec.shape_rc, np.uint8), band, stamp_s=1.0)
+
+
 def _block(spec: GridSpec, band: VerticalBand, lo_xy_m: tuple[float, float], hi_xy_m: tuple[float, float],
            stamp_s: float) -> Costmap:
     """A costmap over ``spec`` with one lethal rectangle from ``lo_xy_m`` to ``hi_xy_m``."""
@@ -186,9 +193,7 @@ def test_a_waypoint_the_map_blocked_is_flown_to_once_the_map_frees_it() -> None:
     # The nearest free point stands in for a blocked waypoint only while the map blocks it:
     # early footprints are often too large, and closer views free the waypoint again.
     cfg = CompanionConfig()
-    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
-    band = flight_band(cfg)
-    free = Costmap(spec, np.zeros(spec.shape_rc, np.uint8), band, stamp_s=1.0)
+    spec, band, free = _empty_room(cfg)
     phantom = _block(spec, band, (5.6, -1.0), (6.6, 1.0), stamp_s=2.0)
     goal = (6.0, 0.0)
     # Closer views (past x 4 m): the object was not there.
@@ -204,8 +209,7 @@ def test_a_blocked_waypoints_stand_in_is_reached_at_rest_not_in_passing() -> Non
     # ends at that point with the vehicle at rest on it, not as it passes through its
     # acceptance circle (which left it braking up to the circle's radius beyond).
     cfg = CompanionConfig()
-    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
-    band = flight_band(cfg)
+    spec, band, _ = _empty_room(cfg)
     first, grown = _block(spec, band, (6.1, -1.0), (7.0, 1.0), 1.0), _block(spec, band, (5.9, -1.0), (7.0, 1.0), 2.0)
     report, state, stand_ins = _fly_leg_as_the_map_changes(cfg, first, grown, (6.0, 0.0), change_past_x_m=5.0)
     end, speed = position_enu(state), horizontal_speed_m_s(state)
@@ -220,9 +224,7 @@ def test_a_late_replan_finds_the_vehicle_stopped_at_its_start() -> None:
     # the setpoint froze at the re-plan's start with the cruise velocity still as its
     # feed-forward, and PX4 carried on past it into an obstacle's clearance.
     cfg = CompanionConfig()
-    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
-    band = flight_band(cfg)
-    free = Costmap(spec, np.zeros(spec.shape_rc, np.uint8), band, stamp_s=1.0)
+    spec, band, free = _empty_room(cfg)
     wall = _block(spec, band, (4.0, -1.2), (4.3, 1.2), stamp_s=2.0)
     late: list[tuple[float, float]] = []
     report, _, _ = _fly_leg_as_the_map_changes(cfg, free, wall, (8.0, 0.0), change_past_x_m=0.8,
