@@ -1,8 +1,8 @@
 """Per-frame object geometry time, side by side with the same steps done with Open3D.
 
 Used by ``bench/perception.py`` (section ``geometry``) and runnable alone:
-``python bench/_geometry.py [--quick]``. Frames of seeded simulated rooms (640x480, D455-like
-depth noise) with 4 to 10 visible objects; boxes are the objects' mask boxes.
+``python bench/_geometry.py [--quick] [--world scattered]``. Frames of seeded realistic rooms
+(640x480, D455-like depth noise) with 4 to 10 visible objects; boxes are the objects' mask boxes.
 
 * ``ours``: per frame, :func:`semmap.frame_objects.observe_frame` over the boxes
   (:func:`semmap.geometry.observe_object` for every box: back-projection, map transform,
@@ -54,7 +54,7 @@ sys.path.insert(0, str(REPO / "bench"))
 from mapping import INTRINSICS, MaskOracle, OracleNoise, flight_poses  # noqa: E402
 
 from companion.sim.render import DepthNoise, RoomRenderer  # noqa: E402
-from companion.sim.world import generate_room  # noqa: E402
+from companion.sim.world import LAYOUTS, generate_room  # noqa: E402
 from semmap.box_points import shrink_box  # noqa: E402
 from semmap.config import GeometryConfig, MapConfig, default_classes  # noqa: E402
 from semmap.costmap import VerticalBand  # noqa: E402
@@ -67,15 +67,15 @@ from semmap.types import Frame, Track  # noqa: E402
 DEPTH_RANGE_M = (0.3, 6.0)
 
 
-def _frames(n_frames: int, seed: int) -> list[tuple[Frame, list[Track], int]]:
-    """Rendered frames holding 4..10 whole-enough objects, with their (noise-free) boxes and
-    the index of their room."""
+def _frames(n_frames: int, seed: int, layout: str = "realistic") -> list[tuple[Frame, list[Track], int]]:
+    """Rendered frames of ``layout`` rooms holding 4..10 whole-enough objects, with their
+    (noise-free) boxes and the index of their room."""
     out: list[tuple[Frame, list[Track], int]] = []
     classes = default_classes()
     k = 0
     while len(out) < n_frames and k < 20:
         rng = np.random.default_rng(seed + k)
-        room = generate_room(seed + k, width_m=7.0, depth_m=6.0, n_objects=12)
+        room = generate_room(seed + k, width_m=7.0, depth_m=6.0, n_objects=12, layout=layout)
         renderer = RoomRenderer(room, [c.name for c in classes], INTRINSICS,
                                 noise=DepthNoise(min_m=DEPTH_RANGE_M[0], max_m=DEPTH_RANGE_M[1]), seed=seed + k)
         oracle = MaskOracle(room, OracleNoise(box_noise_px=2.0, miss_rate=0.0, confusion_rate=0.0,
@@ -149,12 +149,12 @@ def _stats(ms: list[float]) -> dict[str, float]:
             "ms_mean": round(float(a.mean()), 3)}
 
 
-def bench_geometry(quick: bool) -> dict[str, Any]:
-    """The ``geometry`` section: see the module doc."""
+def bench_geometry(quick: bool, layout: str = "realistic") -> dict[str, Any]:
+    """The ``geometry`` section on frames of ``layout`` rooms: see the module doc."""
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    triples = _frames(12 if quick else 60, seed=500)
+    triples = _frames(12 if quick else 60, seed=500, layout=layout)
     frames = [(f, t) for f, t, _ in triples]
     rooms = [r for _, _, r in triples]
     classes = default_classes()
@@ -246,7 +246,8 @@ def bench_geometry(quick: bool) -> dict[str, Any]:
     d = np.asarray(diffs) if diffs else np.full(1, np.nan)
     agree = float(np.mean(d <= 0.02))
     same_vox = float(np.mean(same_voxels)) if same_voxels else float("nan")
-    print(f"\n== geometry (per 640x480 frame, {n} frames, {np.mean(n_obj):.1f} objects on average) ==")
+    print(f"\n== geometry (per 640x480 frame of {layout} rooms, {n} frames, {np.mean(n_obj):.1f} objects on "
+          "average) ==")
     print(f"  {'case':<44}{'p50 ms':>9}{'p99 ms':>9}   target")
     print(f"  {'ours: geometry + object map':<44}{s_ours['ms_p50']:>9.3f}{s_ours['ms_p99']:>9.3f}")
     label = "ours + scan, grid, layers" if smap is not None else "ours (semantic map not available)"
@@ -261,7 +262,7 @@ def bench_geometry(quick: bool) -> dict[str, Any]:
           f"(difference p50 {100 * float(np.median(d)):.1f} cm, p95 {100 * float(np.percentile(d, 95)):.1f} cm, "
           f"max {100 * float(np.max(d)):.1f} cm); same voxel count {100 * same_vox:.0f} %")
     return {
-        "ours": s_ours, "ours_with_grid_layers": s_total, "ours_with_grid_layers_cpu": s_total_cpu,
+        "world": layout, "ours": s_ours, "ours_with_grid_layers": s_total, "ours_with_grid_layers_cpu": s_total_cpu,
         "ours_geometry_side_by_side": s_cmp, "ours_geometry_side_by_side_cpu": s_cmp_cpu,
         "open3d": s_o3d, "open3d_cpu": s_o3d_cpu, "open3d_unanchored": s_plain, "open3d_unanchored_cpu": s_plain_cpu,
         "speedup_vs_open3d": round(speedup, 2), "speedup_vs_open3d_cpu": round(speedup_cpu, 2),
@@ -299,8 +300,9 @@ def smap_update(smap: Any, frame: Frame, omap: ObjectMap) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="12 frames (under a minute)")
+    ap.add_argument("--world", choices=LAYOUTS, default="realistic", help="room layout of the frames")
     args = ap.parse_args()
-    print(json.dumps({"geometry": bench_geometry(args.quick)}))
+    print(json.dumps({"geometry": bench_geometry(args.quick, args.world)}))
 
 
 if __name__ == "__main__":
