@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import time
 from typing import TYPE_CHECKING
 
@@ -52,7 +51,7 @@ class LegFollow:
     Trajectory time only advances while the controller flies our setpoints (ACTIVE), so
     after a hold (stale pose or map, link loss) the vehicle resumes where it stopped. While a
     re-plan in flight is pending, the trajectory brakes to rest at the point the re-plan
-    starts from, and trajectory time stops there (``t_cap``)."""
+    starts from (:meth:`brake_at`) and ends there."""
 
     def __init__(self, runner: MissionRunner, traj: Trajectory, leg: Leg, check: bool,
                  capture_mono_s: float | None, rep: LegReport | None) -> None:
@@ -64,7 +63,6 @@ class LegFollow:
         self.rep = rep
         self.goal = np.array(leg.goal_xy_m)
         self.t_traj = 0.0
-        self.t_cap = math.inf
         self.last = time.monotonic()
         self.next_check = self.last + CHECK_PERIOD_S
         self.checking: asyncio.Task[tuple[bool, float | None]] | None = None
@@ -105,7 +103,7 @@ class LegFollow:
         ctl = self.runner.vehicle.offboard
         st = ctl.state
         if st is OffboardState.ACTIVE:
-            self.t_traj = min(self.t_traj + now - self.last, self.t_cap)
+            self.t_traj += now - self.last
         elif st is OffboardState.HOLDING and ctl.failsafe.tracking_fault:
             return "tracking"
         elif st is OffboardState.HOLDING and ctl.failsafe.take_position_reset():
@@ -162,11 +160,11 @@ class LegFollow:
             log.info("leg %d: re-plan on the fly gave %s; stopping to re-plan from here",
                      leg.seq, result.status.value if not result.ok else "a moved goal")
             return False
-        path = np.vstack([_between(self.traj, self.t_traj, self.t_cap), result.path_xy_m])
+        path = np.vstack([_between(self.traj, self.t_traj, self.traj.duration_s), result.path_xy_m])
         speed = float(np.linalg.norm(s.velocity_m_s[:2]))
         self.traj = time_parametrize(path, leg.altitude_m, runner.limits, initial_yaw_rad=s.yaw_rad,
                                      initial_speed_m_s=speed)
-        self.t_traj, self.t_cap = 0.0, math.inf
+        self.t_traj = 0.0
         self.next_check = now + CHECK_PERIOD_S
         self.capture_mono_s = runner.capture_time(costmap) if runner.capture_time is not None else None
         if runner.on_path is not None:
@@ -174,21 +172,21 @@ class LegFollow:
         return True
 
     def brake_at(self, t_stop_s: float) -> None:
-        """Re-time the trajectory from now to ``t_stop_s`` to come to rest there, and stop
-        trajectory time at its end: a re-plan that comes back late must find the vehicle
+        """Re-time the trajectory from now to ``t_stop_s`` to come to rest there, where it now
+        ends (its samples hold at the end): a re-plan that comes back late must find the vehicle
         stopped at the new path's start, not handed a frozen setpoint with the cruise
         velocity as feed-forward (PX4 then carries on past it, towards the obstacle)."""
         s = self.traj.sample(self.t_traj)
         stretch = _between(self.traj, self.t_traj, t_stop_s)
         self.traj = time_parametrize(stretch, self.leg.altitude_m, self.runner.limits, initial_yaw_rad=s.yaw_rad,
                                      initial_speed_m_s=float(np.linalg.norm(s.velocity_m_s[:2])))
-        self.t_traj, self.t_cap = 0.0, self.traj.duration_s
+        self.t_traj = 0.0
 
     def check_path_ahead(self, now: float, pos: NDArray[np.float64] | None) -> str | None:
         """Every :data:`CHECK_PERIOD_S`, check the rest of the path on the newest costmap (in
         the planning process, off this loop). When it has become blocked, re-plan *without
-        stopping* from a point a little ahead, trajectory time stopping there until the plan
-        is back; "invalid" (stop and re-plan from here) when even the stretch just ahead is
+        stopping* from a point a little ahead, braking to rest there should the plan not be
+        back by then; "invalid" (stop and re-plan from here) when even the stretch just ahead is
         blocked."""
         runner, leg, rep, traj = self.runner, self.leg, self.rep, self.traj
         if self.checking is None and now >= self.next_check and pos is not None and self.t_traj < traj.duration_s:
