@@ -35,15 +35,26 @@ from semmap.grid import GridSpec
 pytestmark = pytest.mark.slow
 
 
-def _costmaps(cfg: CompanionConfig) -> tuple[Costmap, Costmap]:
-    """An empty room 10 x 6 m, and the same with a wall across the straight line y = 0 at x 4 m."""
+def _empty_room(cfg: CompanionConfig) -> tuple[GridSpec, VerticalBand, Costmap]:
+    """The 10 x 6 m room's grid, the flight band and its empty costmap."""
     spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
     band = flight_band(cfg)
-    free = np.zeros(spec.shape_rc, np.uint8)
-    blocked = free.copy()
-    rc = spec.cell_of(np.array([[4.0, -1.2], [4.3, 1.2]]))
-    blocked[rc[0, 0]:rc[1, 0] + 1, rc[0, 1]:rc[1, 1] + 1] = LETHAL_OBSTACLE
-    return Costmap(spec, free, band, stamp_s=1.0), Costmap(spec, blocked, band, stamp_s=2.0)
+    return spec, band, Costmap(spec, np.zeros(spec.shape_rc, np.uint8), band, stamp_s=1.0)
+
+
+def _block(spec: GridSpec, band: VerticalBand, lo_xy_m: tuple[float, float], hi_xy_m: tuple[float, float],
+           stamp_s: float) -> Costmap:
+    """A costmap over ``spec`` with one lethal rectangle from ``lo_xy_m`` to ``hi_xy_m``."""
+    cost = np.zeros(spec.shape_rc, np.uint8)
+    rc = spec.cell_of(np.array([lo_xy_m, hi_xy_m]))
+    cost[rc[0, 0]:rc[1, 0] + 1, rc[0, 1]:rc[1, 1] + 1] = LETHAL_OBSTACLE
+    return Costmap(spec, cost, band, stamp_s=stamp_s)
+
+
+def _costmaps(cfg: CompanionConfig) -> tuple[Costmap, Costmap]:
+    """An empty room 10 x 6 m, and the same with a wall across the straight line y = 0 at x 4 m."""
+    spec, band, free = _empty_room(cfg)
+    return free, _block(spec, band, (4.0, -1.2), (4.3, 1.2), stamp_s=2.0)
 
 
 def test_obstacle_ahead_is_avoided_without_stopping() -> None:
@@ -105,22 +116,6 @@ def test_obstacle_ahead_is_avoided_without_stopping() -> None:
     between = [speed for x, speed in samples if x <= 6.0]
     assert len(between) > 10
     assert min(between) > 0.1, min(between)
-
-
-def _empty_room(cfg: CompanionConfig) -> tuple[GridSpec, VerticalBand, Costmap]:
-    """The 10 x 6 m room's grid, the flight band and its empty costmap."""
-    spec = GridSpec.covering(-1.0, -3.0, 9.0, 3.0, 0.05)
-    band = flight_band(cfg)
-    return spec, band, Costmap(spec, np.zeros(spec.shape_rc, np.uint8), band, stamp_s=1.0)
-
-
-def _block(spec: GridSpec, band: VerticalBand, lo_xy_m: tuple[float, float], hi_xy_m: tuple[float, float],
-           stamp_s: float) -> Costmap:
-    """A costmap over ``spec`` with one lethal rectangle from ``lo_xy_m`` to ``hi_xy_m``."""
-    cost = np.zeros(spec.shape_rc, np.uint8)
-    rc = spec.cell_of(np.array([lo_xy_m, hi_xy_m]))
-    cost[rc[0, 0]:rc[1, 0] + 1, rc[0, 1]:rc[1, 1] + 1] = LETHAL_OBSTACLE
-    return Costmap(spec, cost, band, stamp_s=stamp_s)
 
 
 def _fly_leg_as_the_map_changes(cfg: CompanionConfig, first: Costmap, then: Costmap, goal: tuple[float, float],
@@ -224,8 +219,7 @@ def test_a_late_replan_finds_the_vehicle_stopped_at_its_start() -> None:
     # the setpoint froze at the re-plan's start with the cruise velocity still as its
     # feed-forward, and PX4 carried on past it into an obstacle's clearance.
     cfg = CompanionConfig()
-    spec, band, free = _empty_room(cfg)
-    wall = _block(spec, band, (4.0, -1.2), (4.3, 1.2), stamp_s=2.0)
+    free, wall = _costmaps(cfg)
     late: list[tuple[float, float]] = []
     report, _, _ = _fly_leg_as_the_map_changes(cfg, free, wall, (8.0, 0.0), change_past_x_m=0.8,
                                                replan_delay_s=4.0, late_replans=late)
