@@ -75,6 +75,9 @@ GAP_S = 0.5
 #: The truth's height above the floor (m) at which the vehicle counts as touched down (its
 #: body stands 0.1 m up on its landing gear).
 TOUCHDOWN_M = 0.15
+#: After the service commanded a SLAM-lost landing, SIH's truth is watched this long (s) for
+#: the touchdown.
+LANDING_WATCH_S = 20.0
 
 
 def scan_gaps(scans: list[tuple[float, float, int, float]]) -> dict[str, Any]:
@@ -269,6 +272,9 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
             tg.create_task(stopper())
             report = await service.run(stop)
             stop.set()
+        if "land" in report.localization.get("vision_loss_actions", ""):
+            # The service stops once it has commanded the landing; PX4 flies it on.
+            await until_touchdown(truth, LANDING_WATCH_S)
     summary = _summary(cfg, placement, report, truth.path_map_m(), wps_map, [], service, time.monotonic() - t_start)
     for k in ("setpoint_gaps", "setpoints_received", "stage_timings_ms", "objects_found", "checkpoints"):
         summary.pop(k, None)
@@ -301,6 +307,17 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
                         scans=np.array(scans).reshape(-1, 4))
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
     return summary
+
+
+async def until_touchdown(truth: SihTruth, timeout_s: float) -> None:
+    """Wait until SIH's truth stands at most :data:`TOUCHDOWN_M` above the floor, or
+    ``timeout_s`` (then a warning)."""
+    deadline = time.monotonic() + timeout_s
+    while not truth.samples or truth.samples[-1].z_m > TOUCHDOWN_M:
+        if time.monotonic() > deadline:
+            log.warning("GPS-denied flight: no touchdown within %.0f s of the service's end", timeout_s)
+            return
+        await asyncio.sleep(0.1)
 
 
 def landing_after_loss(samples: list[Any], lost_at_s: float) -> dict[str, Any]:
