@@ -64,13 +64,14 @@ def room_seeds(cfg: Any, start: int, n: int) -> list[int]:
     return seeds
 
 
-def start_sitl(cfg: Any, log: logging.Logger, sitl_type: type[SitlT] = Px4Sitl) -> SitlT:  # type: ignore[assignment]
-    """A started PX4 SITL at the config's home; a second try when the first is not ready in
-    time (on a loaded machine PX4's EKF can take minutes to converge)."""
+def start_sitl(cfg: Any, log: logging.Logger, sitl_type: type[SitlT] = Px4Sitl,  # type: ignore[assignment]
+               **kw: Any) -> SitlT:
+    """A started PX4 SITL at the config's home (``kw`` to its constructor); a second try when
+    the first is not ready in time (on a loaded machine PX4's EKF can take minutes to converge)."""
     s = cfg.sim
     for attempt in (1, 2):
         sitl = sitl_type(home_lat_lon_alt=(s.home_lat_deg, s.home_lon_deg, s.home_alt_m),
-                         ready_timeout_s=READY_TIMEOUT_S)
+                         ready_timeout_s=READY_TIMEOUT_S, **kw)
         try:
             sitl.start()
             return sitl

@@ -53,6 +53,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench._px4 import add_common_args, prepare, room_seeds, start_sitl, with_seed  # noqa: E402
+from companion.sim.flow_sensor import FLOW_PX4_PARAMS, FlowSensorModel  # noqa: E402
 from companion.sim.odometry import OdometryDriftModel  # noqa: E402
 from companion.sim.px4_gps_denied import GPS_DENIED_PX4_PARAMS, GpsDeniedSitl  # noqa: E402
 from companion.sim.px4_gps_denied_flight import fly_gps_denied  # noqa: E402
@@ -68,11 +69,12 @@ log = logging.getLogger("bench.px4_gps_denied")
 
 
 async def fly_room(cfg: Any, seed: int, out: Path, timeout_s: float, slam_loss_s: float,
-                   odometry_sensor: bool) -> dict[str, Any] | None:
+                   odometry_sensor: bool, flow_sensor: bool) -> dict[str, Any] | None:
     """One flight in room ``seed`` (outputs in ``room-<seed>``, or ``loss-<seed>`` with a SLAM loss)."""
     c = with_seed(cfg, seed)
     try:
-        sitl = await asyncio.to_thread(start_sitl, c, log, GpsDeniedSitl)
+        sitl = await asyncio.to_thread(start_sitl, c, log, GpsDeniedSitl,
+                                       params=FLOW_PX4_PARAMS if flow_sensor else None)
     except Px4SitlError as exc:
         log.error("room %d not flown: %s", seed, exc)
         return None
@@ -81,7 +83,7 @@ async def fly_room(cfg: Any, seed: int, out: Path, timeout_s: float, slam_loss_s
         odometry = OdometryDriftModel(seed=seed) if odometry_sensor else None
         name = f"loss-{seed}" if slam_loss_s > 0.0 else f"room-{seed}"
         summary = await fly_gps_denied(c, out / name, sitl, timeout_s=timeout_s, slam_loss_s=slam_loss_s,
-                                       odometry=odometry)
+                                       odometry=odometry, flow=FlowSensorModel(seed=seed) if flow_sensor else None)
         log.info("room %d flown in %.0f s", seed, time.monotonic() - t0)
     return summary
 
@@ -107,6 +109,9 @@ def main() -> int:
     ap.add_argument("--odometry-sensor", action="store_true",
                     help="the vehicle has an odometry sensor of its own (flow, VIO: the truth drifting as "
                          "the mock's odometry) for the SLAM's motion prior, instead of PX4's velocity")
+    ap.add_argument("--flow-sensor", action="store_true",
+                    help="a downward optical-flow sensor wired to PX4 (made from SIH's truth, sent as "
+                         "OPTICAL_FLOW_RAD; EKF2 fuses it with the vision): PX4 keeps a velocity when the SLAM is lost")
     args = ap.parse_args()
     prepared = prepare(args, "px4_gps_denied", log)
     if prepared is None:
@@ -129,18 +134,19 @@ def main() -> int:
     camera = (f"{cfg.camera.width_px}x{cfg.camera.height_px} at {cfg.camera.rate_hz:g} Hz, detector "
               f"{cfg.detector.kind}, SLAM prior {'weak' if args.weak_prior else 'as shipped'} from "
               f"{'an odometry sensor' if args.odometry_sensor else 'PX4 velocity'}, vision 1-sigma "
-              f"{cfg.link.vision_position_std_m:g} m")
+              f"{cfg.link.vision_position_std_m:g} m{', a flow sensor on PX4' if args.flow_sensor else ''}")
     load0 = os.getloadavg()
     t0 = time.monotonic()
     seeds = room_seeds(cfg, args.seed, n)
     rooms: dict[str, dict[str, Any]] = {}
     for seed in seeds:
-        summary = asyncio.run(fly_room(cfg, seed, out, args.timeout, 0.0, args.odometry_sensor))
+        summary = asyncio.run(fly_room(cfg, seed, out, args.timeout, 0.0, args.odometry_sensor, args.flow_sensor))
         if summary is not None:
             rooms[str(seed)] = summary
     losses: dict[str, dict[str, Any]] = {}
     if not (args.quick or args.no_slam_loss):
-        summary = asyncio.run(fly_room(cfg, seeds[0], out, args.timeout, args.slam_loss_s, args.odometry_sensor))
+        summary = asyncio.run(fly_room(cfg, seeds[0], out, args.timeout, args.slam_loss_s, args.odometry_sensor,
+                                         args.flow_sensor))
         if summary is not None:
             losses[str(seeds[0])] = summary
     load1 = os.getloadavg()

@@ -33,6 +33,7 @@ from companion.errors import LinkError
 from companion.geo import GeoOrigin
 from companion.mavlink.link import MavlinkLink
 from companion.mavlink.state import LinkLike
+from companion.sim.flow_sensor import FlowSensorModel, flow_rad_fields, integration_dt
 from companion.sim.odometry import OdometryDriftModel
 from companion.sim.px4_sitl import READY_LINE, Px4Sitl
 from companion.sim.sim_world import (
@@ -128,12 +129,17 @@ class TruthSample:
     pitch_rad: float
 
 
+def truth_attitude(msg: mavlink.MAVLink_message) -> NDArray[np.float64]:
+    """(3, 3) ``R_ned_frd`` of a HIL_STATE_QUATERNION."""
+    w, x, y, z = (float(v) for v in msg.attitude_quaternion)
+    return np.asarray(Rotation.from_quat([x, y, z, w]).as_matrix(), dtype=np.float64)
+
+
 def truth_pose(msg: mavlink.MAVLink_message, origin: GeoOrigin) -> tuple[NDArray[np.float64], float]:
     """(4, 4) map-frame FLU body pose and its ENU yaw from a HIL_STATE_QUATERNION, positions
     relative to ``origin`` (z above its altitude)."""
     n, e, d = origin.to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-    w, x, y, z = (float(v) for v in msg.attitude_quaternion)
-    R_ned_frd = Rotation.from_quat([x, y, z, w]).as_matrix()
+    R_ned_frd = truth_attitude(msg)
     R_map_flu = R_NED_ENU @ R_ned_frd @ R_FLU_FRD  # both swaps are their own inverse
     T = make_transform(R_map_flu, R_NED_ENU @ np.array([n, e, d]))
     return T, math.atan2(float(R_map_flu[1, 0]), float(R_map_flu[0, 0]))
@@ -146,8 +152,14 @@ class SihTruth:
     are stamped on arrival."""
 
     def __init__(self, url: str, placement: SimPlacement, shared: SharedSimState,
-                 odometry: OdometryDriftModel | None = None) -> None:
+                 odometry: OdometryDriftModel | None = None, flow: FlowSensorModel | None = None) -> None:
         self.url = url
+        #: A downward flow sensor wired to PX4 (see :mod:`companion.sim.flow_sensor`): each
+        #: truth sample goes back to PX4 as OPTICAL_FLOW_RAD on the display link. None: none.
+        self.flow = flow
+        self._flow_prev_s: float | None = None
+        #: OPTICAL_FLOW_RAD sent to PX4.
+        self.flow_sent = 0
         #: An odometry sensor of its own (optical flow, VIO): the truth through this drift,
         #: handed to the camera's frames with PX4's estimate as their pose (see
         #: :meth:`follow_estimate`); None: frames carry no pose, the service poses them from
@@ -194,6 +206,8 @@ class SihTruth:
             log.warning("SIH truth: PX4 time %.3f s maps to %.3f s, %.3f s from its arrival: stamped on arrival",
                         px4_s, mapped, mapped - local_s)
         self.latest = (local_s, T)
+        if self.flow is not None:
+            self._send_flow(msg, float(T[2, 3]) - STANDING_HEIGHT_M)
         if self.odometry is None:
             self.shared.set_pose(local_s, T)
         elif self._estimate is not None and self._floor_down_m is not None:
@@ -201,6 +215,24 @@ class SihTruth:
         x, y, z = (float(v) for v in T[:3, 3])
         roll, pitch, _ = rpy_from_rotation(T[:3, :3])
         self.samples.append(TruthSample(px4_s, local_s, x, y, z, yaw, roll, pitch))
+
+    def _send_flow(self, msg: mavlink.MAVLink_message, height_m: float) -> None:
+        """The flow over the time since the previous truth sample, on arrival times: the
+        sensor integrates between its own messages, and PX4 stamps each on arrival."""
+        assert self.flow is not None
+        now = time.monotonic()
+        dt, self._flow_prev_s = integration_dt(self._flow_prev_s, now), now
+        if dt is None:
+            return
+        v_ned = 0.01 * np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)  # cm/s
+        rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
+        sample = self.flow.sample(dt, v_ned, truth_attitude(msg), rates, height_m)
+        try:
+            self.link.send(self.link.mav.optical_flow_rad_encode(int(now * 1e6), 0, **flow_rad_fields(sample)))
+        except LinkError as exc:
+            log.warning("optical flow not sent: %s", exc)
+            return
+        self.flow_sent += 1
 
     def follow_estimate(self, link: LinkLike, target_system: int = 1) -> Callable[[], None]:
         """Keep PX4's estimate (LOCAL_POSITION_NED, ATTITUDE) from ``link`` as the frames' pose."""

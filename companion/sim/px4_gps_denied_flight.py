@@ -35,6 +35,7 @@ from companion.px4 import FlightMode
 from companion.service.app import CompanionService
 from companion.service.checkpoint import checkpoint_path
 from companion.sim.demo_e2e import _summary, crossing_waypoints_room, feasible_seed
+from companion.sim.flow_sensor import FlowSensorModel
 from companion.sim.odometry import OdometryDriftModel
 from companion.sim.px4_gps_denied import (
     EstimateRecorder,
@@ -141,10 +142,13 @@ async def set_origin_until_home(svc: CompanionService, origin: GeoOrigin) -> Non
 
 async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDeniedSitl, *,
                          timeout_s: float = 240.0, slam_loss_s: float = 0.0,
-                         odometry: OdometryDriftModel | None = None) -> dict[str, Any]:
+                         odometry: OdometryDriftModel | None = None,
+                         flow: FlowSensorModel | None = None) -> dict[str, Any]:
     """Fly the demo crossing on the SLAM pose with ``sitl`` (started, not necessarily ready);
     returns the summary (also ``summary.json`` in ``out_dir``). ``odometry``: an odometry
-    sensor of the vehicle's own for the SLAM's motion prior (see :class:`SihTruth`)."""
+    sensor of the vehicle's own for the SLAM's motion prior; ``flow``: a flow sensor wired to
+    PX4 (``sitl`` started with :data:`~companion.sim.flow_sensor.FLOW_PX4_PARAMS`; see
+    :class:`SihTruth`)."""
     out = Path(out_dir)
     await asyncio.to_thread(out.mkdir, parents=True, exist_ok=True)
     t_start = time.monotonic()
@@ -172,7 +176,7 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
         # The frames carry the sensor's odometry, which PX4's estimate does not contain.
         cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"camera_pose": "autopilot"}),
                                      "link": cfg.link.model_copy(update={"vision_odometry_independent": True})})
-    async with SihTruth(sitl.display_url, placement, SharedSimState(), odometry) as truth:
+    async with SihTruth(sitl.display_url, placement, SharedSimState(), odometry, flow) as truth:
         await asyncio.to_thread(sitl.stream_truth)
         await truth.wait_first()
         plan = MissionPlan(tuple(Waypoint(xyz_map_m=(x, y, cfg.planner.flight_altitude_m), acceptance_radius_m=0.3)
@@ -290,9 +294,12 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     summary["localization"] = report.localization
     summary["scan_gaps"] = scan_gaps(scans)
     summary["vision_loss_actions"] = report.localization.get("vision_loss_actions", "")
+    summary["optical_flow_sent"] = truth.flow_sent
     if slam_loss_s > 0.0:
-        if loss_window:
+        if loss_window and "land" in summary["vision_loss_actions"]:
+            # A resumed flight's touchdown is the mission's own landing, not the loss's.
             loss.update(landing_after_loss(truth.samples, loss_window[0]))
+        if loss_window:
             # When PX4 said what, counted from the camera's stop (within a poll period).
             loss["px4_events_after_loss_s"] = [(round(t - loss_window[0], 1), ln.strip())
                                                for t, ln in px4_events if t >= loss_window[0]]

@@ -23,6 +23,7 @@ from companion.geo import GeoOrigin
 from companion.mavlink.timesync import TimesyncConvergence
 from companion.mavlink.vehicle import Vehicle
 from companion.mavlink.vision import ECHOED_HEIGHT_STD_M, VisionPose, VisionStream
+from companion.sim.flow_sensor import FLOW_PX4_PARAMS, FlowSensorModel
 from companion.sim.px4_gps_denied import (
     EstimateRecorder,
     GpsDeniedSitl,
@@ -46,13 +47,13 @@ ARRIVAL_JITTER_S = 0.1
 
 
 @pytest.fixture
-def gps_denied_sitl() -> Iterator[GpsDeniedSitl]:
-    """A fresh PX4 for each test: the take-off test needs a vehicle whose estimator has not
-    been moved by another test's vision resets."""
+def gps_denied_sitl(request: pytest.FixtureRequest) -> Iterator[GpsDeniedSitl]:
+    """A fresh PX4 for each test (parameters added by indirect parametrization): the take-off
+    test needs a vehicle whose estimator has not been moved by another test's vision resets."""
     ok, why = sitl_available()
     if not ok:
         pytest.skip(why)
-    with GpsDeniedSitl() as running:
+    with GpsDeniedSitl(params=getattr(request, "param", None)) as running:
         yield running
 
 
@@ -148,14 +149,20 @@ def test_ekf2_takes_the_companions_odometry_as_its_position(gps_denied_sitl: Gps
     assert "reset_after_s" in out and float(out["reset_after_s"]) < 1.5, out  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("gps_denied_sitl", [FLOW_PX4_PARAMS], indirect=True)
 def test_the_height_estimate_follows_the_vehicle_through_take_off(gps_denied_sitl: GpsDeniedSitl) -> None:
     """Vision gives EKF2 no height; from "Takeoff detected" until the vehicle has climbed 0.1 m
     EKF2 has no range finder either (SIH's reads a constant on the floor, which EKF2's stuck
     check holds against it) and no zero-velocity fusion, so the baro must stay fused: with its
     ground-effect dead zone the estimate ran off upwards during the spool-up and the take-off
-    controller, following it, left the vehicle on the floor."""
+    controller, following it, left the vehicle on the floor.
+
+    The vehicle carries the simulated flow sensor, as the bench's ``--flow-sensor`` flights
+    do: in the air EKF2 must fuse its flow, not reject it (a sign or frame wrong)."""
     sitl = gps_denied_sitl
-    truth = SihTruth(sitl.display_url, placement_around_start(CompanionConfig()), SharedSimState())
+    truth = SihTruth(sitl.display_url, placement_around_start(CompanionConfig()), SharedSimState(),
+                     flow=FlowSensorModel())
+    flags: list[str] = []
     est = EstimateRecorder()
     armed_at: list[float] = []
 
@@ -188,6 +195,7 @@ def test_the_height_estimate_follows_the_vehicle_through_take_off(gps_denied_sit
                 armed_at.append(time.monotonic())
                 await v.commands.takeoff(TAKEOFF_ALT_M)
                 await asyncio.sleep(TAKEOFF_WATCH_S)
+                flags.append(await asyncio.to_thread(sitl.listener, "estimator_status_flags"))
                 await v.commands.land()
             detach()
 
@@ -208,3 +216,6 @@ def test_the_height_estimate_follows_the_vehicle_through_take_off(gps_denied_sit
     assert true_z.max() > 0.5 * TAKEOFF_ALT_M, f"the vehicle never climbed: true height at most {true_z.max():.2f} m"
     assert err.max() < 0.15, (f"PX4's height left the truth by {err.max():.2f} m during the take-off "
                               f"(at {during[int(err.argmax()), 0] - armed_at[0]:.1f} s after arming)")
+    assert truth.flow_sent > 100
+    assert "cs_opt_flow: True" in flags[0], flags[0]
+    assert "reject_optflow_x: False" in flags[0] and "reject_optflow_y: False" in flags[0], flags[0]
