@@ -28,7 +28,9 @@ By default the SLAM's motion prior is what the service makes of frames without o
 dead-reckoned from PX4's velocity, which without GPS is built from the SLAM's own pose;
 ``--odometry-sensor`` gives the vehicle an odometry of its own (the truth through the mock's
 odometry drift, as a flow sensor or VIO would deliver it) and ``--weak-prior`` loosens the
-SLAM's pull towards its prior instead.
+SLAM's pull towards its prior instead. ``--flow-sensor`` wires a downward optical-flow sensor
+to PX4 (made from SIH's truth, :mod:`companion.sim.flow_sensor`), which gives EKF2 a velocity
+of its own while the SLAM is lost: without one PX4 holds on its IMU alone.
 
 PX4 SITL and the whole service load both cores of this machine: the load average is printed
 with the figures; ``--detector oracle --camera-scale 0.5`` leaves the SLAM more of them.
