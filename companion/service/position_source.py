@@ -23,6 +23,7 @@ from companion.mavlink.timesync import TimesyncConvergence
 from companion.mavlink.vision import DEFAULT_YAW_STD_RAD, VisionPose, VisionStream
 from companion.service.localization import LocalizationState, SharedLocalization, localized_source
 from companion.service.vision_loss import (
+    FLOW_PARAM,
     LAND_SPEED_PARAM,
     NOAID_PARAM,
     VisionLossGuard,
@@ -253,6 +254,8 @@ class ServiceLocalization:
             out["vision_gap_resets"] = self.vision_source.gap_resets
         if self.loss_guard_ is not None:
             out["vision_loss_actions"] = ",".join(a.value for _, a, _ in self.loss_guard_.events)
+            if self.loss_guard_.flow_aided is not None:
+                out["px4_flow_aided"] = int(self.loss_guard_.flow_aided)
         return out
 
     @property
@@ -272,8 +275,10 @@ class ServiceLocalization:
         altitude_m = self.cfg.planner.flight_altitude_m
         monitor = VisionLossMonitor(c.vision_lost_hold_s, c.vision_lost_land_s, default_height_m=altitude_m)
         params = ParamWatch(link, c.target_system, c.target_component, (NOAID_PARAM, LAND_SPEED_PARAM))
+        flow = ParamWatch(link, c.target_system, c.target_component, (FLOW_PARAM,))
         self.loss_guard_ = VisionLossGuard(monitor, link, self.vision_age_s, in_air, land, clock=time.monotonic,
-                                           height_m=height_m, params=params, flight_altitude_m=altitude_m)
+                                           height_m=height_m, params=params, flight_altitude_m=altitude_m,
+                                           flow_param=flow)
         return self.loss_guard_
 
     def vision_age_s(self) -> float | None:

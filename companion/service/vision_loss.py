@@ -59,6 +59,11 @@ LAND_SPEED_PARAM = "MPC_LAND_SPEED"
 LAND_MARGIN_S = 1.0
 #: How often the guard asks again for parameters PX4 has not answered (seconds).
 PARAM_RETRY_S = 2.0
+#: PX4's optical-flow fusion switch (bit 0): without a flow sensor PX4 holds on its IMU alone
+#: while our pose is lost, and its estimate does not see the vehicle drift.
+FLOW_PARAM = "EKF2_OF_CTRL"
+#: Times the guard asks for :data:`FLOW_PARAM` (a PX4 before v1.14 has none; it only warns).
+FLOW_ASKS = 3
 
 
 class VisionLossAction(enum.Enum):
@@ -192,13 +197,15 @@ class VisionLossGuard:
     ``EKF2_NOAID_TOUT`` and ``MPC_LAND_SPEED`` as they arrive (asked for until answered, then
     followed), which set the monitor's limits; the first complete pair is checked against
     the monitor's configured deadline at ``flight_altitude_m`` and :meth:`run` raises the
-    :class:`ConfigError` of one it cannot carry (:func:`check_land_after`)."""
+    :class:`ConfigError` of one it cannot carry (:func:`check_land_after`). ``flow_param``:
+    PX4's :data:`FLOW_PARAM`; when it says PX4 fuses no optical flow the guard warns once
+    (:attr:`flow_aided` False), since a hold then drifts on the IMU alone."""
 
     def __init__(self, monitor: VisionLossMonitor, link: MavlinkLink, vision_age_s: Callable[[], float | None],
                  in_air: Callable[[], bool], land: Callable[[], Awaitable[None]], *,
                  clock: Callable[[], float], period_s: float = GUARD_PERIOD_S,
                  height_m: Callable[[], float | None] | None = None, params: ParamWatch | None = None,
-                 flight_altitude_m: float | None = None) -> None:
+                 flight_altitude_m: float | None = None, flow_param: ParamWatch | None = None) -> None:
         self.monitor = monitor
         self.link = link
         self.vision_age_s = vision_age_s
@@ -212,6 +219,11 @@ class VisionLossGuard:
         self._refusal: ConfigError | None = None
         if params is not None:
             params.on_change = self._on_param
+        self.flow_param = flow_param
+        #: PX4 fuses optical flow (None: not known yet, or PX4 did not say).
+        self.flow_aided: bool | None = None
+        if flow_param is not None:
+            flow_param.on_change = self._on_flow_param
         #: Every action taken, as (clock s, action, seconds without vision).
         self.events: list[tuple[float, VisionLossAction, float]] = []
 
@@ -236,21 +248,40 @@ class VisionLossGuard:
             return
         self.monitor.limits = limits
 
+    def _on_flow_param(self, name: str, value: float) -> None:
+        aided = int(value) & 1 == 1
+        if not aided and self.flow_aided is not False:
+            log.warning("PX4 fuses no optical flow (%s %d): while our pose is lost it holds on its IMU alone, and "
+                        "the vehicle drifts unseen (decimetres in seconds); wire a downward flow sensor to PX4 and "
+                        "set %s 1 (docs/mavlink.md)", name, int(value), name)
+        self.flow_aided = aided
+
     async def run(self) -> None:
         detach = self.params.attach() if self.params is not None else None
+        detach_flow = self.flow_param.attach() if self.flow_param is not None else None
         try:
             next_ask = -math.inf
+            flow_asks = 0
             while True:
                 if self._refusal is not None:
                     raise self._refusal
-                if self.params is not None and not self.params.complete and self.clock() >= next_ask:
-                    self.params.request_missing()
-                    next_ask = self.clock() + PARAM_RETRY_S
+                if self.clock() >= next_ask:
+                    asked = False
+                    if self.params is not None and not self.params.complete:
+                        self.params.request_missing()
+                        asked = True
+                    if self.flow_param is not None and not self.flow_param.complete and flow_asks < FLOW_ASKS:
+                        self.flow_param.request_missing()
+                        flow_asks += 1
+                        asked = True
+                    if asked:
+                        next_ask = self.clock() + PARAM_RETRY_S
                 await self.check()
                 await asyncio.sleep(self.period_s)
         finally:
-            if detach is not None:
-                detach()
+            for d in (detach, detach_flow):
+                if d is not None:
+                    d()
 
     async def check(self) -> VisionLossAction | None:
         now = self.clock()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import time
 from pathlib import Path
 from typing import Any, cast
@@ -13,12 +15,16 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import CompanionConfig
 from companion.mavlink.link import MavlinkLink
+from companion.mavlink.params import ParamWatch
 from companion.mavlink.vision import VisionPose, VisionStream
-from companion.px4 import FlightMode
+from companion.px4 import MAV_PARAM_TYPE_INT32, FlightMode, encode_param_value
 from companion.service.app import CompanionService
 from companion.service.position_source import ServiceLocalization
 from companion.service.vision_loss import (
+    FLOW_ASKS,
+    FLOW_PARAM,
     LAND_MARGIN_S,
+    PARAM_RETRY_S,
     EstimateLimits,
     VisionLossAction,
     VisionLossGuard,
@@ -198,3 +204,44 @@ def test_a_stop_while_the_slam_lost_landing_is_commanded_keeps_the_landing(tmp_p
     asyncio.run(svc.missions.land_here("the SLAM pose (PX4's position source) is lost"))
     asyncio.run(svc.deactivate())
     assert vehicle.released == [FlightMode.LAND]
+
+
+def _param_value(link: MavlinkLink, name: str, value: int) -> mavlink.MAVLink_message:
+    msg = link.mav.param_value_encode(name.encode("ascii"), encode_param_value(value, MAV_PARAM_TYPE_INT32),
+                                      MAV_PARAM_TYPE_INT32, 1, 0)
+    msg._header.srcSystem, msg._header.srcComponent = 1, 1  # as PX4 sends it
+    return msg
+
+
+@pytest.mark.parametrize(("of_ctrl", "warned"), [(0, True), (1, False)])
+def test_the_guard_warns_when_px4_has_no_flow_sensor_to_hold_on(of_ctrl: int, warned: bool,
+                                                                  caplog: pytest.LogCaptureFixture) -> None:
+    """Without optical flow a hold drifts on PX4's IMU alone (PX4 SITL: into a chair's clearance)."""
+    link = MavlinkLink("udpout://127.0.0.1:9")
+    sent: list[mavlink.MAVLink_message] = []
+    link.send = sent.append  # type: ignore[method-assign]
+    now = [0.0]
+
+    async def land() -> None:
+        return None
+
+    flow = ParamWatch(link, 1, 1, (FLOW_PARAM,))
+    guard = VisionLossGuard(VisionLossMonitor(1.0, 4.0), link, lambda: None, lambda: False, land,
+                            clock=lambda: now[0], period_s=0.01, flow_param=flow)
+
+    async def main() -> None:
+        task = asyncio.create_task(guard.run())
+        for _ in range(5):  # 5 retry periods without an answer: asked FLOW_ASKS times, no more
+            await asyncio.sleep(0.03)
+            now[0] += PARAM_RETRY_S
+        flow._on_param(_param_value(link, FLOW_PARAM, of_ctrl))
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+    with caplog.at_level(logging.WARNING, logger="companion.service.vision_loss"):
+        asyncio.run(main())
+    asks = [m for m in sent if m.get_type() == "PARAM_REQUEST_READ"]
+    assert len(asks) == FLOW_ASKS
+    assert guard.flow_aided is (not warned)
+    assert any("fuses no optical flow (EKF2_OF_CTRL 0)" in r.getMessage() for r in caplog.records) is warned
