@@ -149,6 +149,13 @@ class SimEstimator:
         self.vision_fused += 1
         return True
 
+    def shift(self, north_m: float, east_m: float) -> None:
+        """Move the estimate from now on by (north, east) against the truth (dead reckoning's
+        unseen drift); the recorded past stays as it was."""
+        D = np.array([north_m, east_m, 0.0])
+        self._correction = _compose(D, self._correction)
+        self._est = _compose(D, self._est)
+
     def to_true(self, target: Target) -> Target:
         """A setpoint in the estimate's frame carried into the true frame."""
         if not self.active:

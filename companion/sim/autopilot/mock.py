@@ -448,7 +448,7 @@ class MockAutopilot:
         self.estimator.update(self.vehicle.state(), armed=self._armed)
         self.navigator.tick(self.vehicle.stamp_s)
         self._sink_in_hold(dt_s)
-        self.aiding.tick(now)
+        self.aiding.tick(now, airborne=self._armed and self.in_air)
         self._check_offboard(now)
         self._check_position(now)
         self._update_landed(now)
