@@ -24,12 +24,15 @@ from numpy.typing import NDArray
 FLOW_PX4_PARAMS: dict[str, float | int] = {
     "EKF2_OF_CTRL": 1,         # fuse optical flow
     "SENS_FLOW_ROT": 0,        # the sensor's axes are the body's
-    "SENS_FLOW_MINHGT": 0.08,  # below this the image is out of focus (the sensor's data sheet)
+    "SENS_FLOW_MINHGT": 0.08,  # below this the sensor reads nothing (FlowSensorModel.min_height_m)
     "SENS_FLOW_MAXHGT": 4.0,   # indoors the floor is never farther
 }
 
 #: What a flow sensor's quality field means by a clean image (MAVLink: 0 none, 255 best).
 FULL_QUALITY = 255
+#: Gaps between truth messages outside this (s) are no integration interval: the first one,
+#: or a stall of the loop, whose flow would be the rate of one instant stretched over it.
+MIN_DT_S, MAX_DT_S = 0.002, 0.1
 
 
 @dataclass(frozen=True)
@@ -87,10 +90,6 @@ def flow_rad_fields(s: FlowSample) -> dict[str, float | int]:
             "integrated_zgyro": s.gyro_xyz_rad[2], "temperature": 2500, "quality": s.quality,
             "time_delta_distance_us": 0, "distance": -1.0}
 
-
-#: Gaps between truth messages outside this (s) are no integration interval: the first one,
-#: or a stall of the loop, whose flow would be the rate of one instant stretched over it.
-MIN_DT_S, MAX_DT_S = 0.002, 0.1
 
 
 def integration_dt(prev_s: float | None, now_s: float) -> float | None:
