@@ -91,7 +91,6 @@ def flow_rad_fields(s: FlowSample) -> dict[str, float | int]:
             "time_delta_distance_us": 0, "distance": -1.0}
 
 
-
 def integration_dt(prev_s: float | None, now_s: float) -> float | None:
     """The interval to integrate over since ``prev_s`` (None: skip this sample)."""
     if prev_s is None:
