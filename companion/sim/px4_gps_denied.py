@@ -129,17 +129,12 @@ class TruthSample:
     pitch_rad: float
 
 
-def truth_attitude(msg: mavlink.MAVLink_message) -> NDArray[np.float64]:
-    """(3, 3) ``R_ned_frd`` of a HIL_STATE_QUATERNION."""
-    w, x, y, z = (float(v) for v in msg.attitude_quaternion)
-    return np.asarray(Rotation.from_quat([x, y, z, w]).as_matrix(), dtype=np.float64)
-
-
 def truth_pose(msg: mavlink.MAVLink_message, origin: GeoOrigin) -> tuple[NDArray[np.float64], float]:
     """(4, 4) map-frame FLU body pose and its ENU yaw from a HIL_STATE_QUATERNION, positions
     relative to ``origin`` (z above its altitude)."""
     n, e, d = origin.to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-    R_ned_frd = truth_attitude(msg)
+    w, x, y, z = (float(v) for v in msg.attitude_quaternion)
+    R_ned_frd = Rotation.from_quat([x, y, z, w]).as_matrix()
     R_map_flu = R_NED_ENU @ R_ned_frd @ R_FLU_FRD  # both swaps are their own inverse
     T = make_transform(R_map_flu, R_NED_ENU @ np.array([n, e, d]))
     return T, math.atan2(float(R_map_flu[1, 0]), float(R_map_flu[0, 0]))
@@ -207,7 +202,8 @@ class SihTruth:
                         px4_s, mapped, mapped - local_s)
         self.latest = (local_s, T)
         if self.flow is not None:
-            self._send_flow(msg, float(T[2, 3]) - STANDING_HEIGHT_M)
+            # The body's attitude back in NED/FRD (both swaps are their own inverse).
+            self._send_flow(msg, R_NED_ENU @ T[:3, :3] @ R_FLU_FRD, float(T[2, 3]) - STANDING_HEIGHT_M)
         if self.odometry is None:
             self.shared.set_pose(local_s, T)
         elif self._estimate is not None and self._floor_down_m is not None:
@@ -216,7 +212,8 @@ class SihTruth:
         roll, pitch, _ = rpy_from_rotation(T[:3, :3])
         self.samples.append(TruthSample(px4_s, local_s, x, y, z, yaw, roll, pitch))
 
-    def _send_flow(self, msg: mavlink.MAVLink_message, height_m: float) -> None:
+    def _send_flow(self, msg: mavlink.MAVLink_message, R_ned_frd: NDArray[np.float64],  # noqa: N803
+                   height_m: float) -> None:
         """The flow over the time since the previous truth sample, on arrival times: the
         sensor integrates between its own messages, and PX4 stamps each on arrival."""
         assert self.flow is not None
@@ -226,7 +223,7 @@ class SihTruth:
             return
         v_ned = 0.01 * np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)  # cm/s
         rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
-        sample = self.flow.sample(dt, v_ned, truth_attitude(msg), rates, height_m)
+        sample = self.flow.sample(dt, v_ned, R_ned_frd, rates, height_m)
         try:
             self.link.send(self.link.mav.optical_flow_rad_encode(int(now * 1e6), 0, **flow_rad_fields(sample)))
         except LinkError as exc:

@@ -276,7 +276,8 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
             tg.create_task(stopper())
             report = await service.run(stop)
             stop.set()
-        if "land" in report.localization.get("vision_loss_actions", ""):
+        loss_actions = report.localization.get("vision_loss_actions", "")
+        if "land" in loss_actions:
             # The service stops once it has commanded the landing; PX4 flies it on.
             await until_touchdown(truth, LANDING_WATCH_S)
     summary = _summary(cfg, placement, report, truth.path_map_m(), wps_map, [], service, time.monotonic() - t_start)
@@ -293,10 +294,10 @@ async def fly_gps_denied(cfg: CompanionConfig, out_dir: str | Path, sitl: GpsDen
     summary["ev_new_pose_rate_hz"] = round(float(np.median(new_pose_rate)), 1) if new_pose_rate else None
     summary["localization"] = report.localization
     summary["scan_gaps"] = scan_gaps(scans)
-    summary["vision_loss_actions"] = report.localization.get("vision_loss_actions", "")
+    summary["vision_loss_actions"] = loss_actions
     summary["optical_flow_sent"] = truth.flow_sent
     if slam_loss_s > 0.0:
-        if loss_window and "land" in summary["vision_loss_actions"]:
+        if loss_window and "land" in loss_actions:
             # A resumed flight's touchdown is the mission's own landing, not the loss's.
             loss.update(landing_after_loss(truth.samples, loss_window[0]))
         if loss_window:
