@@ -7,7 +7,10 @@ the room's centre and tilted down; every frame is rendered (RGB-D and instance m
 come from the masks (an oracle detector with box noise, misses, class confusions and false
 positives), track ids come from instance ids (a new id whenever an object was out of view for
 a while, so re-association after a lost track is exercised), and the geometry + object map
-run on each frame.
+run on each frame. ``--detector builtin:furniture`` (or an .onnx path) replaces the oracle with
+a shipped model run through our runtime on the rendered colour image, tracked as the service
+tracks (BoT-SORT giving way to 3D association after camera steps it cannot follow; the
+survey's frames are such steps).
 
 Figures (section ``objects``), against the ground truth of objects seen well during the flight:
 
@@ -44,11 +47,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from companion.sim.groundtruth import clearance_m  # noqa: E402
 from companion.sim.render import DepthNoise, RoomRenderer  # noqa: E402
 from companion.sim.world import LAYOUTS, Room, generate_room  # noqa: E402
-from semmap.config import ClassConfig, ExtrinsicsConfig, GeometryConfig, MapConfig, default_classes  # noqa: E402
+from semmap.config import (  # noqa: E402
+    ClassConfig,
+    DetectorConfig,
+    ExtrinsicsConfig,
+    GeometryConfig,
+    MapConfig,
+    TrackerConfig,
+    default_classes,
+)
+from semmap.detection import Detector, detector_from_config  # noqa: E402
 from semmap.frame_objects import observe_frame  # noqa: E402
 from semmap.frames import pose_from_xyz_rpy  # noqa: E402
 from semmap.grid import GridSpec, rasterize_polygon  # noqa: E402
 from semmap.objects import CameraView, MappedObject, ObjectMap  # noqa: E402
+from semmap.pipeline import step_aware_tracker  # noqa: E402
 from semmap.types import CameraIntrinsics, Frame, Track  # noqa: E402
 
 INTRINSICS = CameraIntrinsics(383.0, 383.0, 320.0, 240.0, 640, 480)
@@ -152,6 +165,24 @@ class MaskOracle:
         return out
 
 
+class ShippedDetector:
+    """Tracks of a room's frames from a detector model and the service's tracker (one tracker
+    per room, one model for all)."""
+
+    def __init__(self, detector: Detector) -> None:
+        self.detector = detector
+        self.tracker = step_aware_tracker(TrackerConfig())
+
+    @classmethod
+    def load(cls, model_path: str) -> Detector:
+        """The model (``builtin:NAME`` or an .onnx path) at its shipped operating point."""
+        return detector_from_config(DetectorConfig(kind="onnx", model_path=model_path),
+                                    [c.name for c in default_classes()])
+
+    def tracks(self, frame: Frame) -> list[Track]:
+        return self.tracker.update(list(self.detector.detect_frame(frame)), frame.rgb, frame.T_map_camera)
+
+
 @dataclass
 class RoomResult:
     """Per-object figures of one room."""
@@ -210,11 +241,13 @@ def map_room(
     geometry: GeometryConfig | None = None, map_cfg: MapConfig | None = None,
     classes: list[ClassConfig] | None = None, vote_groups: dict[str, tuple[str, ...]] | None = None,
     class_weights: dict[str, float] | None = None, layout: str = "realistic",
+    detector: Detector | None = None,
 ) -> tuple[Room, ObjectMap, dict[int, int], list[float]]:
     """Fly one seeded room (``layout``: :data:`companion.sim.world.LAYOUTS`) and build its
     object map (``classes``: the object map's, default :func:`default_classes`;
     ``vote_groups`` as :class:`ObjectMap` takes them; ``class_weights``: the room's furniture
-    mix, default the generator's). Returns the room, the map, how many frames each
+    mix, default the generator's; ``detector``: a model in place of the mask oracle, see the
+    module doc). Returns the room, the map, how many frames each
     ground-truth object was seen whole in, and per-frame geometry times (ms)."""
     rng = np.random.default_rng(seed)
     room = generate_room(seed, width_m=float(rng.uniform(6.0, 8.0)), depth_m=float(rng.uniform(5.0, 6.5)),
@@ -223,7 +256,8 @@ def map_room(
     cfg_by_name = {c.name: c for c in classes}
     renderer = RoomRenderer(room, [c.name for c in classes], INTRINSICS,
                             noise=DepthNoise(min_m=DEPTH_RANGE_M[0], max_m=DEPTH_RANGE_M[1]), seed=seed)
-    oracle = MaskOracle(room, noise or OracleNoise(), rng)
+    boxes: MaskOracle | ShippedDetector = (MaskOracle(room, noise or OracleNoise(), rng) if detector is None
+                                           else ShippedDetector(detector))
     geo = geometry or GeometryConfig()
     omap = ObjectMap(classes, map_cfg or MapConfig(), vote_groups=vote_groups)
     seen: dict[int, int] = {}
@@ -233,7 +267,7 @@ def map_room(
         frame = renderer.render(T, stamp_s=stamp, index=i)
         for oid in well_seen(np.asarray(frame.masks["instance"]), room, T):
             seen[oid] = seen.get(oid, 0) + 1
-        tracks = oracle.tracks(frame)
+        tracks = boxes.tracks(frame)
         t0 = time.perf_counter()
         obs = observe_frame(frame.depth_m, INTRINSICS, T, tracks, cfg_by_name, geo, depth_range_m=DEPTH_RANGE_M,
                             stamp_s=stamp, rng=rng)
@@ -310,12 +344,13 @@ def objects_section(args: argparse.Namespace) -> tuple[list[str], dict[str, Any]
 
 def _objects_in(args: argparse.Namespace, layout: str) -> tuple[list[str], dict[str, Any]]:
     n_rooms, n_frames = (3, 40) if args.quick else (args.rooms, args.frames)
+    detector = None if args.detector == "oracle" else ShippedDetector.load(args.detector)
     results = []
     lines = [f"{'seed':>4} {'gt':>3} {'match':>5} {'spur':>4} {'dup':>3} {'pos p95 cm':>10} "
              f"{'IoU med':>7} {'h p95 cm':>8} {'class %':>7}"]
     for k in range(n_rooms):
         seed = args.seed + k
-        room, omap, seen, times = map_room(seed, n_frames, layout=layout)
+        room, omap, seen, times = map_room(seed, n_frames, layout=layout, detector=detector)
         r = score_room(room, omap, seen)
         r.geometry_ms = times
         results.append(r)
@@ -396,13 +431,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1000)
     ap.add_argument("--world", choices=LAYOUTS, default="realistic",
                     help="room layout (realistic also measures the same seeds scattered)")
+    ap.add_argument("--detector", default="oracle",
+                    help="objects section: oracle (boxes from the masks, default), builtin:NAME or an .onnx path")
     ap.add_argument("--no-scattered", action="store_true", help="with --world realistic: skip the scattered rooms")
     ap.add_argument("--tail", type=int, default=0, metavar="N",
                     help="objects section: also list the N objects with the largest position error")
     ap.add_argument("--section", choices=sorted(SECTIONS), action="append",
                     help="run only these sections (default: all)")
     args = ap.parse_args(argv)
-    out: dict[str, Any] = {"world": args.world}
+    out: dict[str, Any] = {"world": args.world, "detector": args.detector}
     for name, fn in SECTIONS.items():
         if args.section and name not in args.section:
             continue
