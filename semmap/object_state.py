@@ -30,13 +30,23 @@ from semmap.polygons import (
     polygon_area_m2,
 )
 
-__all__ = ["HISTORY", "MIN_CLASS_PROB", "MappedObject", "ObjectState", "consistent", "logit", "overlaps",
+__all__ = ["HISTORY", "MIN_CLASS_PROB", "MISS_INTERVAL_S", "MISS_STEP_M", "MISS_TURN_DEG", "MappedObject", "ObjectState", "consistent", "logit", "overlaps",
            "quantile", "sigmoid"]
 
 #: Observations kept per object for the robust height estimate.
 HISTORY = 30
 #: Class probabilities never drop below this, so a later majority can still win.
 MIN_CLASS_PROB = 1e-4
+#: Misses of one object closer together than this (seconds) count as one view between them:
+#: consecutive frames from nearly the same place miss for the same reason (a thin desk top
+#: edge-on, a box the detector does not take), so counted per frame at 15-30 Hz they erase a
+#: well-seen object within a second.
+MISS_INTERVAL_S = 0.5
+#: ... unless the camera moved this far (metres) or turned this much (degrees) since the last
+#: counted miss: then it is another view, whatever the time (keyframes, a fast survey). A
+#: drone at 0.5 m/s covers this in the interval above, so video counts as before.
+MISS_STEP_M = 0.25
+MISS_TURN_DEG = 15.0
 
 
 def quantile(values: Iterable[float], q: float) -> float:
@@ -169,6 +179,8 @@ class ObjectState:
     seen_near: bool = False
     #: When the last miss counted (a frame that should have shown it and did not).
     last_miss_s: float = -math.inf
+    #: The camera (position (3,), optical axis (3,), map frame) of the last miss counted.
+    last_miss_view: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
     z_max_hist: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
     z_min_hist: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
     top_hist: deque[float] = field(default_factory=lambda: deque(maxlen=HISTORY))
@@ -269,6 +281,21 @@ class ObjectState:
             keep.z_max_hist.extend(drop.z_max_hist)
             keep.z_min_hist.extend(drop.z_min_hist)
             keep.top_hist.extend(drop.top_hist)
+
+    def count_miss(self, stamp_s: float, camera_m: NDArray[np.float64], axis: NDArray[np.float64]) -> float:
+        """Record a miss from the camera at ``camera_m`` (3,) looking along ``axis`` (3,, unit,
+        map frame); returns how much of a new view it is (0..1): the time since the last
+        counted miss over ``MISS_INTERVAL_S``, or the camera's step or turn since then, whichever
+        is more."""
+        weight = max(0.0, stamp_s - self.last_miss_s) / MISS_INTERVAL_S
+        if self.last_miss_view is not None:
+            last_m, last_axis = self.last_miss_view
+            step_m = float(np.linalg.norm(camera_m - last_m))
+            turn_deg = math.degrees(math.acos(min(1.0, max(-1.0, float(axis @ last_axis)))))
+            weight = max(weight, step_m / MISS_STEP_M, turn_deg / MISS_TURN_DEG)
+        self.last_miss_s = stamp_s
+        self.last_miss_view = (camera_m, axis)
+        return min(1.0, weight)
 
     def footprint(self, config: MapConfig) -> NDArray[np.float64]:
         """The footprint from the evidence (:meth:`FootprintEvidence.footprint`), or from the

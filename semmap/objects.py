@@ -9,10 +9,13 @@ Every object fuses:
 
 * class probabilities: a Bayesian update per observation with the detector's score as the
   likelihood of the reported class and the rest spread evenly over the other classes;
-* existence (log-odds): raised by each observation (up to just below confirmation while
-  the object was only seen beyond ``footprint_max_range_m``); lowered by the class's ``miss_decay``
-  each frame the object should be visible (its centroid projects into the image, in range,
-  not occluded by nearer depth) but no observation matched it; clamped below
+* existence (log-odds): raised by each observation as much as the view is good
+  (:func:`~semmap.object_evidence.view_quality`; up to just below confirmation while the
+  object was only seen beyond ``footprint_max_range_m``); lowered by the class's
+  ``miss_decay`` for each view that should have shown the object (its centroid projects into
+  the image, in range, not occluded by nearer depth) but no observation matched it, frames
+  from one place at video rate counting once
+  (:meth:`~semmap.object_state.ObjectState.count_miss`); clamped below
   ``existence_max`` so that even a long-seen object fades once it is gone;
 * position: inverse-variance fusion of observed centroids (noise grows with range);
 * footprint: weighted 2 cm cells where views saw the object's points (views from different
@@ -74,11 +77,6 @@ __all__ = ["CameraView", "MappedObject", "ObjectMap"]
 _UNCONFIRMED_MARGIN = 0.01
 #: Weight of a view farther than ``footprint_max_range_m`` (noisier depth).
 _FAR_WEIGHT = 0.3
-#: Misses of one object closer together than this (seconds) count as one view between them:
-#: consecutive frames from nearly the same place miss for the same reason (a thin desk top
-#: edge-on, a box the detector does not take), so counted per frame at 15-30 Hz they erase a
-#: well-seen object within a second.
-_MISS_INTERVAL_S = 0.5
 
 
 #: Position variance factor of views cut by the image border.
@@ -467,15 +465,15 @@ class ObjectMap:
         cents = np.array([self._objects[oid].position_m for oid in ids])
         # A miss counts only where the detector should have seen the object: in view, not
         # occluded (expects_visible), and near enough to be detected.
-        cam = np.asarray(view.T_map_camera, dtype=np.float64)[:3, 3]
+        T = np.asarray(view.T_map_camera, dtype=np.float64)
+        cam, axis = T[:3, 3], T[:3, 2]
         near = np.linalg.norm(cents - cam, axis=1) <= self.config.footprint_max_range_m
         visible = view.expects_visible(cents) & near
         for oid, vis in zip(ids, visible, strict=True):
             if vis:
                 s = self._objects[oid]
                 decay = self.classes[int(np.argmax(s.class_probs))].miss_decay
-                s.logodds -= decay * min(1.0, max(0.0, stamp_s - s.last_miss_s) / _MISS_INTERVAL_S)
-                s.last_miss_s = stamp_s
+                s.logodds -= decay * s.count_miss(stamp_s, cam, axis)
                 s.snapshot_cache = None
 
     def _prune(self, stamp_s: float) -> None:

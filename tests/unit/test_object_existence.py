@@ -11,6 +11,7 @@ import pytest
 from semmap.config import MapConfig, default_classes
 from semmap.frames import make_transform
 from semmap.object_evidence import view_quality
+from semmap.object_state import logit
 from semmap.objects import CameraView, ObjectMap
 from tests.unit.test_objects import T_MAP_CAMERA, K, obs
 
@@ -146,3 +147,29 @@ def test_a_table_view_whose_top_is_a_chair_seat_adds_no_geometry() -> None:
     low.update([dataclasses.replace(table, class_name="coffee_table", top_height_m=0.45, z_max_m=0.47)], 0.0)
     low.update([dataclasses.replace(seat, class_name="coffee_table")], 0.1)
     assert np.max(low.objects(confirmed_only=False)[0].footprint_xy_m[:, 0]) > np.max(before[:, 0]) + 0.1
+
+
+def _missed_from(cameras_y_m: list[float], dt_s: float) -> float:
+    """Existence log-odds lost by a well-seen sofa at (3, 0) missed once from each camera (at y,
+    facing +x), ``dt_s`` apart."""
+    m = ObjectMap(default_classes())
+    for t in range(3):
+        m.update([dataclasses.replace(obs(1, cls="sofa"), stamp_s=float(t))], float(t))
+    e0 = logit(m.objects()[0].existence)
+    depth = np.full((K.height_px, K.width_px), 6.0, np.float32)
+    for i, y in enumerate(cameras_y_m):
+        T = make_transform(T_MAP_CAMERA[:3, :3], np.array([0.0, y, 0.5]))
+        m.update([], 3.0 + i * dt_s, view=CameraView(depth, K, T, (0.3, 6.0)))
+    return e0 - logit(m.objects()[0].existence)
+
+
+def test_misses_from_keyframes_count_each_and_video_frames_from_one_place_count_once() -> None:
+    # Video: 15 Hz from one place, the frames miss for the same reason.
+    video = _missed_from([0.0] * 4, 1.0 / 15.0)
+    # Keyframes a camera step apart, stamped as closely: four views, four misses.
+    keyframes = _missed_from([0.0, 0.3, 0.6, 0.9], 1.0 / 15.0)
+    one = _missed_from([0.0], 1.0)
+    assert one > 0.0
+    assert video < 1.5 * one
+    assert keyframes > 3.5 * one
+
