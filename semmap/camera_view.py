@@ -41,6 +41,9 @@ SMOOTH_BINS = 3
 #: Views cut by the field of view by at least this much outline (metres) steer the rectangle:
 #: a few short cut edges never do.
 MIN_CUT_LENGTH_M = 0.2
+#: The measured depth behind a point is the median of the valid pixels within this many
+#: pixels of its projection (a lone noisy or flying pixel does not decide).
+_PATCH_HALF_PX = 2
 
 
 @dataclass(frozen=True)
@@ -58,10 +61,12 @@ class CameraView:
     tolerance_m: float = 0.3
     margin_px: int = 10
 
-    def expects_visible(self, points_map_m: NDArray[np.floating]) -> NDArray[np.bool_]:
+    def expects_visible(self, points_map_m: NDArray[np.floating],
+                        tolerance_m: float | None = None) -> NDArray[np.bool_]:
         """(N,) True where a map point (N, 3) projects inside the image, within range, and the
         measured depth there (median of a 5x5 patch) is not nearer than the point by more than
-        the tolerance. Pixels without valid depth are not evidence either way (False)."""
+        ``tolerance_m`` (None: the view's). Pixels without valid depth are not evidence either
+        way (False)."""
         pts = np.asarray(points_map_m, dtype=np.float64).reshape(-1, 3)
         out = np.zeros(len(pts), dtype=bool)
         if len(pts) == 0:
@@ -69,17 +74,33 @@ class CameraView:
         K = self.intrinsics
         u, v, z = project_map_points(pts, K, self.T_map_camera)
         in_range = (z > 0.0) & (z >= self.depth_range_m[0]) & (z <= self.depth_range_m[1])
-        m = self.margin_px
-        inside = in_range & (u >= m) & (u < K.width_px - m) & (v >= m) & (v < K.height_px - m)
+        m = max(self.margin_px, _PATCH_HALF_PX)  # the patch lies inside the image
+        inside = np.flatnonzero(in_range & (u >= m) & (u < K.width_px - m) & (v >= m) & (v < K.height_px - m))
+        if len(inside) == 0:
+            return out
         d = np.asarray(self.depth_m)
-        for i in np.nonzero(inside)[0]:
-            ui, vi = int(u[i]), int(v[i])
-            patch = d[max(0, vi - 2) : vi + 3, max(0, ui - 2) : ui + 3]
-            ok = valid_depth_mask(patch, self.depth_range_m[0], self.depth_range_m[1])
-            if ok.sum() == 0:
-                continue
-            measured = float(np.median(patch[ok]))
-            out[i] = measured >= z[i] - self.tolerance_m
+        # One flat gather of every point's patch: this runs on each cell of each object in view.
+        offsets = np.arange(-_PATCH_HALF_PX, _PATCH_HALF_PX + 1)
+        flat_offsets = (offsets[:, None] * d.shape[1] + offsets[None, :]).reshape(-1)
+        centre = v[inside].astype(np.int64) * d.shape[1] + u[inside].astype(np.int64)
+        patch = np.take(d.reshape(-1), centre[:, None] + flat_offsets[None, :])
+        valid = valid_depth_mask(patch, self.depth_range_m[0], self.depth_range_m[1])
+        n_valid = valid.sum(axis=1)
+        median = np.full(len(inside), np.nan)
+        # Rows with every pixel valid (most): their middle value, by partition.
+        full = n_valid == patch.shape[1]
+        mid = patch.shape[1] // 2
+        median[full] = np.partition(patch[full], mid, axis=1)[:, mid]
+        some = np.flatnonzero(~full & (n_valid > 0))
+        if len(some):
+            rest = np.where(valid[some], patch[some], np.inf)  # sorted last: the median is among the first n_valid
+            srt = np.sort(rest, axis=1)  # (np.nanmedian is ten times slower on many short rows)
+            n = n_valid[some]
+            median[some] = 0.5 * (srt[np.arange(len(some)), (n - 1) // 2].astype(np.float64)
+                                  + srt[np.arange(len(some)), n // 2].astype(np.float64))
+        tol = self.tolerance_m if tolerance_m is None else tolerance_m
+        seen = n_valid > 0
+        out[inside[seen]] = median[seen] >= z[inside[seen]] - tol
         return out
 
 

@@ -198,9 +198,9 @@ class ObjectMap:
                     assigned[i] = owner
                     shown.add(owner)
                     continue
-                oid = self._create(obs[i])
+                oid = self._create(obs[i], view)
             else:
-                self._fuse(self._objects[oid], obs[i])
+                self._fuse(self._objects[oid], obs[i], view)
             used.add(oid)
             assigned[i] = oid
             self._track_to_object[obs[i].track_id] = oid
@@ -341,7 +341,7 @@ class ObjectMap:
         sigma = self.config.position_sigma_m + self.config.position_sigma_per_m * o.range_m
         return sigma * sigma
 
-    def _create(self, o: ObjectObservation) -> int:
+    def _create(self, o: ObjectObservation, view: CameraView | None = None) -> int:
         oid = self._next_id
         self._next_id += 1
         prior = np.full(len(self.class_names), 1.0 / len(self.class_names))
@@ -352,11 +352,12 @@ class ObjectMap:
             first_seen_s=o.stamp_s, last_seen_s=o.stamp_s,
         )
         self._objects[s.object_id] = s
-        self._fuse(s, o, first=True)
+        self._fuse(s, o, view, first=True)
         log.debug("new object %d (%s) at %s", oid, o.class_name, np.round(o.centroid_map_m, 2))
         return oid
 
-    def _fuse(self, s: ObjectState, o: ObjectObservation, first: bool = False) -> None:
+    def _fuse(self, s: ObjectState, o: ObjectObservation, view: CameraView | None = None,
+              first: bool = False) -> None:
         cfg = self.config
         s.snapshot_cache = None
         p = s.class_probs * self._class_likelihood(o.class_name, o.score)
@@ -414,9 +415,10 @@ class ObjectMap:
                 s.top_hist.append(o.top_height_m)
         # Every view adds evidence where it saw the object (partial views are incomplete,
         # not wrong); each cell counts once per view.
-        pts = o.points_xy_m if len(o.points_xy_m) else fp
+        # The points' heights tell which cells the view could have seen (a seat under a table).
+        pts = o.voxels_map_m if len(o.voxels_map_m) else o.points_xy_m if len(o.points_xy_m) else fp
         near = o.range_m <= cfg.footprint_max_range_m
-        s.evidence.add_view(pts, 1.0 if near else _FAR_WEIGHT)
+        s.evidence.add_view(pts, 1.0 if near else _FAR_WEIGHT, view)
         if o.footprint_edge_cut is not None:
             s.edges.add_view(fp, o.footprint_edge_cut)
         if o.camera_xy_m is not None:

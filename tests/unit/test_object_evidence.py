@@ -8,11 +8,14 @@ import math
 import numpy as np
 import pytest
 
+from semmap.camera_view import CameraView
 from semmap.config import MapConfig, default_classes
 from semmap.geometry import ObjectObservation
 from semmap.object_evidence import CELL_M, FootprintEvidence
 from semmap.objects import ObjectMap
+from semmap.pointcloud import backproject
 from semmap.polygons import convex_footprint, min_perimeter_rectangle, polygon_area_m2
+from tests.unit.test_geometry import FLOOR, K, camera_pose, render
 
 
 def _rotate(xy: np.ndarray, yaw_rad: float) -> np.ndarray:
@@ -144,3 +147,41 @@ def test_a_coffee_table_keeps_its_class_and_place_when_a_few_views_hold_the_wall
     (o,) = m.objects()
     assert o.class_name == "coffee_table"
     assert np.linalg.norm(o.footprint_center_xy_m - np.asarray(centre)) < 0.05
+
+
+def test_a_seat_hidden_under_a_table_in_most_views_keeps_its_footprint() -> None:
+    # A chair pushed in under a table's edge: the table top hides most of the seat from the
+    # views that see the backrest. By weight alone the chair was a strip along its backrest;
+    # the views that could not see the seat do not count against it.
+    table_top = ((-1.0, -0.6, 0.72), (0.35, 0.6, 0.75))
+    seat, back = ((0.0, -0.25, 0.42), (0.5, 0.25, 0.45)), ((0.5, -0.25, 0.45), (0.55, 0.25, 0.95))
+    stray = np.array([[0.25, 0.45, 0.02]])  # a floor point beside the chair, in plain view
+    seen, by_weight = FootprintEvidence(), FootprintEvidence()
+    for k in range(36):
+        a = math.radians(-180.0 + 360.0 * k / 35)
+        cx, cy = 0.3 + 1.8 * math.cos(a), 1.8 * math.sin(a)
+        T = camera_pose(cx, cy, 1.5, math.atan2(-cy, 0.3 - cx), 30.0)
+        depth = render([table_top, seat, back, FLOOR], T)
+        pc, _ = backproject(depth, K, 0.3, 8.0)
+        pts = pc.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        on_chair = np.zeros(len(pts), dtype=bool)
+        for lo, hi in (seat, back):
+            on_chair |= np.all((pts >= np.asarray(lo) - 0.01) & (pts <= np.asarray(hi) + 0.01), axis=1)
+        pts = np.vstack([pts[on_chair], stray]) if k % 12 == 0 else pts[on_chair]
+        seen.add_view(pts, 1.0, CameraView(depth, K, T, (0.3, 8.0)))
+        by_weight.add_view(pts[:, :2], 1.0)
+    strip = by_weight.footprint(0.65, "rectangle")
+    assert strip is not None and np.ptp(strip[:, 0]) < 0.15  # the backrest only
+    fp = seen.footprint(0.65, "rectangle")
+    assert fp is not None
+    assert fp.min(axis=0) == pytest.approx([0.0, -0.25], abs=0.12)
+    assert fp.max(axis=0) == pytest.approx([0.55, 0.25], abs=0.03)  # the stray point is not the chair's
+
+
+def test_merged_evidence_keeps_the_views_that_could_see_each_cell() -> None:
+    a, b = FootprintEvidence(), FootprintEvidence()
+    a.add_view(np.array([[0.01, 0.01, 0.4]]), 1.0)
+    b.add_view(np.array([[0.01, 0.01, 0.5], [0.05, 0.01, 0.3]]), 0.5)
+    a.merge(b)
+    assert a.weights.tolist() == [1.5, 0.5] and a.visible.tolist() == [1.5, 0.5]
+    assert a.top_z_m.tolist() == pytest.approx([0.5, 0.3]) and a.total_weight == 1.5
