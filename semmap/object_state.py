@@ -30,8 +30,8 @@ from semmap.polygons import (
     polygon_area_m2,
 )
 
-__all__ = ["HISTORY", "MIN_CLASS_PROB", "MISS_INTERVAL_S", "MISS_STEP_M", "MISS_TURN_DEG", "MappedObject", "ObjectState", "consistent", "logit", "overlaps",
-           "quantile", "sigmoid"]
+__all__ = ["HISTORY", "MIN_CLASS_PROB", "MISS_INTERVAL_S", "MISS_STEP_M", "MISS_TURN_DEG", "MappedObject",
+           "ObjectState", "consistent", "logit", "overlaps", "quantile", "sigmoid"]
 
 #: Observations kept per object for the robust height estimate.
 HISTORY = 30

@@ -158,7 +158,10 @@ async def _offboard_during_takeoff(behaviour: Px4Behaviour) -> MockAutopilot:
             assert ap.mode is FlightMode.TAKEOFF
             assert await c.command(mavlink.MAV_CMD_DO_SET_MODE,
                                    *px4.set_mode_params(FlightMode.OFFBOARD)) == ACCEPTED
-            await asyncio.sleep(2.0)
+            # Until the take-off is over, however slowly a loaded machine climbs, then a while
+            # for a request that was kept to show.
+            await ap.wait_until(lambda: ap.mode is not FlightMode.TAKEOFF, 15.0, "take-off over")
+            await asyncio.sleep(0.5)
             return ap
     raise AssertionError("unreachable")
 
