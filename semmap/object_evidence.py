@@ -157,10 +157,12 @@ class FootprintEvidence:
         self.top_z_m = np.insert(z, pos[fresh], top[fresh])
         seeable = np.ones(len(self.keys), dtype=bool)
         if view is not None:
-            tested = ~np.isnan(self.top_z_m)
+            # Cells this view hit were visible; only the others are projected and tested.
+            hit = np.zeros(len(self.keys), dtype=bool)
+            hit[np.searchsorted(self.keys, keys)] = True
+            tested = ~hit & ~np.isnan(self.top_z_m)
             seeable[tested] = view.expects_visible(
                 np.column_stack([cell_centres(self.keys[tested]), self.top_z_m[tested]]), VISIBILITY_TOLERANCE_M)
-            seeable[np.searchsorted(self.keys, keys)] = True  # seen, so visible
         self.visible[seeable] += weight
         self.total_weight += weight
 
