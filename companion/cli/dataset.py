@@ -32,6 +32,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--aim-class-balanced", action="store_true",
                    help="aim at a uniformly drawn class of the room, then one of its objects, so "
                    "rare classes get as many aimed views as chairs (training data)")
+    p.add_argument("--aim-clutter", type=float, default=0.0, metavar="FRAC",
+                   help="fraction of the aimed images aimed at clutter instead of furniture: hard "
+                   "negatives (training data; default 0)")
     p.add_argument("--class-weights", default="",
                    help="relative class frequencies of the rooms, e.g. conference_table=2,sofa=1.5 "
                    "(classes left out keep the world's defaults; training data)")
@@ -62,7 +65,7 @@ def _run(args: argparse.Namespace) -> int:
         split=args.split, n_rooms=args.rooms, images_per_room=args.images_per_room, seed=args.seed,
         class_names=tuple(names), intrinsics=cfg.camera.intrinsics(),
         min_visible_px=args.min_visible_px, motion_blur_fraction=args.motion_blur_fraction,
-        aim_class_balanced=args.aim_class_balanced,
+        aim_class_balanced=args.aim_class_balanced, aim_clutter_fraction=args.aim_clutter,
         class_weights=_class_weights(args.class_weights, names),
         layout=args.layout or cfg.sim.layout,
     )

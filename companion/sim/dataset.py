@@ -78,6 +78,10 @@ class DatasetSpec:
     #: and eight chairs) get as many aimed views as common ones. Training data only; the
     #: held-out split keeps the plain draw so its class mix is what a flight sees.
     aim_class_balanced: bool = False
+    #: Fraction of the aimed images aimed at a piece of clutter (cabinets, shelves, lamps,
+    #: boxes) instead: hard negatives, since clutter seen only at the edge of furniture views
+    #: is what a detector learns least and then names a chair. Training data only.
+    aim_clutter_fraction: float = 0.0
     #: Relative class frequencies of the generated rooms, ``((name, weight), ...)``; empty
     #: keeps :data:`companion.sim.world.CLASS_WEIGHTS`. Training data only, to give rare
     #: classes (conference tables) more instances.
@@ -106,6 +110,8 @@ class DatasetSpec:
         lo, hi = self.height_range_m
         if not 0.0 < lo <= hi:
             raise SimulationError(f"height_range_m must be 0 < low <= high (got {self.height_range_m})")
+        if not 0.0 <= self.aim_clutter_fraction <= 1.0:
+            raise SimulationError(f"aim_clutter_fraction must be in 0..1 (got {self.aim_clutter_fraction})")
 
 
 @dataclass(frozen=True)
@@ -196,7 +202,9 @@ def sample_camera_pose(
         if clearance_m(room, xyz[None, :], vehicle_height_m=0.2)[0] < spec.min_clearance_m:
             continue
         if room.objects and rng.random() < spec.aim_fraction:
-            if spec.aim_class_balanced:
+            if room.clutter and spec.aim_clutter_fraction > 0 and rng.random() < spec.aim_clutter_fraction:
+                pool = list(room.clutter)
+            elif spec.aim_class_balanced:
                 names = sorted({o.class_name for o in room.objects})
                 name = names[int(rng.integers(len(names)))]
                 pool = [o for o in room.objects if o.class_name == name]

@@ -184,3 +184,28 @@ def test_class_balanced_aiming_looks_at_rare_classes_as_often_as_chairs() -> Non
 
     plain, balanced = sofa_share(base), sofa_share(DatasetSpec(aim_fraction=1.0, aim_class_balanced=True))
     assert balanced > 0.35 and balanced > plain + 0.15, (plain, balanced)
+
+
+def test_clutter_aiming_looks_at_clutter_and_bad_fraction_is_named() -> None:
+    """Hard negatives: with every aimed image aimed at clutter, the camera looks at a piece of
+    clutter far more often than with plain aiming at furniture."""
+    names = DatasetSpec().class_names
+    room = next(r for r in (varied_room(s, np.random.default_rng(s), names) for s in range(100_000, 100_100))
+                if len(r.clutter) >= 2 and len(r.objects) >= 4)
+    clutter = np.array([c.centroid_m() for c in room.clutter])
+
+    def clutter_share(spec: DatasetSpec) -> float:
+        r = np.random.default_rng(5)
+        hits = 0
+        for _ in range(200):
+            T = sample_camera_pose(room, spec, r)
+            d = clutter - T[:3, 3]
+            cos = (d @ T[:3, 2]) / np.linalg.norm(d, axis=1)
+            hits += bool(np.any(cos > math.cos(math.radians(20.0))))
+        return hits / 200
+
+    plain = clutter_share(DatasetSpec(aim_fraction=1.0))
+    aimed = clutter_share(DatasetSpec(aim_fraction=1.0, aim_clutter_fraction=1.0))
+    assert aimed > 0.6 and aimed > plain + 0.25, (plain, aimed)
+    with pytest.raises(SimulationError, match="aim_clutter_fraction"):
+        DatasetSpec(aim_clutter_fraction=1.5)
